@@ -1,0 +1,419 @@
+"""The mission state machine (SPEC §3) shared by the simulator, the training environment and the
+ROS task board.
+
+Event driven, no time step. The machine holds one *current decider* at a time; a driver (a
+policy, the batched trainer, the task board) reads :meth:`MissionState.mask` and calls
+:meth:`MissionState.step` with the chosen node (0 = own depot, 1 + m = task m). ``step`` applies
+one commitment and then advances: later deciders of the same instant, then task completions in
+time order, until a decider with an admissible task exists or the episode ends.
+
+The environment owns feasibility. Besides the SPEC's ability mask it applies (see README,
+"Semantics"):
+
+* **max-open-task rule** (``Rules.max_open``): with that many open tasks, empty tasks are masked.
+* **deadlock-avoidance mask** (``Rules.safety``, default on; project choice): a commitment is
+  admissible only if afterwards the open tasks can still all be completed, one after another, by
+  the agents not waiting at open tasks (a banker's-algorithm check). Together with the stall rule
+  below this guarantees that every feasible instance is completed whatever the policy picks.
+* **postponement** (flashforward): a decider with no admissible task is moved behind the other
+  deciders of its instant; still blocked, it waits in place and is retried after the deciders of
+  later instants. With ``Rules.backdate`` (training only) its departure is back-dated to the
+  instant it first became free.
+* an agent with no empty/open task left to join goes home; agents parked at their depot (or on
+  the way there) are offered a decision again after every completion event. When nothing is
+  pending any more (a *stall*), parked and waiting agents are offered the tasks with the depot
+  masked; if none of them can move, the episode ends in deadlock.
+"""
+from __future__ import annotations
+
+import heapq
+import math
+import random
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .instance import Instance
+
+# agent modes
+FREE, TASK, HOME, WAIT = 0, 1, 2, 3
+MODE_NAMES = ("free", "task", "home", "wait")
+# task status
+EMPTY, OPEN, IN_PROGRESS, DONE = 0, 1, 2, 3
+STATUS_NAMES = ("empty", "open", "in_progress", "done")
+
+
+@dataclass(frozen=True)
+class Rules:
+    max_open: int | None = None  # max-open-task rule (None: no limit)
+    safety: bool = True  # deadlock-avoidance mask
+    backdate: bool = False  # flashforward back-dated departure (training only)
+    t_max: float = math.inf  # episode fails when an event lies beyond this time
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"max_open": self.max_open, "safety": self.safety, "backdate": self.backdate,
+                "t_max": None if math.isinf(self.t_max) else self.t_max}
+
+
+class MissionState:
+    """Exact event-driven state of one mission (SPEC §3). See the module docstring."""
+
+    def __init__(self, inst: Instance, seed: int = 0, rules: Rules = Rules()):
+        self.inst = inst
+        self.rules = rules
+        self.rng = random.Random(seed)
+        self.seed = seed
+        A, M, K = inst.n_agents, inst.n_tasks, inst.skills
+        self.A, self.M, self.K = A, M, K
+        self.additive = inst.additive
+        # capability used for requirement arithmetic: AT traits, BT skill coverage (0/1)
+        self.cap = np.array(inst.traits if self.additive else inst.traits > 0, dtype=np.float64)  # [A, K]
+        self.req = np.array(inst.requirements if self.additive else inst.requirements > 0, dtype=np.float64)  # [M, K]
+        self.rem = self.req.copy()  # [M, K] remaining requirement (0 once in progress / done)
+        self.status = np.zeros(M, dtype=np.int64)  # [M]
+        self.members: list[list[int]] = [[] for _ in range(M)]
+        self.start = np.full(M, np.nan)  # [M]
+        self.finish = np.full(M, np.nan)  # [M]
+        self.held = np.zeros((M, K))  # [M, K] capability of the members committed to each task
+        # agents
+        self.mode = np.full(A, FREE, dtype=np.int64)  # [A]
+        self.target = np.full(A, -1, dtype=np.int64)  # [A] task id or -1 (depot / none)
+        self.from_pos = np.array(inst.depots, dtype=np.float64)  # [A, 2] where the current leg began
+        self.to_pos = self.from_pos.copy()  # [A, 2] where the current leg ends
+        self.depart = np.zeros(A)  # [A] departure time of the current leg
+        self.arrive = np.zeros(A)  # [A] arrival time of the current leg
+        self.free_since = np.zeros(A)  # [A] when a FREE / WAIT agent became free at its position
+        self.wait_total = np.zeros(A)  # [A] time waited at tasks for the coalition (AWT)
+        self.routes: list[list[int]] = [[] for _ in range(A)]
+        self.depot_stops = np.zeros(A, dtype=np.int64)  # [A] returns home while work remained
+        self.pool = self.cap.sum(0)  # [K] capability of agents not waiting at an open task
+        self.n_open = 0
+        self.n_done = 0
+        self.clock = 0.0
+        self.events: list[tuple[float, int, int]] = []  # (finish, seq, task)
+        self._seq = 0
+        self.queue: list[int] = []  # deciders of this instant, next first (stored reversed)
+        self._deferred: set[int] = set()  # postponed once at this instant
+        self._stall = False
+        self._commits = 0
+        self._stall_commits = -1
+        self.decisions = 0  # policy decisions taken (steps)
+        self.done = False
+        self.success = False
+        self.failure: str | None = None
+        self.agent: int | None = None
+        self._mask: np.ndarray | None = None
+        order = list(range(A))
+        self.rng.shuffle(order)
+        self.queue = order[::-1]
+        self._advance()
+
+    # ------------------------------------------------------------------------------------------
+    # queries
+    # ------------------------------------------------------------------------------------------
+    def position(self, a: int, t: float | None = None) -> np.ndarray:
+        """Position of agent a at time t (default: now), moving in a straight line along its leg."""
+        t = self.clock if t is None else t
+        d0, d1 = self.depart[a], self.arrive[a]
+        if t >= d1 or d1 <= d0:
+            return self.to_pos[a].copy()
+        if t <= d0:
+            return self.from_pos[a].copy()
+        f = (t - d0) / (d1 - d0)
+        return self.from_pos[a] + (self.to_pos[a] - self.from_pos[a]) * f
+
+    def positions(self) -> np.ndarray:  # [A, 2]
+        span = self.arrive - self.depart  # [A]
+        f = np.clip((self.clock - self.depart) / np.where(span > 0, span, 1.0), 0.0, 1.0)  # [A]
+        f = np.where(span > 0, f, 1.0)
+        return self.from_pos + (self.to_pos - self.from_pos) * f[:, None]
+
+    def mask(self) -> np.ndarray:
+        """Admissible nodes for the current decider: bool [1 + M], index 0 = depot."""
+        if self._mask is None:
+            raise RuntimeError("no decision is pending (episode done)")
+        return self._mask
+
+    def _task_mask(self, a: int) -> np.ndarray:
+        """bool [M]: tasks agent a may join now (ability, max-open and safety rules)."""
+        ca = self.cap[a]  # [K]
+        contrib = (np.minimum(self.rem, ca) > 0).any(1)  # [M] reduces a positive remaining entry
+        if self.rules.max_open is not None and self.n_open >= self.rules.max_open:
+            contrib &= self.status == OPEN
+        if self.rules.safety and contrib.any():
+            contrib = self._safe(a, contrib)
+        return contrib
+
+    # ---- deadlock avoidance (banker's algorithm over open tasks) -------------------------------
+    def _fits(self, rem: np.ndarray, pool: np.ndarray) -> np.ndarray:
+        """bool [...]: remaining requirement rows that `pool` could satisfy alone."""
+        return (rem <= (pool if self.additive else (pool > 0))).all(-1)
+
+    def _closure(self, rems: np.ndarray, helds: np.ndarray, pool: np.ndarray):
+        """Complete open tasks greedily with the pool; returns (all done, final pool, alive [O])."""
+        alive = np.ones(len(rems), dtype=bool)  # [O]
+        while alive.any():
+            ok = alive & self._fits(rems, pool)  # [O]
+            if not ok.any():
+                break
+            pool = pool + helds[ok].sum(0)
+            alive &= ~ok
+        return not alive.any(), pool, alive
+
+    def _safe(self, a: int, cand: np.ndarray) -> np.ndarray:
+        ca = self.cap[a]
+        out = cand.copy()
+        open_ids = np.flatnonzero(self.status == OPEN)  # [O]
+        rems, helds = self.rem[open_ids], self.held[open_ids]  # [O, K]
+        pool = self.pool  # a is in the pool (it is not waiting at an open task)
+        # empty candidates: a opens X with remaining r_X = max(q_X - ca, 0), leaving the pool
+        empty = np.flatnonzero(cand & (self.status == EMPTY))
+        if len(empty):
+            r = np.maximum(self.rem[empty] - ca, 0.0)  # [E, K]
+            instant = (r <= 0).all(1)  # [E] a alone satisfies X: state unchanged, safe
+            all_done, p_stuck, alive = self._closure(rems, helds, pool - ca)
+            ok = self._fits(r, p_stuck)  # [E]
+            if not all_done:
+                ok &= self._closure(rems[alive], helds[alive], p_stuck + ca)[0]
+            out[empty] = instant | ok
+        # open candidates: a joins X
+        for i, m in enumerate(open_ids):
+            if not cand[m]:
+                continue
+            r = np.maximum(rems[i] - ca, 0.0)
+            if (r <= 0).all():  # X starts: its members are released after it finishes
+                keep = np.arange(len(open_ids)) != i
+                out[m] = self._closure(rems[keep], helds[keep], pool + helds[i])[0]
+            else:
+                rems2, helds2 = rems.copy(), helds.copy()
+                rems2[i], helds2[i] = r, helds[i] + ca
+                out[m] = self._closure(rems2, helds2, pool - ca)[0]
+        return out
+
+    # ------------------------------------------------------------------------------------------
+    # transitions
+    # ------------------------------------------------------------------------------------------
+    def step(self, node: int) -> None:
+        """Apply the current decider's choice (0 = depot, 1 + m = task m) and advance."""
+        a = self.agent
+        if a is None or self._mask is None:
+            raise RuntimeError("no decision is pending (episode done)")
+        if not (0 <= node < len(self._mask)) or not self._mask[node]:
+            raise ValueError(f"agent {a}: node {node} is not admissible now")
+        self.decisions += 1
+        self.commit(a, node)
+        self._advance()
+
+    def commit(self, a: int, node: int) -> None:
+        """One commitment: agent a departs for its depot (node 0) or task node - 1 (SPEC §3.2)."""
+        mode = self.mode[a]
+        backdate = self.rules.backdate and mode in (FREE, WAIT)
+        t_dep = self.free_since[a] if backdate else self.clock
+        here = self.position(a)
+        inst = self.inst
+        self._mask = None
+        self.agent = None
+        if node == 0:
+            if mode == HOME:
+                return  # stays parked (or keeps going home)
+            self._leg(a, here, inst.depots[a], t_dep)
+            self.mode[a], self.target[a] = HOME, -1
+            if self.n_done + self._n_in_progress() < self.M:
+                self.depot_stops[a] += 1
+            return
+        m = node - 1
+        self._commits += 1
+        self._leg(a, here, inst.task_locations[m], t_dep)
+        self.mode[a], self.target[a] = TASK, m
+        self.members[m].append(a)
+        self.routes[a].append(m)
+        self.held[m] += self.cap[a]
+        self.rem[m] = np.maximum(self.rem[m] - self.cap[a], 0.0)
+        was_open = self.status[m] == OPEN
+        if (self.rem[m] <= 0).all():  # coalition satisfies m: in progress (SPEC §3.3)
+            self.status[m] = IN_PROGRESS
+            if was_open:
+                self.n_open -= 1
+                self.pool += self.held[m] - self.cap[a]
+            mem = self.members[m]
+            start = float(self.arrive[mem].max())
+            self.start[m] = start
+            self.finish[m] = start + float(inst.durations[m])
+            self._seq += 1
+            heapq.heappush(self.events, (self.finish[m], self._seq, m))
+        else:
+            if not was_open:
+                self.status[m] = OPEN
+                self.n_open += 1
+            self.pool -= self.cap[a]
+        if self.n_open == 0 and not (self.status == EMPTY).any():
+            for b in np.flatnonzero(self.mode == WAIT):  # nothing left to join: waiting agents go home
+                self.commit(int(b), 0)
+
+    def _leg(self, a: int, frm: np.ndarray, to: np.ndarray, t_dep: float) -> None:
+        self.from_pos[a] = frm
+        self.to_pos[a] = to
+        self.depart[a] = t_dep
+        self.arrive[a] = t_dep + math.hypot(to[0] - frm[0], to[1] - frm[1]) / self.inst.velocity
+
+    def _n_in_progress(self) -> int:
+        return int((self.status == IN_PROGRESS).sum())
+
+    def complete(self, m: int) -> list[int]:
+        """One completion: task m finishes; its members become free there. Returns the members."""
+        self.status[m] = DONE
+        self.n_done += 1
+        mem = self.members[m]
+        fin, st = self.finish[m], self.start[m]
+        for a in mem:
+            self.wait_total[a] += st - self.arrive[a]
+            self.mode[a], self.target[a] = FREE, -1
+            self.from_pos[a] = self.to_pos[a]
+            self.depart[a] = self.arrive[a] = fin
+            self.free_since[a] = fin
+        return list(mem)
+
+    def _advance(self) -> None:
+        """Find the next decider with an admissible task, processing events as needed."""
+        while True:
+            while self.queue:
+                a = self.queue.pop()
+                mode = self.mode[a]
+                if self.n_open == 0 and (self.status == EMPTY).sum() == 0:
+                    # nothing left to join: go home for good
+                    if mode in (FREE, WAIT):
+                        self.commit(a, 0)
+                    continue
+                tm = self._task_mask(a)
+                if tm.any():
+                    mask = np.empty(self.M + 1, dtype=bool)
+                    mask[0] = not self._stall
+                    mask[1:] = tm
+                    self.agent, self._mask = a, mask
+                    return
+                if mode == HOME:
+                    continue  # stays parked
+                if mode == FREE and a not in self._deferred and self.queue:
+                    self._deferred.add(a)  # flashforward: let the others of this instant go first
+                    self.queue.insert(0, a)
+                    continue
+                self.mode[a] = WAIT
+            # no decider left at this instant
+            self._deferred.clear()
+            if self.n_done == self.M:
+                self._finish_episode()
+                return
+            if self.events:
+                t = max(self.events[0][0], self.clock)
+                if t > self.rules.t_max:
+                    self._fail(f"time limit {self.rules.t_max} exceeded")
+                    return
+                self.clock = t
+                freed: list[int] = []
+                while self.events and self.events[0][0] <= t:
+                    _, _, m = heapq.heappop(self.events)
+                    freed += sorted(self.complete(m))
+                self._stall = False
+                self._requeue(freed)
+                continue
+            # stall: nothing in progress; offer parked and waiting agents the tasks, depot masked
+            if self._stall and self._commits == self._stall_commits:
+                self._fail("deadlock: open tasks can no longer be satisfied")
+                return
+            self._stall, self._stall_commits = True, self._commits
+            self._requeue([])
+            if not self.queue:
+                self._fail("deadlock: no agent can move")
+                return
+
+    def _requeue(self, freed: list[int]) -> None:
+        self.rng.shuffle(freed)
+        waiting = [a for a in range(self.A) if self.mode[a] == WAIT]
+        waiting.sort(key=lambda a: (self.free_since[a], a))
+        parked = [a for a in range(self.A) if self.mode[a] == HOME]
+        if self.n_done + self._n_in_progress() == self.M:
+            parked = []  # nothing left to offer them
+        order = freed + waiting + parked
+        self.queue = order[::-1]
+
+    def _finish_episode(self) -> None:
+        for a in range(self.A):
+            if self.mode[a] in (FREE, WAIT):
+                self.commit(a, 0)
+        self.done, self.success = True, True
+        self.agent, self._mask = None, None
+
+    def _fail(self, why: str) -> None:
+        self.done, self.success, self.failure = True, False, why
+        self.agent, self._mask = None, None
+
+    # ------------------------------------------------------------------------------------------
+    # snapshots (the ROS board publishes them; agents rebuild the state to decide)
+    # ------------------------------------------------------------------------------------------
+    _ARRAYS = ("rem", "status", "start", "finish", "held", "mode", "target", "from_pos", "to_pos", "depart",
+               "arrive", "free_since", "wait_total", "depot_stops", "pool")
+    _SCALARS = ("n_open", "n_done", "clock", "_seq", "_stall", "_commits", "_stall_commits", "decisions", "done",
+                "success", "failure", "agent", "seed")
+
+    def snapshot(self) -> dict[str, Any]:
+        """A JSON-serialisable copy of the full state (exact floats; restore with from_snapshot)."""
+        d: dict[str, Any] = {k: getattr(self, k).tolist() for k in self._ARRAYS}
+        d.update({k: getattr(self, k) for k in self._SCALARS})
+        d["rules"] = self.rules.to_dict()
+        d["members"] = self.members
+        d["routes"] = self.routes
+        d["events"] = [list(e) for e in self.events]
+        d["queue"] = list(self.queue)
+        d["deferred"] = sorted(self._deferred)
+        d["mask"] = None if self._mask is None else self._mask.tolist()
+        v, internal, gauss = self.rng.getstate()
+        d["rng"] = [v, list(internal), gauss]
+        return d
+
+    @classmethod
+    def from_snapshot(cls, inst: Instance, d: dict[str, Any]) -> "MissionState":
+        self = cls.__new__(cls)
+        self.inst = inst
+        r = d["rules"]
+        self.rules = Rules(r["max_open"], r["safety"], r["backdate"], math.inf if r["t_max"] is None else r["t_max"])
+        self.A, self.M, self.K = inst.n_agents, inst.n_tasks, inst.skills
+        self.additive = inst.additive
+        self.cap = np.array(inst.traits if self.additive else inst.traits > 0, dtype=np.float64)
+        self.req = np.array(inst.requirements if self.additive else inst.requirements > 0, dtype=np.float64)
+        for k in cls._ARRAYS:
+            ref = getattr(self, k, None)
+            arr = np.array(d[k])
+            if k in ("status", "mode", "target", "depot_stops"):
+                arr = arr.astype(np.int64)
+            else:
+                arr = arr.astype(np.float64)
+            if k in ("held", "rem"):
+                arr = arr.reshape(self.M, self.K)
+            elif k in ("from_pos", "to_pos"):
+                arr = arr.reshape(self.A, 2)
+            setattr(self, k, arr)
+            del ref
+        for k in cls._SCALARS:
+            setattr(self, k, d[k])
+        self.members = [list(m) for m in d["members"]]
+        self.routes = [list(r) for r in d["routes"]]
+        self.events = [(float(t), int(s), int(m)) for t, s, m in d["events"]]
+        heapq.heapify(self.events)
+        self.queue = list(d["queue"])
+        self._deferred = set(d["deferred"])
+        self._mask = None if d["mask"] is None else np.array(d["mask"], dtype=bool)
+        self.rng = random.Random()
+        v, internal, gauss = d["rng"]
+        self.rng.setstate((v, tuple(internal), gauss))
+        return self
+
+    # ------------------------------------------------------------------------------------------
+    # results
+    # ------------------------------------------------------------------------------------------
+    def return_times(self) -> np.ndarray:  # [A] time each agent is (last) back at its depot
+        return self.arrive.copy()
+
+    @property
+    def makespan(self) -> float:
+        return float(self.arrive.max()) if self.success else math.nan

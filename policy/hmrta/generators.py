@@ -1,0 +1,149 @@
+"""Seeded scenario generators (SPEC §2).
+
+Every instance is a pure function of ``(generator parameters, seed, index)``: instance ``i`` of a
+set uses ``numpy.random.default_rng([seed, i])``, so sets are reproducible and any single instance
+can be regenerated without the others.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+
+from .instance import DEFAULT_VELOCITY, Instance, Species, Task
+
+SCENARIOS = ("SA-BT", "SA-AT", "MA-AT", "MA-BT")
+
+# Paper rows (agents, species, tasks, skills), SPEC §2.
+PAPER_ROWS: dict[str, list[tuple[int, int, int, int]]] = {
+    "SA-BT": [(9, 3, 20, 3), (25, 5, 20, 5), (25, 5, 50, 5), (50, 5, 50, 5)],
+    "SA-AT": [(9, 3, 20, 3), (15, 5, 20, 5), (25, 5, 20, 5), (50, 5, 50, 5)],
+    "MA-AT": [(9, 3, 20, 3), (15, 5, 20, 5), (25, 5, 20, 5), (25, 5, 50, 5), (50, 5, 50, 5)],
+    "MA-AT-large": [(50, 5, 200, 5), (150, 10, 500, 5), (150, 5, 500, 5)],
+}
+
+
+def row_name(scenario: str, agents: int, species: int, tasks: int, skills: int) -> str:
+    return f"{scenario}_{agents}-{species}-{tasks}-{skills}"
+
+
+@dataclass(frozen=True)
+class ScenarioGenerator:
+    """One paper scenario row: trait kind (SA/MA) x requirement kind (AT/BT) x sizes."""
+
+    scenario: str
+    agents: int
+    species: int
+    tasks: int
+    skills: int
+    velocity: float = DEFAULT_VELOCITY
+    max_duration: float = 5.0
+
+    def __post_init__(self) -> None:
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {self.scenario!r}")
+        if self.species < 1 or self.skills < 1 or self.tasks < 0:
+            raise ValueError("species and skills must be >= 1 and tasks >= 0")
+        if self.agents % self.species:
+            raise ValueError(f"agents ({self.agents}) must be a multiple of species ({self.species})")
+        if self.multi_skill and self.species > 2**self.skills - 1:
+            raise ValueError(f"MA needs distinct non-zero trait vectors: at most {2**self.skills - 1} species")
+
+    @property
+    def multi_skill(self) -> bool:
+        return self.scenario.startswith("MA")
+
+    @property
+    def additive(self) -> bool:
+        return self.scenario.endswith("AT")
+
+    @property
+    def name(self) -> str:
+        return row_name(self.scenario, self.agents, self.species, self.tasks, self.skills)
+
+    # ------------------------------------------------------------------------------------------
+    def _traits(self, rng: np.random.Generator) -> np.ndarray:  # [species, skills]
+        if not self.multi_skill:
+            return np.eye(self.skills)[np.arange(self.species) % self.skills]
+        while True:
+            t = rng.integers(0, 2, size=(self.species, self.skills))
+            if t.sum(1).min() > 0 and len({tuple(r) for r in t}) == self.species:
+                return t.astype(np.float64)
+
+    def _requirements(self, rng: np.random.Generator) -> np.ndarray:  # [tasks, skills]
+        hi = 3 if self.additive else 2
+        q = rng.integers(0, hi, size=(self.tasks, self.skills))
+        zero = q.sum(1) == 0
+        while zero.any():  # redraw all-zero rows
+            q[zero] = rng.integers(0, hi, size=(int(zero.sum()), self.skills))
+            zero = q.sum(1) == 0
+        return q.astype(np.float64)
+
+    def sample(self, rng: np.random.Generator, name: str | None = None) -> Instance:
+        per = self.agents // self.species
+        while True:
+            traits = self._traits(rng)
+            req = self._requirements(rng)
+            team = traits.sum(0) * per  # [skills]
+            ok = (req <= team).all() if self.additive else ((req > 0) <= (team > 0)).all()
+            if ok:
+                break
+        depots = rng.random((self.species, 2))
+        locs = rng.random((self.tasks, 2))
+        durs = rng.random(self.tasks) * self.max_duration
+        species = tuple(
+            Species(tuple(float(v) for v in traits[s]), per, (float(depots[s, 0]), float(depots[s, 1])))
+            for s in range(self.species)
+        )
+        tasks = tuple(
+            Task((float(locs[m, 0]), float(locs[m, 1])), tuple(float(v) for v in req[m]), float(durs[m]))
+            for m in range(self.tasks)
+        )
+        return Instance(
+            "additive" if self.additive else "binary", self.velocity, self.skills, species, tasks,
+            name or self.name,
+        )
+
+    def instance(self, seed: int, index: int) -> Instance:
+        return self.sample(np.random.default_rng([seed, index]), f"{self.name}_s{seed}_{index_str(index, 1)}")
+
+    def generate(self, count: int, seed: int) -> list[Instance]:
+        width = index_width(count)
+        return [
+            self.sample(np.random.default_rng([seed, i]), f"{self.name}_s{seed}_{index_str(i, width)}")
+            for i in range(count)
+        ]
+
+
+def index_width(count: int) -> int:
+    return max(3, len(str(max(count - 1, 0))))
+
+
+def index_str(i: int, width: int) -> str:
+    return str(i).zfill(width)
+
+
+@dataclass(frozen=True)
+class TrainingGenerator:
+    """The paper's training distribution: MA-AT, 15-50 tasks, 3-5 species, 3-5 agents/species, K=5.
+
+    ``tasks``, ``species`` and ``per_species`` are inclusive ranges; a curriculum narrows them.
+    """
+
+    tasks: tuple[int, int] = (15, 50)
+    species: tuple[int, int] = (3, 5)
+    per_species: tuple[int, int] = (3, 5)
+    skills: int = 5
+    scenario: str = "MA-AT"
+
+    def sample(self, rng: np.random.Generator) -> Instance:
+        s = int(rng.integers(self.species[0], self.species[1] + 1))
+        n = int(rng.integers(self.per_species[0], self.per_species[1] + 1))
+        m = int(rng.integers(self.tasks[0], self.tasks[1] + 1))
+        return ScenarioGenerator(self.scenario, s * n, s, m, self.skills).sample(rng, f"train_{s * n}-{s}-{m}")
+
+    def stream(self, seed: int) -> Iterator[Instance]:
+        rng = np.random.default_rng(seed)
+        while True:
+            yield self.sample(rng)

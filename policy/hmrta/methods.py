@@ -1,0 +1,70 @@
+"""Named solution methods: one place that maps a method name to a solver.
+
+``solve(inst, method, seed, **options) -> Solution``. Built in: ``greedy``, ``random``; the learned
+policy adds ``rl`` (greedy decoding) and ``rl-sN`` / ``rl-sample`` (N sampled rollouts, best kept);
+the CP-SAT solver adds ``cpsat``. Each solver module registers itself with :func:`register`.
+"""
+from __future__ import annotations
+
+import importlib
+import re
+from typing import Any, Callable
+
+from .instance import Instance
+from .solution import Solution
+
+Solver = Callable[..., Solution]
+_REGISTRY: dict[str, Solver] = {}
+# modules imported lazily the first time one of their methods is asked for
+_LAZY = {"rl": "hmrta.rl.inference", "rl-sample": "hmrta.rl.inference", "cpsat": "hmrta.solvers.cpsat"}
+
+
+class MethodError(ValueError):
+    """Unknown method name or bad method option (a user error)."""
+
+
+def register(name: str, fn: Solver) -> None:
+    _REGISTRY[name] = fn
+
+
+def parse(method: str) -> tuple[str, dict[str, Any]]:
+    """'rl-s10' -> ('rl-sample', {'samples': 10}); other names map to themselves."""
+    m = re.fullmatch(r"rl-s(\d+)", method)
+    if m:
+        return "rl-sample", {"samples": int(m.group(1))}
+    return method, {}
+
+
+def get(method: str) -> Solver:
+    if method not in _REGISTRY and method in _LAZY:
+        importlib.import_module(_LAZY[method])
+    if method not in _REGISTRY:
+        known = sorted(set(_REGISTRY) | set(_LAZY) | {"rl-sN"})
+        raise MethodError(f"unknown method {method!r} (expected one of {', '.join(known)})")
+    return _REGISTRY[method]
+
+
+def solve(inst: Instance, method: str, seed: int = 0, **options: Any) -> Solution:
+    base, implied = parse(method)
+    sol = get(base)(inst, seed=seed, **{**implied, **options})
+    sol.method = method
+    return sol
+
+
+def _greedy(inst: Instance, seed: int = 0, **_: Any) -> Solution:
+    from .baselines import GREEDY_RULES, Greedy
+    from .sim import simulate
+
+    return simulate(inst, Greedy(), seed, GREEDY_RULES, "greedy")
+
+
+def _random(inst: Instance, seed: int = 0, **_: Any) -> Solution:
+    from .baselines import RandomPolicy
+    from .core import Rules
+    from .sim import simulate
+
+    return simulate(inst, RandomPolicy(seed), seed, Rules(), "random")
+
+
+register("greedy", _greedy)
+register("random", _random)
