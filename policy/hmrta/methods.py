@@ -68,3 +68,21 @@ def _random(inst: Instance, seed: int = 0, **_: Any) -> Solution:
 
 register("greedy", _greedy)
 register("random", _random)
+
+
+def decider(method: str, seed: int = 0, **options: Any):
+    """A per-decision policy for live use (ROS agents): returns ``(decide, rules)`` where
+    ``decide(state) -> node`` and ``rules`` are the state-machine rules it must run under.
+
+    ``greedy`` -> the greedy baseline; ``rl`` / ``rl-sample`` -> the learned policy (greedy or
+    sampled decoding; options: ``checkpoint``, ``seed``)."""
+    base, implied = parse(method)
+    if base == "greedy":
+        from .baselines import GREEDY_RULES, Greedy
+
+        return Greedy(), GREEDY_RULES
+    if base in ("rl", "rl-sample"):
+        from .rl.inference import rl_decider
+
+        return rl_decider(sample=base == "rl-sample", seed=seed, **options)
+    raise MethodError(f"method {method!r} has no per-decision form (expected greedy, rl or rl-sample)")
