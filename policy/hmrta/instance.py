@@ -183,7 +183,11 @@ def _num(v: float) -> float | int:
 
 
 def _fmt(v: float | int) -> str:
-    return repr(v) if isinstance(v, float) else str(v)
+    if not isinstance(v, float):
+        return str(v)
+    r = repr(v)
+    # YAML 1.1 (PyYAML) reads '1e-05' as a string: its floats need a '.' in the mantissa
+    return r.replace("e", ".0e", 1) if "e" in r and "." not in r else r
 
 
 def _fmt_list(vs: Sequence[float | int]) -> str:
