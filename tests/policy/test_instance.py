@@ -1,0 +1,239 @@
+"""hmrta-instance/1 loader: valid files, round trips, and every validation error (issue 2, point 2).
+
+Every rejection must be an InstanceError with a one-line message naming the file, the field (with
+the task / species index) and what was expected.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from hmrta.instance import Instance, InstanceError, Species, Task, instance_from_dict, load_instance
+
+NAN, INF = float("nan"), float("inf")
+
+
+def _set(path, value):
+    """Mutator: set d[path...] = value (path like ('species', 1, 'traits'))."""
+
+    def f(d):
+        obj = d
+        for k in path[:-1]:
+            obj = obj[k]
+        obj[path[-1]] = value
+
+    return f
+
+
+def _del(path):
+    def f(d):
+        obj = d
+        for k in path[:-1]:
+            obj = obj[k]
+        del obj[path[-1]]
+
+    return f
+
+
+# (id, mutator, substrings the message must contain)
+CASES = [
+    # missing keys
+    ("missing-top", _del(("velocity",)), ["velocity", "missing key"]),
+    ("missing-format", _del(("format",)), ["missing key 'format'"]),
+    ("missing-species-key", _del(("species", 1, "count")), ["species[1]", "missing key 'count'"]),
+    ("missing-task-key", _del(("tasks", 0, "duration")), ["tasks[0]", "missing key 'duration'"]),
+    # unknown keys
+    ("unknown-top", _set(("agents",), 3), ["unknown key 'agents'", "expected one of"]),
+    ("unknown-species-key", _set(("species", 0, "speed"), 1.0), ["species[0]", "unknown key 'speed'"]),
+    ("unknown-task-key", _set(("tasks", 1, "priority"), 2), ["tasks[1]", "unknown key 'priority'"]),
+    # wrong vector lengths
+    ("traits-len", _set(("species", 1, "traits"), [0, 1]), ["species[1].traits", "expected 3 values, got 2"]),
+    ("requirements-len", _set(("tasks", 0, "requirements"), [0, 1, 1, 0]),
+     ["tasks[0].requirements", "expected 3 values, got 4"]),
+    ("location-len", _set(("tasks", 1, "location"), [0.2, 0.2, 0.0]), ["tasks[1].location", "expected 2 values, got 3"]),
+    ("depot-len", _set(("species", 0, "depot"), [0.1]), ["species[0].depot", "expected 2 values, got 1"]),
+    ("traits-not-list", _set(("species", 0, "traits"), 1), ["species[0].traits", "expected a list of 3 numbers"]),
+    # negative values
+    ("negative-trait", _set(("species", 0, "traits"), [1, -1, 1]), ["species[0].traits[1]", "expected a value >= 0"]),
+    ("negative-requirement", _set(("tasks", 1, "requirements"), [2, -1, 0]),
+     ["tasks[1].requirements[1]", "expected a value >= 0"]),
+    ("negative-duration", _set(("tasks", 1, "duration"), -0.5), ["tasks[1].duration", "expected a value >= 0"]),
+    ("negative-velocity", _set(("velocity",), -0.2), ["velocity", "expected a positive number"]),
+    ("zero-velocity", _set(("velocity",), 0), ["velocity", "expected a positive number"]),
+    ("negative-depot", _set(("species", 1, "depot"), [-0.1, 0.5]), ["species[1].depot[0]", "expected"]),
+    # NaN / inf
+    ("nan-duration", _set(("tasks", 0, "duration"), NAN), ["tasks[0].duration", "expected a finite number"]),
+    ("inf-duration", _set(("tasks", 1, "duration"), INF), ["tasks[1].duration", "expected a finite number"]),
+    ("nan-trait", _set(("species", 1, "traits"), [0, NAN, 0]), ["species[1].traits[1]", "expected a finite number"]),
+    ("inf-requirement", _set(("tasks", 0, "requirements"), [0, INF, 1]),
+     ["tasks[0].requirements[1]", "expected a finite number"]),
+    ("nan-location", _set(("tasks", 1, "location"), [0.2, NAN]), ["tasks[1].location[1]", "expected a finite number"]),
+    ("inf-velocity", _set(("velocity",), INF), ["velocity", "expected a finite number"]),
+    ("minus-inf-depot", _set(("species", 0, "depot"), [-INF, 0.1]), ["species[0].depot[0]", "expected a finite number"]),
+    # wrong types
+    ("string-duration", _set(("tasks", 0, "duration"), "3.5"), ["tasks[0].duration", "expected a number"]),
+    ("bool-trait", _set(("species", 0, "traits"), [True, 0, 1]), ["species[0].traits[0]", "expected a number"]),
+    ("count-zero", _set(("species", 1, "count"), 0), ["species[1].count", "expected a positive integer"]),
+    ("count-float", _set(("species", 0, "count"), 1.5), ["species[0].count", "expected a positive integer"]),
+    ("skills-zero", _set(("skills",), 0), ["skills", "expected a positive integer"]),
+    ("skills-string", _set(("skills",), "3"), ["skills", "expected a positive integer"]),
+    ("species-empty", _set(("species",), []), ["species", "expected a non-empty list"]),
+    ("tasks-not-list", _set(("tasks",), {"a": 1}), ["tasks", "expected a list"]),
+    ("species-entry-not-mapping", _set(("species", 1), [0, 1, 0]), ["species[1]", "expected a mapping"]),
+    # locations outside the unit square
+    ("location-outside", _set(("tasks", 0, "location"), [1.2, 0.5]),
+     ["tasks[0].location[0]", "unit square"]),
+    ("depot-outside", _set(("species", 1, "depot"), [0.5, 1.01]), ["species[1].depot[1]", "unit square"]),
+    # all-zero vectors
+    ("zero-requirements", _set(("tasks", 1, "requirements"), [0, 0, 0]),
+     ["tasks[1].requirements", "expected at least one non-zero requirement"]),
+    ("zero-traits", _set(("species", 1, "traits"), [0, 0, 0]),
+     ["species[1].traits", "expected at least one non-zero trait"]),
+    # enums and format
+    ("requirement-type", _set(("requirement_type",), "multiplicative"),
+     ["requirement_type", "expected 'additive' or 'binary'", "multiplicative"]),
+    ("format", _set(("format",), "hmrta-instance/2"), ["format", "expected 'hmrta-instance/1'"]),
+    # infeasible: team traits are [2, 1, 2]
+    ("infeasible-at", _set(("tasks", 1, "requirements"), [2, 2, 0]),
+     ["task 1 is infeasible", "skill 1", "needs 2", "whole team has 1"]),
+]
+
+
+@pytest.mark.parametrize("mutate,expect", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_loader_rejects(valid_dict, write_yaml, mutate, expect):
+    mutate(valid_dict)
+    path = write_yaml(valid_dict)
+    with pytest.raises(InstanceError) as ei:
+        load_instance(path)
+    msg = str(ei.value)
+    assert "\n" not in msg, msg
+    assert msg.startswith(str(path)), msg  # names the file
+    for s in expect:
+        assert s in msg, (s, msg)
+    # the same data without a file: same message, with the in-memory source name
+    with pytest.raises(InstanceError) as ei2:
+        instance_from_dict(yaml.safe_load(path.read_text()), source="mem")
+    assert str(ei2.value) == msg.replace(str(path), "mem", 1)
+
+
+def test_infeasible_binary_names_task_and_skill(valid_dict, write_yaml):
+    d = valid_dict
+    d["requirement_type"] = "binary"
+    d["species"] = [{"traits": [1, 0, 0], "count": 3, "depot": [0, 0]},
+                    {"traits": [0, 1, 0], "count": 1, "depot": [1, 1]}]
+    d["tasks"][0]["requirements"] = [1, 0, 0]
+    d["tasks"][1]["requirements"] = [0, 1, 1]  # skill 2: nobody has it
+    with pytest.raises(InstanceError) as ei:
+        load_instance(write_yaml(d))
+    msg = str(ei.value)
+    assert "\n" not in msg
+    assert "task 1 is infeasible" in msg and "skill 2" in msg
+
+
+def test_binary_requirement_amounts_are_coverage(valid_dict):
+    """In BT a requirement of 2 means 'needs the skill': one agent with it is enough (feasible)."""
+    d = valid_dict
+    d["requirement_type"] = "binary"
+    d["tasks"][1]["requirements"] = [5, 3, 0]  # AT-infeasible, BT-feasible
+    inst = instance_from_dict(d)
+    assert inst.requirement_type == "binary" and inst.infeasibility() is None
+
+
+@pytest.mark.parametrize("text,line", [
+    ("format: hmrta-instance/1\nskills: 3\nspecies:\n  - {traits: [1, 0, 1], count: 2\n", 5),
+    ("format: hmrta-instance/1\nskills: [3\nvelocity: 0.2\n", 3),
+    ("format: hmrta-instance/1\n  skills: 3\n bad: : :\n", 2),
+])
+def test_invalid_yaml_names_line(write_yaml, text, line):
+    p = write_yaml(text)
+    with pytest.raises(InstanceError) as ei:
+        load_instance(p)
+    msg = str(ei.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"{p}:{line}: invalid YAML"), msg
+
+
+@pytest.mark.parametrize("text,expect", [
+    ("", "expected a mapping"),  # empty file -> None
+    ("- 1\n- 2\n", "expected a mapping"),
+    ("just a string\n", "expected a mapping"),
+])
+def test_top_level_not_a_mapping(write_yaml, text, expect):
+    with pytest.raises(InstanceError) as ei:
+        load_instance(write_yaml(text))
+    assert expect in str(ei.value) and "\n" not in str(ei.value)
+
+
+def test_missing_file(tmp_path):
+    p = tmp_path / "nope.yaml"
+    with pytest.raises(InstanceError) as ei:
+        load_instance(p)
+    assert str(ei.value) == f"{p}: no such file"
+
+
+def test_folder_without_config(tmp_path):
+    with pytest.raises(InstanceError, match="config.json"):
+        load_instance(tmp_path)
+
+
+# ---------------------------------------------------------------------------------------------
+# valid files
+# ---------------------------------------------------------------------------------------------
+def test_valid_load_and_derived_arrays(valid_dict, write_yaml):
+    inst = load_instance(write_yaml(valid_dict))
+    assert (inst.n_agents, inst.n_species, inst.n_tasks, inst.skills) == (3, 2, 2, 3)
+    assert inst.name == "valid" and inst.additive and inst.velocity == 0.2
+    # agent ids are species-major
+    assert inst.agent_species.tolist() == [0, 0, 1]
+    assert inst.traits.tolist() == [[1, 0, 1], [1, 0, 1], [0, 1, 0]]
+    assert inst.depots.tolist() == [[0.1, 0.8], [0.1, 0.8], [0.5, 0.5]]
+    assert inst.task_locations.tolist() == [[0.5, 0.9], [0.2, 0.2]]
+    assert inst.requirements.tolist() == [[0, 1, 1], [2, 1, 0]]
+    assert inst.durations.tolist() == [3.5, 0.0]
+    assert not inst.traits.flags.writeable  # derived arrays are read-only
+    # travel time = distance / velocity: (0.1,0.8) -> (0.5,0.5) is 0.5 -> 2.5
+    assert inst.travel_time(inst.depots[0], inst.depots[2]) == pytest.approx(2.5)
+
+
+def test_name_defaults_to_file_stem(valid_dict, write_yaml):
+    del valid_dict["name"]
+    assert load_instance(write_yaml(valid_dict, "my_mission.yaml")).name == "my_mission"
+
+
+def test_yaml_round_trip_is_exact(valid_dict, write_yaml, tmp_path):
+    inst = load_instance(write_yaml(valid_dict))
+    text = inst.to_yaml()
+    out = tmp_path / "sub" / "copy.yaml"
+    inst.save(out)
+    assert out.read_text() == text
+    back = load_instance(out)
+    assert back.to_yaml() == text
+    assert back.to_dict() == inst.to_dict()
+    assert not list(out.parent.glob(".*.tmp"))  # atomic write leaves no temp file
+
+
+def test_round_trip_awkward_floats(tmp_path):
+    """Floats whose repr has no '.' (1e-05) or are long must survive to_yaml -> load exactly."""
+    inst = Instance(
+        "additive", 0.2, 2,
+        (Species((1.0, 2.5), 2, (1e-05, 0.1 + 0.2)), Species((3e-07, 0.0), 1, (1.0, 0.0))),
+        (Task((0.5, 1e-10), (1.0, 2.0), 4.999999999999999), Task((0.0, 1.0), (3e-07, 1.0), 0.0)),
+        name='odd "name": x',
+    )
+    p = tmp_path / "odd.yaml"
+    inst.save(p)
+    back = load_instance(p)
+    assert back.to_dict() == inst.to_dict()
+    assert back.to_yaml() == inst.to_yaml()
+
+
+def test_example_fixture_file(data_dir):
+    """The hand-written fixture in tests/policy/data loads and matches the documented example."""
+    inst = load_instance(data_dir / "example.yaml")
+    assert inst.name == "example" and inst.n_agents == 5 and inst.n_tasks == 3
+    assert inst.species[0].traits == (1.0, 0.0, 1.0) and inst.species[0].count == 3
+    assert np.array_equal(inst.requirements[0], [0, 2, 1])
+    assert math.isclose(inst.durations[0], 3.5)
