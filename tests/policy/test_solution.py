@@ -1,0 +1,152 @@
+"""Route evaluation (SPEC §3) on hand-made routes, SPEC §4 metrics and the hmrta-solution/1 format."""
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from hmrta.instance import instance_from_dict
+from hmrta.solution import (ETA, RouteError, Solution, evaluate_routes, parse_routes, redundancy,
+                            satisfies)
+
+U = 0.125  # coordinates in units of U and velocity U: travel time = distance in units (exact)
+
+
+def make(rt, skills, species, tasks):
+    return instance_from_dict({
+        "format": "hmrta-instance/1", "name": "hand", "requirement_type": rt, "velocity": U, "skills": skills,
+        "species": [{"traits": list(t), "count": c, "depot": [x * U, y * U]} for t, c, (x, y) in species],
+        "tasks": [{"location": [x * U, y * U], "requirements": list(q), "duration": d} for (x, y), q, d in tasks],
+    })
+
+
+# agent 0 [1,0] at D0 (0,0); agent 1 [0,2] at D1 (3,1)
+# T0 (3,4) q [1,1] dur 2; T1 (7,1) q [0,2] dur 1.  |D0 T0| 5, |D1 T0| 3, |D1 T1| 4, |T0 T1| 5
+INST = make("additive", 2, [([1, 0], 1, (0, 0)), ([0, 2], 1, (3, 1))],
+            [((3, 4), [1, 1], 2), ((7, 1), [0, 2], 1)])
+
+
+def test_evaluate_greedy_order():
+    # a0: D0 -> T0 (arr 5); a1: D1 -> T0 (arr 3, waits 2); T0 5..7; a1 -> T1 arr 12, 12..13 -> home 17
+    sol = evaluate_routes(INST, [[0], [0, 1]])
+    assert sol.success and sol.makespan == 17.0 and sol.awt == 1.0 and sol.redundancy == 0.25
+    assert sol.tasks == [{"start": 5.0, "finish": 7.0, "members": [0, 1]},
+                         {"start": 12.0, "finish": 13.0, "members": [1]}]
+    assert [a["return_time"] for a in sol.agents] == [12.0, 17.0]
+
+
+def test_evaluate_partner_arrives_late():
+    # a1 does T1 first: arr 4, 4..5, -> T0 arr 10; a0 arrives T0 at 5 and waits 5.
+    # T0 10..12; a0 home 12 + 5 = 17, a1 home 12 + 3 = 15. AWT (5 + 0) / 2 = 2.5
+    sol = evaluate_routes(INST, [[0], [1, 0]])
+    assert sol.tasks == [{"start": 10.0, "finish": 12.0, "members": [0, 1]},
+                         {"start": 4.0, "finish": 5.0, "members": [1]}]
+    assert [a["return_time"] for a in sol.agents] == [17.0, 15.0]
+    assert (sol.makespan, sol.awt) == (17.0, 2.5)
+
+
+def test_evaluate_binary_coverage_and_idle_agents():
+    # BT: agent 0 [1,1] alone covers T0 (q [1,1]); agents 1, 2 idle (return 0) count in AWT.
+    inst = make("binary", 2, [([1, 1], 1, (0, 0)), ([1, 0], 2, (0, 0))], [((3, 4), [1, 1], 1.5)])
+    sol = evaluate_routes(inst, [[0], [], []])
+    assert sol.makespan == 11.5 and sol.awt == 0.0 and sol.redundancy == 0.0
+    assert [a["return_time"] for a in sol.agents] == [11.5, 0.0, 0.0]
+    # agent 1 adds nothing needed but is in the coalition: over-provision c = [2,1] vs q = [1,1]
+    sol = evaluate_routes(inst, [[0], [0], []])
+    assert sol.redundancy == 0.5 and sol.awt == 0.0
+
+
+# ---- deadlock (cyclic waiting) -----------------------------------------------------------------
+CROSS = make("additive", 2, [([1, 0], 1, (0, 0)), ([0, 1], 1, (0, 0))],
+             [((3, 4), [1, 1], 1), ((4, 3), [1, 1], 1)])
+
+
+def test_cyclic_waiting_is_a_deadlock():
+    with pytest.raises(RouteError) as ei:
+        evaluate_routes(CROSS, [[0, 1], [1, 0]])
+    assert str(ei.value) == "deadlock: cyclic waiting among tasks [0, 1]"
+    # the same tasks in the same order for both is fine: T0 5..6, T1 (|T0 T1| = sqrt 2 u) ...
+    sol = evaluate_routes(CROSS, [[0, 1], [0, 1]])
+    assert sol.tasks[0]["start"] == 5.0 and sol.tasks[1]["start"] == pytest.approx(6.0 + math.sqrt(2), rel=1e-15)
+
+
+def test_three_agent_cycle_after_a_valid_prefix():
+    # T0 needs a0+a1, T1 a1+a2, T2 a2+a0; T3 a0 alone (done first). Then a0 waits at T0 for a1,
+    # a1 waits at T1 for a2, a2 waits at T2 for a0: a cycle of three.
+    inst = make("additive", 3, [([1, 0, 0], 1, (0, 0)), ([0, 1, 0], 1, (0, 0)), ([0, 0, 1], 1, (0, 0))],
+                [((1, 1), [1, 1, 0], 1), ((2, 2), [0, 1, 1], 1), ((3, 3), [1, 0, 1], 1), ((4, 4), [1, 0, 0], 1)])
+    with pytest.raises(RouteError, match=r"deadlock: cyclic waiting among tasks \[0, 1, 2\]"):
+        evaluate_routes(inst, [[3, 0, 2], [1, 0], [2, 1]])
+    assert evaluate_routes(inst, [[3, 0, 2], [0, 1], [1, 2]]).success
+
+
+# ---- other route errors ----------------------------------------------------------------------
+def test_uncovered_and_unsatisfied_tasks():
+    with pytest.raises(RouteError, match="task 1 is not covered by any route"):
+        evaluate_routes(INST, [[0], [0]])
+    with pytest.raises(RouteError) as ei:
+        evaluate_routes(INST, [[0, 1], []])
+    assert str(ei.value) == "task 0: its coalition (agents [0]) lacks skill(s) [1]"
+
+
+@pytest.mark.parametrize("data,match", [
+    ([[0], [0, 1]], "expected a JSON object with a 'routes' key"),
+    ({"route": []}, "expected a JSON object with a 'routes' key"),
+    ({"routes": [[0]]}, r"expected a list of 2 routes .* got 1"),
+    ({"routes": {"0": [0]}}, r"expected a list of 2 routes .* got dict"),
+    ({"routes": [[0], 1]}, r"routes\[1\]: expected a list of task ids"),
+    ({"routes": [[0], [0, 2]]}, r"routes\[1\]\[1\]: unknown task id 2 \(expected 0..1\)"),
+    ({"routes": [[-1], [0, 1]]}, r"routes\[0\]\[0\]: unknown task id -1"),
+    ({"routes": [["0"], [0, 1]]}, r"routes\[0\]\[0\]: unknown task id '0'"),
+    ({"routes": [[True], [0, 1]]}, r"routes\[0\]\[0\]: unknown task id True"),
+    ({"routes": [[0.0], [0, 1]]}, r"routes\[0\]\[0\]: unknown task id 0.0"),
+    ({"routes": [[0], [0, 1, 0]]}, r"routes\[1\]: agent 1 visits task 0 twice"),
+])
+def test_parse_routes_errors(data, match):
+    with pytest.raises(RouteError, match=match) as ei:
+        parse_routes(INST, data, source="r.json")
+    assert str(ei.value).startswith("r.json: ") and "\n" not in str(ei.value)
+
+
+def test_parse_routes_accepts_extra_keys():
+    """ROUTES.json is any object with a 'routes' key (e.g. a whole hmrta-solution/1 file)."""
+    sol = evaluate_routes(INST, [[0], [0, 1]])
+    assert parse_routes(INST, json.loads(json.dumps(sol.to_dict()))) == [[0], [0, 1]]
+
+
+# ---- metrics -----------------------------------------------------------------------------------
+def test_redundancy_and_satisfies():
+    # exact: T0 coalition {0,1}: c [1,2] vs [1,1] -> 1/2; T1 unsatisfied -> eta = 10
+    assert redundancy(INST, [[0, 1], [0]], [True, False]) == (0.5 + ETA) / 2
+    assert ETA == 10.0
+    assert satisfies(INST, [0, 1], 0) == [] and satisfies(INST, [0], 0) == [1] and satisfies(INST, [], 1) == [1]
+    assert satisfies(INST, [0], 1) == [1]
+
+
+# ---- hmrta-solution/1 ----------------------------------------------------------------------------
+def test_solution_format_round_trip(tmp_path):
+    sol = evaluate_routes(INST, [[0], [0, 1]], method="m", seed=3)
+    d = sol.to_dict()
+    assert list(d) == ["format", "instance", "method", "seed", "success", "makespan", "awt", "redundancy",
+                       "compute_seconds", "routes", "tasks", "agents"]
+    assert d["format"] == "hmrta-solution/1" and d["instance"] == "hand" and d["seed"] == 3
+    assert d["agents"] == [{"species": 0, "return_time": 12.0}, {"species": 1, "return_time": 17.0}]
+    p = tmp_path / "s.json"
+    sol.save(p)
+    back = Solution.from_dict(json.loads(p.read_text()))
+    assert back.to_dict() == d
+    assert "makespan 17.000" in back.summary()
+
+
+def test_failed_solution_serialises_nan_as_null():
+    sol = Solution("x", "m", 0, False, math.nan, 0.0, 10.0, 0.1, [[]], [
+        {"start": math.nan, "finish": math.nan, "members": []}], [{"species": 0, "return_time": math.nan}],
+        {"failure": "deadlock: no agent can move"})
+    text = json.dumps(sol.to_dict())
+    assert "NaN" not in text  # strict JSON
+    d = json.loads(text)
+    assert d["makespan"] is None and d["tasks"][0]["start"] is None and d["failure"].startswith("deadlock")
+    back = Solution.from_dict(d)
+    assert math.isnan(back.makespan) and back.extra == {"failure": "deadlock: no agent can move"}
+    assert "FAILED (deadlock" in back.summary()
