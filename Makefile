@@ -1,0 +1,37 @@
+# hmrta: two commands for a fresh machine.
+#   make demo   - run the main job on the built-in default mission
+#   make test   - run the whole test suite
+# Both create (or reuse) .venv/ at the repo root and install everything pinned.
+SHELL := /bin/bash
+VENV  := .venv
+PY    := $(VENV)/bin/python
+PIP   := $(VENV)/bin/pip -q --disable-pip-version-check
+PKGS  := policy
+STAMP := $(VENV)/.hmrta-installed
+
+# DDS discovery stays on this machine unless the caller opens it up explicitly.
+export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
+
+.PHONY: setup demo test bench-greedy clean-venv
+
+setup: $(STAMP)
+
+$(STAMP): requirements.txt policy/pyproject.toml
+	@test -x $(PY) || python3 -m venv $(VENV)
+	@# torch first, pinned: resolves to the local CPU wheel (never let a resolver pull CUDA builds)
+	$(PIP) install torch==2.13.0
+	$(PIP) install -r requirements.txt
+	$(PIP) install --no-deps --no-build-isolation $(foreach p,$(PKGS),-e $(p))
+	@touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/hmrta demo
+
+test: setup
+	$(VENV)/bin/pytest -q tests
+
+bench-greedy: setup
+	$(PY) benchmarks/greedy_throughput.py
+
+clean-venv:
+	rm -rf $(VENV)

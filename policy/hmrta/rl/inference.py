@@ -1,0 +1,135 @@
+"""Inference with a trained policy: RL(g.) (argmax, one rollout) and RL(s.N) (N sampled rollouts
+run as one batch, best makespan kept). Registers the ``rl`` and ``rl-sample`` methods.
+
+The shipped checkpoint (``hmrta/checkpoints/default.pt``) loads by default; ``HMRTA_CHECKPOINT``
+or the ``checkpoint`` option selects another. Loaded models are cached and shared read-only (many
+agents in one process use one copy of the weights).
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .. import methods
+from ..core import MissionState, Rules
+from ..instance import Instance
+from ..solution import Solution, solution_from_state
+from .features import batch_observations
+from .model import ModelConfig, PolicyNet
+from .rollout import rollout
+
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "default.pt"
+_CACHE: dict[str, "LoadedPolicy"] = {}
+_LOCK = threading.Lock()
+
+
+class CheckpointError(ValueError):
+    """Missing, unreadable or incompatible checkpoint (a user error)."""
+
+
+class LoadedPolicy:
+    def __init__(self, model: PolicyNet, config: dict, path: str, meta: dict):
+        self.model, self.config, self.path, self.meta = model, config, path, meta
+        r = config.get("rules", {})
+        self.rules = Rules(max_open=r.get("max_open"), safety=r.get("safety", True))
+
+
+def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
+    return Path(checkpoint or os.environ.get("HMRTA_CHECKPOINT") or DEFAULT_CHECKPOINT)
+
+
+def load_policy(checkpoint: str | Path | None = None) -> LoadedPolicy:
+    """Load (once per process) a checkpoint; raises CheckpointError with a clear message."""
+    path = checkpoint_path(checkpoint)
+    key = str(path.resolve())
+    with _LOCK:
+        if key in _CACHE:
+            return _CACHE[key]
+        if not path.exists():
+            raise CheckpointError(f"{path}: no such checkpoint (train one with `hmrta train`)")
+        try:
+            ck = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:  # corrupt / not a torch file
+            raise CheckpointError(f"{path}: not a readable hmrta checkpoint ({type(e).__name__}: {e})") from None
+        if not isinstance(ck, dict) or "model" not in ck or "config" not in ck:
+            raise CheckpointError(f"{path}: not an hmrta checkpoint (expected keys 'model' and 'config')")
+        try:
+            cfg = ModelConfig(**ck["config"]["model"])
+        except TypeError as e:
+            raise CheckpointError(f"{path}: model config does not match this hmrta version ({e})") from None
+        model = PolicyNet(cfg)
+        try:
+            model.load_state_dict(ck["model"])
+        except RuntimeError as e:
+            first = str(e).strip().splitlines()[0]
+            raise CheckpointError(f"{path}: weights do not match the network ({first})") from None
+        model.eval()
+        for p in model.parameters():
+            p.requires_grad_(False)
+        meta = {k: ck.get(k) for k in ("code_version", "iteration", "episodes", "best_val", "greedy_val", "summary")}
+        lp = LoadedPolicy(model, ck["config"], str(path), meta)
+        _CACHE[key] = lp
+        return lp
+
+
+def _check(inst: Instance) -> None:
+    from .features import K_MAX
+
+    if inst.skills > K_MAX:
+        raise methods.MethodError(f"the learned policy handles at most {K_MAX} skills; {inst.name} has {inst.skills}")
+
+
+def solve_rl(inst: Instance, seed: int = 0, checkpoint: str | None = None, **_: Any) -> Solution:
+    _check(inst)
+    pol = load_policy(checkpoint)
+    t0 = time.perf_counter()
+    state = MissionState(inst, seed=seed, rules=pol.rules)
+    rollout(pol.model, [state], sample=False)
+    return solution_from_state(state, "rl", seed, time.perf_counter() - t0)
+
+
+def solve_rl_sample(inst: Instance, seed: int = 0, samples: int = 10, checkpoint: str | None = None,
+                    **_: Any) -> Solution:
+    _check(inst)
+    if samples < 1:
+        raise methods.MethodError(f"samples: expected a positive integer, got {samples}")
+    pol = load_policy(checkpoint)
+    t0 = time.perf_counter()
+    states = [MissionState(inst, seed=seed + k, rules=pol.rules) for k in range(samples)]
+    gen = torch.Generator().manual_seed(seed)
+    rollout(pol.model, states, sample=True, generator=gen)
+    ok = [s for s in states if s.success]
+    best = min(ok, key=lambda s: s.makespan) if ok else states[0]
+    sol = solution_from_state(best, f"rl-s{samples}", best.seed, time.perf_counter() - t0)
+    sol.extra["samples"] = samples
+    return sol
+
+
+class RLDecider:
+    """Per-decision form of the policy (one forward per decision), for live agents."""
+
+    def __init__(self, pol: LoadedPolicy, sample: bool, seed: int):
+        self.pol, self.sample = pol, sample
+        self.gen = torch.Generator().manual_seed(seed)
+        self.name = "rl-sample" if sample else "rl"
+
+    def __call__(self, state: MissionState) -> int:
+        with torch.inference_mode():
+            logits = self.pol.model(**batch_observations([state]))[0]  # [T]
+            if self.sample:
+                return int(torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen)[0])
+            return int(logits.argmax())
+
+
+def rl_decider(sample: bool = False, seed: int = 0, checkpoint: str | None = None, **_: Any):
+    pol = load_policy(checkpoint)
+    return RLDecider(pol, sample, seed), pol.rules
+
+
+methods.register("rl", solve_rl)
+methods.register("rl-sample", solve_rl_sample)

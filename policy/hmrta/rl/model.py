@@ -1,0 +1,90 @@
+"""The attention policy network (SPEC §5): encoders, cross encoders, glimpses, pointer decoder."""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .features import AGENT_FEATURES, TASK_FEATURES
+
+
+@dataclass
+class ModelConfig:
+    d_model: int = 128
+    heads: int = 8
+    ff_hidden: int = 256
+    clip: float = 10.0
+    task_features: int = TASK_FEATURES
+    agent_features: int = AGENT_FEATURES
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class Block(nn.Module):
+    """MHA -> residual + LayerNorm -> gated (GLU) feed-forward -> residual + LayerNorm."""
+
+    def __init__(self, d: int, heads: int, ff: int | None):
+        super().__init__()
+        self.mha = nn.MultiheadAttention(d, heads, batch_first=True)
+        self.ln1 = nn.LayerNorm(d)
+        self.ff = ff is not None
+        if self.ff:
+            self.ff_in = nn.Linear(d, 2 * ff)
+            self.ff_out = nn.Linear(ff, d)
+            self.ln2 = nn.LayerNorm(d)
+
+    def forward(self, q: torch.Tensor, kv: torch.Tensor, kv_ignore: torch.Tensor) -> torch.Tensor:
+        # q [B, Lq, d], kv [B, Lk, d], kv_ignore [B, Lk] (True = padding / masked)
+        h = self.ln1(q + self.mha(q, kv, kv, key_padding_mask=kv_ignore, need_weights=False)[0])  # [B, Lq, d]
+        if not self.ff:
+            return h
+        x, g = self.ff_in(h).chunk(2, dim=-1)  # [B, Lq, ff] x2
+        return self.ln2(h + self.ff_out(x * F.gelu(g)))  # [B, Lq, d]
+
+
+class PolicyNet(nn.Module):
+    def __init__(self, cfg: ModelConfig = ModelConfig()):
+        super().__init__()
+        d, h, ff = cfg.d_model, cfg.heads, cfg.ff_hidden
+        self.cfg = cfg
+        self.task_embed = nn.Linear(cfg.task_features, d)
+        self.agent_embed = nn.Linear(cfg.agent_features, d)
+        self.task_enc = Block(d, h, ff)  # tasks attend to tasks
+        self.agent_enc = Block(d, h, ff)  # agents attend to agents
+        self.task_cross = Block(d, h, ff)  # tasks attend to agents
+        self.agent_cross = Block(d, h, ff)  # agents attend to tasks
+        self.query = nn.Linear(3 * d, d)
+        self.dec1 = Block(d, h, None)  # decider attends to the task-agent context
+        self.dec2 = Block(d, h, None)  # ... then to the admissible tasks
+        self.wq = nn.Linear(d, d, bias=False)
+        self.wk = nn.Linear(d, d, bias=False)
+
+    def forward(self, tasks, agents, task_valid, agent_valid, action_mask, decider) -> torch.Tensor:
+        """Logits over [depot, tasks] ([B, T]); inadmissible entries are -inf."""
+        t_ign, a_ign = ~task_valid, ~agent_valid  # [B, T], [B, N]
+        te = self.task_embed(tasks)  # [B, T, d]
+        ae = self.agent_embed(agents)  # [B, N, d]
+        te = self.task_enc(te, te, t_ign)  # [B, T, d]
+        ae = self.agent_enc(ae, ae, a_ign)  # [B, N, d]
+        tx = self.task_cross(te, ae, a_ign)  # [B, T, d]
+        ax = self.agent_cross(ae, te, t_ign)  # [B, N, d]
+        tg = _masked_mean(tx, task_valid)  # [B, d]
+        ag = _masked_mean(ax, agent_valid)  # [B, d]
+        me = ax[torch.arange(ax.shape[0]), decider]  # [B, d]
+        q = self.query(torch.cat([me, tg, ag], dim=-1)).unsqueeze(1)  # [B, 1, d]
+        ctx = torch.cat([tx, ax], dim=1)  # [B, T + N, d]
+        q = self.dec1(q, ctx, torch.cat([t_ign, a_ign], dim=1))  # [B, 1, d]
+        q = self.dec2(q, tx, ~action_mask)  # [B, 1, d]
+        compat = torch.einsum("bd,btd->bt", self.wq(q[:, 0]), self.wk(tx)) / math.sqrt(tx.shape[-1])  # [B, T]
+        logits = self.cfg.clip * torch.tanh(compat)  # [B, T]
+        return logits.masked_fill(~action_mask, float("-inf"))
+
+
+def _masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    # x [B, L, d], valid [B, L] -> [B, d]
+    w = valid.to(x.dtype).unsqueeze(-1)  # [B, L, 1]
+    return (x * w).sum(1) / w.sum(1).clamp_min(1.0)

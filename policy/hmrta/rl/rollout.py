@@ -1,0 +1,69 @@
+"""Batched rollouts: many MissionStates (instances x rollouts) advance together, with one forward
+pass per decision step for every pending decision. The states are the core state machine itself,
+so a batched rollout and ``hmrta.sim.run`` give identical schedules for identical choices."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..core import MissionState
+from .features import batch_observations
+
+
+@dataclass
+class Trajectories:
+    """Recorded decisions of a batch of episodes (for the re-scoring forward of REINFORCE)."""
+
+    obs: list[dict[str, torch.Tensor]] = field(default_factory=list)  # one batch per step
+    actions: list[torch.Tensor] = field(default_factory=list)  # [n_active] per step
+    episode: list[torch.Tensor] = field(default_factory=list)  # [n_active] episode index per step
+
+    @property
+    def decisions(self) -> int:
+        return int(sum(len(a) for a in self.actions))
+
+
+def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
+            generator: torch.Generator | None = None, record: bool = False,
+            max_batch: int = 4096, amp: bool = False) -> Trajectories | None:
+    """Advance every state to the end. Greedy (argmax) or sampled decoding.
+
+    ``amp``: bfloat16 autocast on CPU (training collection only; inference stays float32 so that
+    results are exactly reproducible)."""
+    traj = Trajectories() if record else None
+    active = [i for i, s in enumerate(states) if not s.done]
+    with torch.inference_mode():
+        while active:
+            for lo in range(0, len(active), max_batch):
+                idx = active[lo:lo + max_batch]
+                obs = batch_observations([states[i] for i in idx])
+                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+                    logits = model(**obs).float()  # [b, T]
+                if sample:
+                    probs = torch.softmax(logits, dim=-1)  # [b, T]
+                    act = torch.multinomial(probs, 1, generator=generator)[:, 0]  # [b]
+                else:
+                    act = logits.argmax(dim=-1)  # [b]
+                if traj is not None:
+                    traj.obs.append(obs)
+                    traj.actions.append(act.clone())
+                    traj.episode.append(torch.tensor(idx, dtype=torch.long))
+                for i, n in zip(idx, act.tolist()):
+                    states[i].step(int(n))
+            active = [i for i in active if not states[i].done]
+    return traj
+
+
+def returns(states: list[MissionState], t_max: float) -> np.ndarray:
+    """Episode returns R = -T - W (T = T_max on failure)."""
+    from ..solution import redundancy
+    from ..core import DONE
+
+    out = np.empty(len(states))  # [E]
+    for i, s in enumerate(states):
+        T = s.makespan if s.success else t_max
+        W = redundancy(s.inst, s.members, [bool(x == DONE) for x in s.status])
+        out[i] = -T - W
+    return out

@@ -1,0 +1,390 @@
+"""REINFORCE with a shared mean baseline and the constrained flashforward mechanism (SPEC §5).
+
+One iteration: draw one instance size from the (curriculum-narrowed) training distribution,
+``instances_per_iter`` instances of that size, ``rollouts`` (beta) sampled rollouts of each, all
+advanced together under ``torch.inference_mode``; then a single re-scoring forward (with gradient,
+in chunks) over the recorded decisions gives the log-probabilities of the actions taken.
+advantage = own return - mean of the instance's beta returns; loss = -mean(advantage * log p).
+
+Optional behaviour-cloning warm start (``pretrain``): cross-entropy on the greedy baseline's
+choices, so that REINFORCE starts from a greedy-level policy (project choice, recorded in the
+checkpoint config).
+
+Checkpoints hold model, optimiser, learning-rate schedule, RNG states, counters, the resolved
+config and the code version; ``--resume`` continues exactly.
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import math
+import random
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from ..baselines import Greedy
+from ..core import MissionState, Rules
+from ..generators import ScenarioGenerator, TrainingGenerator
+from ..instance import atomic_write_text
+from .features import collate, observe
+from .model import ModelConfig, PolicyNet
+from .rollout import returns, rollout
+
+CONFIG_VERSION = 1
+DEFAULTS: dict[str, Any] = {
+    "version": CONFIG_VERSION,
+    "name": "default",
+    "seed": 0,
+    "model": ModelConfig(ff_hidden=128).to_dict(),
+    "rules": {"max_open": 2, "safety": True},
+    "train": {
+        "iterations": 2000,
+        "max_minutes": None,
+        "instances_per_iter": 8,
+        "rollouts": 10,
+        "lr": 1.0e-4,
+        "lr_decay": 0.98,
+        "lr_decay_every": 100,
+        "grad_clip": 1.0,
+        "t_max": 1000.0,
+        "rescore_chunk": 2048,
+        "amp": True,  # bfloat16 autocast for collection and re-scoring (CPU); evaluation is float32
+        "distribution": {"tasks": [15, 50], "species": [3, 5], "per_species": [3, 5], "skills": 5},
+        "curriculum": [],  # [{until: ITER, tasks: [lo, hi]}, ...] narrows the task range early on
+    },
+    "pretrain": {"iterations": 0, "instances_per_iter": 16, "lr": 1.0e-3, "epochs": 2, "batch": 512},
+    "validation": {"every": 25, "seed": 990001, "rows": [[9, 3, 20, 3, 16], [25, 5, 50, 5, 16]]},
+    "checkpoint": {"every": 10},
+}
+
+
+def deep_update(base: dict, new: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in (new or {}).items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = deep_update(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_config(path: str | Path) -> dict:
+    p = Path(path)
+    try:
+        raw = yaml.safe_load(p.read_text()) or {}
+    except FileNotFoundError:
+        raise ValueError(f"{p}: no such config file") from None
+    except yaml.YAMLError as e:
+        raise ValueError(f"{p}: invalid YAML ({e})") from None
+    if not isinstance(raw, dict):
+        raise ValueError(f"{p}: expected a mapping")
+    unknown = sorted(set(raw) - set(DEFAULTS))
+    if unknown:
+        raise ValueError(f"{p}: unknown key {unknown[0]!r} (expected one of {sorted(DEFAULTS)})")
+    if raw.get("version", CONFIG_VERSION) != CONFIG_VERSION:
+        raise ValueError(f"{p}: version: expected {CONFIG_VERSION}, got {raw['version']!r}")
+    return deep_update(DEFAULTS, raw)
+
+
+def code_version() -> str:
+    try:
+        root = Path(__file__).resolve().parents[3]
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                             text=True, timeout=5)
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "policy/hmrta"],
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+        return (out.stdout.strip() or "unknown") + ("-dirty" if dirty else "")
+    except Exception:
+        return "unknown"
+
+
+def rules_from(cfg: dict, training: bool) -> Rules:
+    r = cfg["rules"]
+    return Rules(max_open=r.get("max_open"), safety=r.get("safety", True), backdate=training)
+
+
+def validation_set(cfg: dict) -> list:
+    v = cfg["validation"]
+    out = []
+    for a, s, m, k, n in v["rows"]:
+        out += ScenarioGenerator("MA-AT", a, s, m, k).generate(n, v["seed"])
+    return out
+
+
+class Trainer:
+    def __init__(self, cfg: dict, run_dir: str | Path, device: str | None = None, log=print):
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        self.log = log
+        seed = int(cfg["seed"])
+        torch.manual_seed(seed)
+        self.model = PolicyNet(ModelConfig(**cfg["model"])).to(self.device)
+        self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg["train"]["lr"])
+        self.np_rng = np.random.default_rng(seed)
+        self.torch_gen = torch.Generator().manual_seed(seed)
+        self.iteration = 0
+        self.pretrain_done = 0
+        self.episodes = 0
+        self.decisions = 0
+        self.best_val = math.inf
+        self.greedy_val: float | None = None
+        self.val_set = validation_set(cfg)
+        self.train_rules = rules_from(cfg, training=True)
+        self.eval_rules = rules_from(cfg, training=False)
+
+    # ---- checkpoints ---------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "config": self.cfg,
+            "code_version": code_version(),
+            "model": self.model.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "iteration": self.iteration,
+            "pretrain_done": self.pretrain_done,
+            "episodes": self.episodes,
+            "decisions": self.decisions,
+            "best_val": self.best_val,
+            "greedy_val": self.greedy_val,
+            "np_rng": self.np_rng.bit_generator.state,
+            "torch_gen": self.torch_gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "py_rng": random.getstate(),
+        }
+
+    def save(self, path: Path) -> None:
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(self.state_dict(), tmp)
+        tmp.replace(path)
+
+    def load(self, path: Path) -> None:
+        ck = torch.load(path, map_location=self.device, weights_only=False)
+        self.model.load_state_dict(ck["model"])
+        if "optimizer" in ck:
+            self.opt.load_state_dict(ck["optimizer"])
+        self.iteration = ck.get("iteration", 0)
+        self.pretrain_done = ck.get("pretrain_done", 0)
+        self.episodes = ck.get("episodes", 0)
+        self.decisions = ck.get("decisions", 0)
+        self.best_val = ck.get("best_val", math.inf)
+        self.greedy_val = ck.get("greedy_val")
+        if "np_rng" in ck:
+            self.np_rng.bit_generator.state = ck["np_rng"]
+            self.torch_gen.set_state(ck["torch_gen"])
+            torch.set_rng_state(ck["torch_rng"])
+            random.setstate(ck["py_rng"])
+
+    def export(self, path: Path, summary: dict | None = None) -> None:
+        """Small inference checkpoint: weights + resolved config + code version + summary."""
+        d = {"config": self.cfg, "code_version": code_version(), "iteration": self.iteration,
+             "episodes": self.episodes, "best_val": self.best_val, "greedy_val": self.greedy_val,
+             "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()}}
+        if summary:
+            d["summary"] = summary
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(d, tmp)
+        tmp.replace(path)
+
+    # ---- data --------------------------------------------------------------------------------
+    def _lr(self) -> float:
+        t = self.cfg["train"]
+        return t["lr"] * t["lr_decay"] ** (self.iteration // t["lr_decay_every"])
+
+    def _task_range(self) -> tuple[int, int]:
+        t = self.cfg["train"]
+        for stage in t["curriculum"]:
+            if stage.get("until") is None or self.iteration < stage["until"]:
+                return tuple(stage["tasks"])  # type: ignore[return-value]
+        return tuple(t["distribution"]["tasks"])  # type: ignore[return-value]
+
+    def _instances(self, n: int, task_range: tuple[int, int] | None = None) -> list:
+        dist = self.cfg["train"]["distribution"]
+        lo, hi = task_range or self._task_range()
+        rng = self.np_rng
+        s = int(rng.integers(dist["species"][0], dist["species"][1] + 1))
+        per = int(rng.integers(dist["per_species"][0], dist["per_species"][1] + 1))
+        m = int(rng.integers(lo, hi + 1))
+        gen = ScenarioGenerator("MA-AT", s * per, s, m, dist["skills"])
+        return [gen.sample(rng) for _ in range(n)]
+
+    # ---- behaviour cloning warm start -----------------------------------------------------------
+    def pretrain_step(self) -> dict:
+        p = self.cfg["pretrain"]
+        insts = self._instances(p["instances_per_iter"])
+        obs, deciders, acts = [], [], []
+        greedy = Greedy()
+        for inst in insts:
+            st = MissionState(inst, seed=int(self.np_rng.integers(2**31)), rules=self.train_rules)
+            while not st.done:
+                obs.append(observe(st))
+                deciders.append(st.agent)
+                n = greedy(st)
+                acts.append(n)
+                st.step(n)
+        for g in self.opt.param_groups:
+            g["lr"] = p["lr"]
+        self.model.train()
+        n = len(acts)
+        losses = []
+        for _ in range(p["epochs"]):
+            perm = self.np_rng.permutation(n)
+            for lo in range(0, n, p["batch"]):
+                idx = perm[lo:lo + p["batch"]]
+                batch = {k: v.to(self.device) for k, v in collate([obs[i] for i in idx],
+                                                                  [deciders[i] for i in idx]).items()}
+                logits = self.model(**batch)
+                target = torch.tensor([acts[i] for i in idx], device=self.device)
+                loss = torch.nn.functional.cross_entropy(logits, target)
+                self.opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg["train"]["grad_clip"])
+                self.opt.step()
+                losses.append(loss.item())
+        self.pretrain_done += 1
+        return {"bc_loss": float(np.mean(losses)), "decisions": n}
+
+    # ---- REINFORCE -----------------------------------------------------------------------------
+    def train_step(self) -> dict:
+        t = self.cfg["train"]
+        beta = t["rollouts"]
+        insts = self._instances(t["instances_per_iter"])
+        states = [MissionState(inst, seed=int(self.np_rng.integers(2**31)), rules=self.train_rules)
+                  for inst in insts for _ in range(beta)]
+        t0 = time.perf_counter()
+        self.model.eval()
+        traj = rollout(self.model, states, sample=True, generator=self.torch_gen, record=True,
+                       amp=t["amp"] and self.device.type == "cpu")
+        t_collect = time.perf_counter() - t0
+        R = returns(states, t["t_max"])  # [E]
+        Rm = R.reshape(len(insts), beta)
+        adv = (Rm - Rm.mean(1, keepdims=True)).reshape(-1)  # [E]
+        adv_t = torch.tensor(adv, dtype=torch.float32, device=self.device)
+        n_ep = len(states)
+        # one re-scoring forward (with gradient) over all recorded decisions, in chunks
+        for g in self.opt.param_groups:
+            g["lr"] = self._lr()
+        self.model.train()
+        self.opt.zero_grad(set_to_none=True)
+        keys = traj.obs[0].keys()
+        allobs = {k: torch.cat([o[k] for o in traj.obs]) for k in keys}
+        acts = torch.cat(traj.actions)  # [D]
+        eps = torch.cat(traj.episode)  # [D]
+        D = len(acts)
+        ent_sum, loss_sum = 0.0, 0.0
+        for lo in range(0, D, t["rescore_chunk"]):
+            sl = slice(lo, lo + t["rescore_chunk"])
+            batch = {k: v[sl].to(self.device) for k, v in allobs.items()}
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=t["amp"]):
+                logits = self.model(**batch).float()  # [c, T]
+            logp_all = torch.log_softmax(logits, dim=-1)  # [c, T]
+            a = acts[sl].to(self.device)
+            logp = logp_all.gather(1, a[:, None])[:, 0]  # [c]
+            loss = -(adv_t[eps[sl].to(self.device)] * logp).sum() / n_ep
+            loss.backward()
+            with torch.no_grad():
+                p = logp_all.exp()
+                ent = -torch.where(batch["action_mask"], p * logp_all, torch.zeros_like(p)).sum(-1)
+                ent_sum += float(ent.sum())
+            loss_sum += float(loss.detach())
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), t["grad_clip"])
+        self.opt.step()
+        dt = time.perf_counter() - t0
+        self.iteration += 1
+        self.episodes += n_ep
+        self.decisions += D
+        ok = np.array([s.success for s in states])
+        mk = np.array([s.makespan for s in states if s.success])
+        return {
+            "iteration": self.iteration, "episodes": self.episodes, "reward": float(R.mean()),
+            "makespan": float(mk.mean()) if len(mk) else math.nan, "success": float(ok.mean()),
+            "entropy": ent_sum / max(D, 1), "loss": loss_sum, "lr": self._lr(),
+            "decisions_per_s": D / max(t_collect, 1e-9), "episodes_per_s": n_ep / dt,
+            "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, "seconds": dt,
+        }
+
+    # ---- validation ----------------------------------------------------------------------------
+    def validate(self) -> dict:
+        from ..methods import solve
+
+        if self.greedy_val is None:
+            self.greedy_val = float(np.mean([solve(i, "greedy", 0).makespan for i in self.val_set]))
+        self.model.eval()
+        states = [MissionState(i, seed=0, rules=self.eval_rules) for i in self.val_set]
+        rollout(self.model, states, sample=False)
+        mk = np.array([s.makespan if s.success else self.cfg["train"]["t_max"] for s in states])
+        return {"val_makespan": float(mk.mean()), "val_success": float(np.mean([s.success for s in states])),
+                "greedy_makespan": self.greedy_val}
+
+    # ---- loop --------------------------------------------------------------------------------
+    def run(self, progress: bool = True) -> dict:
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        p, t = cfg["pretrain"], cfg["train"]
+        log_path = self.run_dir / "log.csv"
+        fields = ["phase", "iteration", "episodes", "reward", "makespan", "success", "entropy", "loss", "lr",
+                  "decisions_per_s", "episodes_per_s", "tasks", "agents", "seconds", "bc_loss",
+                  "val_makespan", "val_success", "greedy_makespan", "wall"]
+        new = not log_path.exists()
+        f = open(log_path, "a", newline="")
+        w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+        if new:
+            w.writeheader()
+        start = time.time()
+        deadline = start + 60 * t["max_minutes"] if t.get("max_minutes") else math.inf
+        last, best = self.run_dir / "last.pt", self.run_dir / "best.pt"
+        try:
+            bar = tqdm(total=p["iterations"], initial=self.pretrain_done, desc="pretrain (BC)",
+                       disable=not progress or self.pretrain_done >= p["iterations"])
+            while self.pretrain_done < p["iterations"] and time.time() < deadline:
+                row = self.pretrain_step()
+                row.update(phase="bc", iteration=self.pretrain_done, wall=time.time() - start)
+                w.writerow(row)
+                f.flush()
+                bar.update(1)
+                bar.set_postfix(loss=f"{row['bc_loss']:.3f}")
+                if self.pretrain_done % cfg["checkpoint"]["every"] == 0 or self.pretrain_done == p["iterations"]:
+                    self.save(last)
+            bar.close()
+            if self.iteration == 0 and self.best_val == math.inf:
+                v = self.validate()
+                self.best_val = v["val_makespan"]
+                w.writerow({**v, "phase": "val", "iteration": 0, "wall": time.time() - start})
+                self.save(best)
+            bar = tqdm(total=t["iterations"], initial=self.iteration, desc="REINFORCE", disable=not progress)
+            while self.iteration < t["iterations"] and time.time() < deadline:
+                row = self.train_step()
+                row.update(phase="rl", wall=time.time() - start)
+                w.writerow(row)
+                f.flush()
+                bar.update(1)
+                bar.set_postfix(mk=f"{row['makespan']:.1f}", ent=f"{row['entropy']:.2f}",
+                                dps=f"{row['decisions_per_s']:.0f}", best=f"{self.best_val:.2f}")
+                if self.iteration % cfg["validation"]["every"] == 0:
+                    v = self.validate()
+                    w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
+                    f.flush()
+                    self.log(f"iteration {self.iteration}: validation makespan {v['val_makespan']:.3f} "
+                             f"(greedy {v['greedy_makespan']:.3f}, best {min(self.best_val, v['val_makespan']):.3f})")
+                    if v["val_makespan"] < self.best_val:
+                        self.best_val = v["val_makespan"]
+                        self.save(best)
+                if self.iteration % cfg["checkpoint"]["every"] == 0:
+                    self.save(last)
+            bar.close()
+        finally:
+            self.save(last)
+            f.close()
+        return {"iteration": self.iteration, "episodes": self.episodes, "best_val": self.best_val,
+                "greedy_val": self.greedy_val}
+
+
+def write_config(cfg: dict, path: Path) -> None:
+    atomic_write_text(path, yaml.safe_dump(cfg, sort_keys=False))
