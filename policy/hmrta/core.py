@@ -36,12 +36,12 @@ import numpy as np
 
 from .instance import Instance
 
-# agent modes
-FREE, TASK, HOME, WAIT = 0, 1, 2, 3
-MODE_NAMES = ("free", "task", "home", "wait")
-# task status
-EMPTY, OPEN, IN_PROGRESS, DONE = 0, 1, 2, 3
-STATUS_NAMES = ("empty", "open", "in_progress", "done")
+# agent modes (LOST: removed from the mission by drop_agent, e.g. a robot that stopped reporting)
+FREE, TASK, HOME, WAIT, LOST = 0, 1, 2, 3, 4
+MODE_NAMES = ("free", "task", "home", "wait", "lost")
+# task status (CANCELLED: no longer satisfiable after drop_agent)
+EMPTY, OPEN, IN_PROGRESS, DONE, CANCELLED = 0, 1, 2, 3, 4
+STATUS_NAMES = ("empty", "open", "in_progress", "done", "cancelled")
 
 
 @dataclass(frozen=True)
@@ -90,6 +90,7 @@ class MissionState:
         self.pool = self.cap.sum(0)  # [K] capability of agents not waiting at an open task
         self.n_open = 0
         self.n_done = 0
+        self.n_cancelled = 0  # tasks closed by drop_agent (no longer satisfiable)
         self.clock = 0.0
         self.events: list[tuple[float, int, int]] = []  # (finish, seq, task)
         self._seq = 0
@@ -219,7 +220,7 @@ class MissionState:
                 return  # stays parked (or keeps going home)
             self._leg(a, here, inst.depots[a], t_dep)
             self.mode[a], self.target[a] = HOME, -1
-            if self.n_done + self._n_in_progress() < self.M:
+            if self.n_done + self.n_cancelled + self._n_in_progress() < self.M:
                 self.depot_stops[a] += 1
             return
         m = node - 1
@@ -301,7 +302,7 @@ class MissionState:
                 self.mode[a] = WAIT
             # no decider left at this instant
             self._deferred.clear()
-            if self.n_done == self.M:
+            if self.n_done + self.n_cancelled == self.M:
                 self._finish_episode()
                 return
             if self.events:
@@ -332,7 +333,7 @@ class MissionState:
         waiting = [a for a in range(self.A) if self.mode[a] == WAIT]
         waiting.sort(key=lambda a: (self.free_since[a], a))
         parked = [a for a in range(self.A) if self.mode[a] == HOME]
-        if self.n_done + self._n_in_progress() == self.M:
+        if self.n_done + self.n_cancelled + self._n_in_progress() == self.M:
             parked = []  # nothing left to offer them
         order = freed + waiting + parked
         self.queue = order[::-1]
@@ -341,7 +342,9 @@ class MissionState:
         for a in range(self.A):
             if self.mode[a] in (FREE, WAIT):
                 self.commit(a, 0)
-        self.done, self.success = True, True
+        self.done, self.success = True, self.n_cancelled == 0
+        if self.n_cancelled:
+            self.failure = f"{self.n_cancelled} task(s) cancelled: no longer satisfiable after robot loss"
         self.agent, self._mask = None, None
 
     def _fail(self, why: str) -> None:
@@ -349,11 +352,133 @@ class MissionState:
         self.agent, self._mask = None, None
 
     # ------------------------------------------------------------------------------------------
+    # robot loss (the ROS task board calls this when a robot or its agent stops reporting)
+    # ------------------------------------------------------------------------------------------
+    def drop_agent(self, a: int) -> list[int]:
+        """Remove agent a from the mission now (``clock``); returns the tasks this cancels.
+
+        * a stops where it is (mode LOST); it leaves the capability pool and the decision queue.
+        * its commitment is released: a task it had joined loses it as a member. A task that was
+          in progress restarts (start = max(now, arrival of the remaining members)) if the others
+          still satisfy it, else it reopens with the others waiting there.
+        * tasks the remaining team can no longer satisfy are CANCELLED (their waiting members are
+          freed where they are); if the open tasks can no longer all be completed by the agents
+          that are not waiting (the deadlock-avoidance invariant), every open task is reset to
+          empty and its members freed.
+        * the pending decision, if any, is recomputed; freed, waiting and parked agents are
+          offered a decision at this instant. The episode then continues as usual and succeeds
+          only if no task was cancelled.
+        """
+        if self.mode[a] == LOST:
+            return []
+        now = self.clock
+        if self.agent is not None:  # the pending decision is recomputed after the change
+            self.queue.append(self.agent)
+        self.agent, self._mask = None, None
+        if a in self.queue:
+            self.queue.remove(a)
+        self._deferred.discard(a)
+        freed: list[int] = []
+        if self.mode[a] == TASK:
+            m = int(self.target[a])
+            if self.status[m] == OPEN:  # a was waiting there: not in the pool
+                self._leave_task(a, m)
+            else:
+                self.pool -= self.cap[a]
+                self._leave_task(a, m)
+        else:
+            self.pool -= self.cap[a]
+        self._stop(a)
+        self.mode[a], self.target[a] = LOST, -1
+        # tasks the remaining team cannot satisfy any more
+        team = self.cap[self.mode != LOST].sum(0)  # [K]
+        cancelled = []
+        for m in np.flatnonzero((self.status == EMPTY) | (self.status == OPEN)):
+            if not self._fits(self.req[m], team):
+                freed += self._reset_task(int(m))
+                self.status[m] = CANCELLED
+                self.rem[m] = 0.0
+                self.n_cancelled += 1
+                cancelled.append(int(m))
+        # deadlock-avoidance invariant: the open tasks must stay completable by the free pool
+        open_ids = np.flatnonzero(self.status == OPEN)
+        if len(open_ids) and not self._closure(self.rem[open_ids], self.held[open_ids], self.pool)[0]:
+            for m in open_ids:
+                freed += self._reset_task(int(m))
+                self.status[m] = EMPTY
+        if not self.done:
+            waiting = [b for b in range(self.A) if self.mode[b] == WAIT and b not in self.queue]
+            parked = [b for b in range(self.A) if self.mode[b] == HOME and b not in self.queue]
+            if self.n_done + self.n_cancelled + self._n_in_progress() == self.M:
+                parked = []
+            order = [b for b in sorted(set(freed)) if b not in self.queue] + waiting + parked
+            self.queue = order[::-1] + self.queue  # after the deciders already queued
+            self._stall = False
+            self._advance()
+        return cancelled
+
+    def _stop(self, a: int) -> None:
+        """Agent a stops where it is now (its current leg is cut short)."""
+        here = self.position(a)
+        self.from_pos[a] = here
+        self.to_pos[a] = here
+        self.depart[a] = self.arrive[a] = self.clock
+
+    def _leave_task(self, a: int, m: int) -> None:
+        """Remove member a from task m (open or in progress); keeps pool and events consistent."""
+        self.members[m].remove(a)
+        if self.routes[a] and self.routes[a][-1] == m:
+            self.routes[a].pop()
+        self.held[m] -= self.cap[a]
+        self.rem[m] = np.maximum(self.req[m] - self.held[m], 0.0)
+        if self.status[m] == OPEN:
+            if not self.members[m]:
+                self.status[m] = EMPTY
+                self.n_open -= 1
+            return
+        # in progress: its completion event is void; restart or reopen
+        self.events = [e for e in self.events if e[2] != m]
+        heapq.heapify(self.events)
+        mem = self.members[m]
+        if mem and (self.rem[m] <= 0).all():
+            start = max(self.clock, float(self.arrive[mem].max()))
+            self.start[m] = start
+            self.finish[m] = start + float(self.inst.durations[m])
+            self._seq += 1
+            heapq.heappush(self.events, (self.finish[m], self._seq, m))
+            return
+        self.start[m] = self.finish[m] = np.nan
+        if mem:
+            self.status[m] = OPEN
+            self.n_open += 1
+            self.pool -= self.held[m]  # the others now wait at an open task
+        else:
+            self.status[m] = EMPTY
+
+    def _reset_task(self, m: int) -> list[int]:
+        """Empty open task m: its members are freed where they are now. Returns them."""
+        mem = list(self.members[m])
+        if self.status[m] == OPEN:
+            self.n_open -= 1
+            self.pool += self.held[m]
+        for b in mem:
+            self.members[m].remove(b)
+            if self.routes[b] and self.routes[b][-1] == m:
+                self.routes[b].pop()
+            self.wait_total[b] += max(0.0, self.clock - self.arrive[b])
+            self._stop(b)
+            self.mode[b], self.target[b] = FREE, -1
+            self.free_since[b] = self.clock
+        self.held[m] = 0.0
+        self.rem[m] = self.req[m].copy()
+        return mem
+
+    # ------------------------------------------------------------------------------------------
     # snapshots (the ROS board publishes them; agents rebuild the state to decide)
     # ------------------------------------------------------------------------------------------
     _ARRAYS = ("rem", "status", "start", "finish", "held", "mode", "target", "from_pos", "to_pos", "depart",
                "arrive", "free_since", "wait_total", "depot_stops", "pool")
-    _SCALARS = ("n_open", "n_done", "clock", "_seq", "_stall", "_commits", "_stall_commits", "decisions", "done",
+    _SCALARS = ("n_open", "n_done", "n_cancelled", "clock", "_seq", "_stall", "_commits", "_stall_commits", "decisions", "done",
                 "success", "failure", "agent", "seed")
 
     def snapshot(self) -> dict[str, Any]:

@@ -1,0 +1,116 @@
+"""MissionState.drop_agent (robot loss, used by the ROS task board): no ROS graph needed."""
+from __future__ import annotations
+
+import json
+import random
+
+import numpy as np
+import pytest
+
+from hmrta.baselines import GREEDY_RULES, Greedy, RandomPolicy
+from hmrta.core import CANCELLED, DONE, LOST, MissionState, Rules
+from hmrta.generators import ScenarioGenerator
+from hmrta.solution import satisfies, solution_from_state
+
+
+def _rollout_with_losses(inst, policy, rules, seed, drops):
+    """Roll out, dropping agent a just before decision number k for each (k, a) in drops."""
+    state = MissionState(inst, seed=seed, rules=rules)
+    drops = sorted(drops)
+    cancelled: list[int] = []
+    dropped: list[int] = []
+    k = 0
+    while not state.done:
+        while drops and drops[0][0] <= k and not state.done:
+            a = drops.pop(0)[1]
+            cancelled += state.drop_agent(a)
+            dropped.append(a)
+        if not state.done:
+            state.step(policy(state))
+            k += 1
+    return state, dropped, cancelled
+
+
+def _check(inst, state, lost, cancelled):
+    assert state.done
+    assert state.failure is None or "cancelled" in state.failure, state.failure
+    assert state.success == (not cancelled)
+    team = inst.traits[[a for a in range(inst.n_agents) if a not in lost]].sum(0)
+    for m in range(inst.n_tasks):
+        if m in cancelled:
+            assert state.status[m] == CANCELLED
+            assert satisfies(inst, list(range(inst.n_agents)), m) == []  # it was satisfiable before
+            lacks = [k for k in range(inst.skills)
+                     if (inst.requirements[m, k] > team[k] if inst.additive else inst.requirements[m, k] > 0 >= team[k])]
+            assert lacks  # ... and is not any more
+        else:
+            assert state.status[m] == DONE
+            assert satisfies(inst, state.members[m], m) == []
+            assert state.finish[m] == state.start[m] + inst.durations[m]
+    for a in lost:
+        assert state.mode[a] == LOST
+    for a in range(inst.n_agents):
+        for m in state.routes[a]:
+            assert a in state.members[m]
+    # the state still survives a JSON snapshot round trip
+    snap = json.loads(json.dumps(state.snapshot()))
+    assert json.dumps(MissionState.from_snapshot(inst, snap).snapshot()) == json.dumps(snap)
+
+
+@pytest.mark.parametrize("scenario,row", [("MA-AT", (9, 3, 20, 3)), ("SA-BT", (9, 3, 20, 3)),
+                                          ("SA-AT", (15, 5, 20, 5)), ("MA-AT", (25, 5, 50, 5))])
+def test_random_losses_never_deadlock(scenario, row):
+    gen = ScenarioGenerator(scenario, *row)
+    rng = random.Random(7)
+    for i in range(12):
+        inst = gen.instance(3, i)
+        lost = rng.sample(range(inst.n_agents), rng.choice([1, 1, 2, 3]))
+        drops = [(rng.randrange(0, 2 * inst.n_tasks), a) for a in lost]
+        for policy, rules in ((Greedy(), GREEDY_RULES), (RandomPolicy(i), Rules())):
+            state, lost, cancelled = _rollout_with_losses(inst, policy, rules, i, drops)
+            _check(inst, state, lost, cancelled)
+            sol = solution_from_state(state, "x", i, 0.0)
+            assert sol.success == (not cancelled)
+
+
+def test_drop_releases_open_task_and_cancels_unsatisfiable():
+    from hmrta.instance import instance_from_dict
+
+    inst = instance_from_dict({
+        "format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2, "skills": 2,
+        "species": [{"traits": [1, 0], "count": 2, "depot": [0.0, 0.0]},
+                    {"traits": [0, 1], "count": 1, "depot": [1.0, 1.0]}],
+        "tasks": [{"location": [0.5, 0.0], "requirements": [1, 1], "duration": 1.0},
+                  {"location": [0.0, 0.5], "requirements": [2, 0], "duration": 1.0}],
+    })
+    state = MissionState(inst, seed=0, rules=Rules())
+    # the first decider commits to task 0 (opens it); then drop the only skill-1 robot
+    a = state.agent
+    state.step(1 if state.mask()[1] else 2)
+    before = [list(r) for r in state.routes]
+    cancelled = state.drop_agent(2)
+    assert state.mode[2] == LOST
+    if inst.traits[a][0] > 0 and before[a] == [0]:
+        assert 0 in cancelled and state.routes[a] == []
+    while not state.done:
+        state.step(Greedy()(state))
+    assert cancelled == [0]
+    assert state.status[1] == DONE and not state.success
+    assert "cancelled" in state.failure
+
+
+def test_drop_current_decider_and_no_cancel_keeps_success():
+    inst = ScenarioGenerator("MA-AT", 15, 5, 20, 5).instance(1, 0)
+    state = MissionState(inst, seed=1, rules=GREEDY_RULES)
+    for _ in range(5):
+        state.step(Greedy()(state))
+    d = state.agent
+    assert d is not None
+    state.drop_agent(d)
+    assert state.agent != d and state.mode[d] == LOST
+    assert state.drop_agent(d) == []  # idempotent
+    while not state.done:
+        state.step(Greedy()(state))
+    assert state.success
+    assert all(d not in state.members[m] for m in range(inst.n_tasks) if m not in state.routes[d])
+    assert np.isfinite(state.arrive).all()
