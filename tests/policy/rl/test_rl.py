@@ -17,6 +17,7 @@ from hmrta.rl.rollout import rollout
 from hmrta.rl.train import DEFAULTS, Trainer, deep_update
 from hmrta.sim import run
 
+torch.set_num_threads(1)  # tiny forwards: one thread is fastest and deterministic
 RULES = Rules(max_open=2, safety=True)
 SMALL = ModelConfig(d_model=32, heads=4, ff_hidden=32)
 
@@ -101,7 +102,6 @@ def _tiny_cfg(**over):
 
 
 def test_tiny_training_run_improves(tmp_path):
-    torch.set_num_threads(1)
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
     tr = FixedTrainer(_tiny_cfg(), tmp_path, device="cpu", log=lambda s: None)
     rows = [tr.train_step() for _ in range(30)]
@@ -115,7 +115,6 @@ def test_tiny_training_run_improves(tmp_path):
 
 
 def test_checkpoint_round_trip_and_resume(tmp_path):
-    torch.set_num_threads(1)
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
     ref = FixedTrainer(_tiny_cfg(), tmp_path / "a", device="cpu")
     for _ in range(3):
