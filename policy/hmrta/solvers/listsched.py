@@ -1,0 +1,270 @@
+"""A randomised greedy list scheduler (construction heuristic) and coalition pruning.
+
+Used by the CP-SAT solver to build a complete, feasible hint and an incumbent upper bound.
+
+One construction: every agent has a ready time and a position (depot or last task). Repeatedly,
+for every unscheduled task m compute the earliest time ``T*_m`` at which a satisfying coalition can
+be assembled there (agents sorted by arrival ``ready + travel``; ``T*_m`` is the arrival of the first
+agent at which the agents arrived so far satisfy m); pick a task with (noisily) small ``T*_m``,
+take the agents that arrived by then, prune members that are not needed (latest arrivals first),
+and commit them: they start at ``T*_m`` and are next ready at its finish. Agents finally return
+to their depots. The routes are re-evaluated by :func:`hmrta.solution.evaluate_routes`.
+
+Pruning (:func:`prune_routes`): removing an agent from a coalition that stays satisfied never
+makes any time later (Euclidean travel obeys the triangle inequality and a task starts at the
+latest arrival of fewer members), so minimal coalitions dominate.
+"""
+from __future__ import annotations
+
+import math
+import random
+import time
+
+import numpy as np
+
+from ..instance import Instance
+from ..solution import Solution, evaluate_routes, satisfies
+
+
+def capability(inst: Instance) -> tuple[np.ndarray, np.ndarray]:
+    """(per agent capability [A,K], per task requirement [M,K]) in requirement arithmetic:
+    AT uses traits and requirements; BT uses 0/1 skill coverage."""
+    if inst.additive:
+        return np.asarray(inst.traits, dtype=np.float64), np.asarray(inst.requirements, dtype=np.float64)
+    return (np.asarray(inst.traits) > 0).astype(np.float64), (np.asarray(inst.requirements) > 0).astype(np.float64)
+
+
+def travel_matrix(inst: Instance) -> np.ndarray:
+    """[S + M, S + M] travel times between nodes: species depots first, then tasks.
+    Entries are computed with ``inst.travel_time`` (bit-identical to route evaluation)."""
+    pts = [tuple(p) for p in inst.species_depots] + [tuple(p) for p in inst.task_locations]
+    n = len(pts)
+    T = np.zeros((n, n))
+    for i in range(n):
+        for j in range(n):
+            if i != j:
+                T[i, j] = inst.travel_time(pts[i], pts[j])
+    return T
+
+
+def prune_routes(inst: Instance, routes: list[list[int]]) -> list[list[int]]:
+    """Drop members whose removal keeps their task's coalition satisfied (latest-evaluated
+    arrivals first). Returns new routes; never worse under evaluate_routes."""
+    M = inst.n_tasks
+    if M == 0:
+        return [list(r) for r in routes]
+    try:
+        sol = evaluate_routes(inst, routes)
+    except Exception:
+        return [list(r) for r in routes]
+    # arrival of agent a at task m under the evaluated schedule (to remove latest arrivals first)
+    arrival: dict[tuple[int, int], float] = {}
+    T = travel_matrix(inst)
+    S = inst.n_species
+    for a, r in enumerate(routes):
+        prev, t = int(inst.agent_species[a]), 0.0
+        for m in r:
+            arrival[(a, m)] = t + T[prev, S + m]
+            t = sol.tasks[m]["finish"]
+            prev = S + m
+    coal = [list(sol.tasks[m]["members"]) for m in range(M)]
+    drop: set[tuple[int, int]] = set()
+    for m in range(M):
+        members = sorted(coal[m], key=lambda a: -arrival[(a, m)])
+        keep = list(coal[m])
+        for a in members:
+            trial = [b for b in keep if b != a]
+            if trial and not satisfies(inst, trial, m):
+                keep = trial
+                drop.add((a, m))
+    return [[m for m in r if (a, m) not in drop] for a, r in enumerate(routes)]
+
+
+class ListScheduler:
+    """Randomised earliest-start list scheduling. ``construct(rng, noise)`` returns routes."""
+
+    def __init__(self, inst: Instance):
+        self.inst = inst
+        self.cap, self.req = capability(inst)  # [A,K], [M,K]
+        self.T = travel_matrix(inst)  # [S+M, S+M]
+        self.S, self.M, self.A = inst.n_species, inst.n_tasks, inst.n_agents
+        self.home = np.asarray(inst.agent_species, dtype=np.int64)  # [A] node index of each depot
+        self.dur = np.asarray(inst.durations, dtype=np.float64)
+
+    def construct(self, rng: random.Random, noise: float = 0.0, finish_weight: float = 0.0) -> list[list[int]]:
+        A, M, S = self.A, self.M, self.S
+        ready = np.zeros(A)
+        pos = self.home.copy()  # [A] node index
+        todo = np.ones(M, dtype=bool)
+        routes: list[list[int]] = [[] for _ in range(A)]
+        req, cap = self.req, self.cap
+        for _ in range(M):
+            cand = np.flatnonzero(todo)
+            arr = ready[:, None] + self.T[pos][:, S + cand]  # [A, C]
+            if noise > 0:  # jitter the arrival order (ties / near ties) a little
+                arr_key = arr + noise * np.asarray([rng.random() for _ in range(arr.size)]).reshape(arr.shape)
+            else:
+                arr_key = arr
+            order = np.argsort(arr_key, axis=0, kind="stable")  # [A, C]
+            cum = np.cumsum(cap[order], axis=0)  # [A, C, K]
+            ok = (cum >= req[cand][None]).all(-1)  # [A, C]
+            first = ok.argmax(0)  # [C]  (feasible instance: some prefix satisfies)
+            sorted_arr = np.maximum.accumulate(np.take_along_axis(arr, order, 0), axis=0)  # [A, C]
+            tstar = sorted_arr[first, np.arange(len(cand))]  # [C] earliest start of each task
+            score = tstar + finish_weight * self.dur[cand]
+            if noise > 0:
+                score = score * (1.0 + noise * np.asarray([rng.random() for _ in cand]))
+            c = int(np.argmin(score))
+            m = int(cand[c])
+            members = list(order[: first[c] + 1, c])
+            # prune: latest arrivals first, keep satisfied
+            members.sort(key=lambda a: -arr[a, c])
+            keep = list(members)
+            for a in members:
+                trial = [b for b in keep if b != a]
+                if trial and (cap[trial].sum(0) >= req[m]).all():
+                    keep = trial
+            start = max(arr[a, c] for a in keep)
+            for a in keep:
+                ready[a] = start + self.dur[m]
+                pos[a] = S + m
+                routes[a].append(m)
+            todo[m] = False
+        return routes
+
+
+def best_list_schedule(inst: Instance, seed: int = 0, seconds: float = 1.0, max_iters: int = 100000,
+                       incumbent: Solution | None = None) -> Solution | None:
+    """Run randomised constructions for ``seconds`` (at least one deterministic one), keep the best
+    re-evaluated solution (or ``incumbent`` if none is better)."""
+    if inst.n_tasks == 0:
+        return incumbent
+    ls = ListScheduler(inst)
+    rng = random.Random(seed)
+    best = incumbent
+    t0 = time.perf_counter()
+    it = 0
+    while it < max_iters:
+        if it == 0:
+            noise, fw = 0.0, 0.0
+        elif it == 1:
+            noise, fw = 0.0, 1.0
+        else:
+            noise, fw = rng.choice((0.02, 0.05, 0.1, 0.2, 0.3)), rng.choice((0.0, 0.0, 0.5, 1.0))
+        routes = ls.construct(rng, noise, fw)
+        sol = evaluate_routes(inst, routes, "list", seed)
+        if best is None or sol.makespan < best.makespan - 1e-12:
+            best = sol
+        it += 1
+        if time.perf_counter() - t0 >= seconds:
+            break
+    return best
+
+
+# ---------------------------------------------------------------------------------------------
+# serial schedule generation from a task order + simulated annealing over orders
+# ---------------------------------------------------------------------------------------------
+class SerialDecoder:
+    """Decode a task order: each task in turn gets the earliest-assembling coalition (agents sorted
+    by arrival, smallest satisfying prefix, then unnecessary members pruned, latest first) and
+    starts at its latest member's arrival. Times follow route-evaluation semantics exactly."""
+
+    def __init__(self, inst: Instance):
+        self.inst = inst
+        cap, req = capability(inst)
+        self.S, self.M, self.A = inst.n_species, inst.n_tasks, inst.n_agents
+        self.K = inst.skills
+        T = travel_matrix(inst)
+        self.Tl = T.tolist()
+        self.home = [int(s) for s in inst.agent_species]
+        self.dur = [float(d) for d in inst.durations]
+        self.cap = cap.tolist()
+        self.req = req.tolist()
+        # only agents that contribute a needed skill are candidates for a task
+        self.cand = [[a for a in range(self.A) if any(cap[a, k] > 0 and req[m, k] > 0 for k in range(self.K))]
+                     for m in range(self.M)]
+        self.needk = [[k for k in range(self.K) if req[m, k] > 0] for m in range(self.M)]
+
+    def decode(self, order, routes_out: bool = False, key_noise: list | None = None):
+        S, Tl, cap, dur = self.S, self.Tl, self.cap, self.dur
+        ready = [0.0] * self.A
+        pos = list(self.home)
+        routes = [[] for _ in range(self.A)] if routes_out else None
+        for m in order:
+            col = S + m
+            req = self.req[m]
+            ks = self.needk[m]
+            arr = sorted((ready[a] + Tl[pos[a]][col], a) for a in self.cand[m])
+            have = [0.0] * self.K
+            members = []
+            for t, a in arr:
+                members.append((t, a))
+                ca = cap[a]
+                for k in ks:
+                    have[k] += ca[k]
+                if all(have[k] >= req[k] for k in ks):
+                    break
+            # prune latest first
+            if len(members) > 1:
+                for idx in range(len(members) - 1, -1, -1):
+                    a = members[idx][1]
+                    ca = cap[a]
+                    if all(have[k] - ca[k] >= req[k] for k in ks):
+                        for k in ks:
+                            have[k] -= ca[k]
+                        members[idx] = None
+                members = [x for x in members if x is not None]
+            start = max(t for t, _ in members)
+            fin = start + dur[m]
+            for _, a in members:
+                ready[a] = fin
+                pos[a] = col
+                if routes_out:
+                    routes[a].append(m)
+        ms = 0.0
+        for a in range(self.A):
+            v = ready[a] + Tl[pos[a]][self.home[a]]
+            if v > ms:
+                ms = v
+        return (ms, routes) if routes_out else ms
+
+
+def order_of(sol: Solution) -> list[int]:
+    """Tasks sorted by start time (a serial order that reproduces the schedule's sequence)."""
+    return sorted(range(len(sol.tasks)), key=lambda m: (sol.tasks[m]["start"], m))
+
+
+def anneal(inst: Instance, order: list[int], seed: int = 0, seconds: float = 1.0,
+           max_evals: int = 10**9) -> tuple[float, list[int]]:
+    """Simulated annealing over task orders with the serial decoder (insert / swap moves).
+    Returns (best makespan, best order)."""
+    dec = SerialDecoder(inst)
+    rng = random.Random(seed)
+    cur = list(order)
+    cur_v = dec.decode(cur)
+    best_v, best = cur_v, list(cur)
+    M = len(cur)
+    if M < 2:
+        return best_v, best
+    t0 = time.perf_counter()
+    T0 = 0.02 * cur_v
+    n = 0
+    while n < max_evals:
+        el = time.perf_counter() - t0
+        if el >= seconds:
+            break
+        temp = T0 * (1.0 - el / seconds) + 1e-9
+        for _ in range(50):
+            cand = list(cur)
+            i, j = rng.randrange(M), rng.randrange(M)
+            if rng.random() < 0.5:
+                cand.insert(j, cand.pop(i))
+            else:
+                cand[i], cand[j] = cand[j], cand[i]
+            v = dec.decode(cand)
+            n += 1
+            if v <= cur_v or rng.random() < math.exp((cur_v - v) / temp):
+                cur, cur_v = cand, v
+                if v < best_v - 1e-12:
+                    best_v, best = v, list(cand)
+    return best_v, best
