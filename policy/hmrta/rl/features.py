@@ -9,6 +9,13 @@ task rows  [1 + M, 2K + 5]: remaining req (K), req (K), rel. position (2), durat
            travel time are set.
 agent rows [A, K + 6]: traits (K), remaining execution time, remaining travel time, waiting time
            so far, rel. position (2), current-task-in-progress flag.
+
+Observation window (project choice, for large teams): when a mission has more than
+``max_tasks`` tasks or ``max_agents`` agents, the decider observes only its ``max_tasks`` nearest
+tasks (admissible ones first, so every admissible task within reach of the window stays selectable)
+and its ``max_agents`` nearest agents (itself included). This keeps inputs at the training scale
+(at most 50 tasks and 25 agents) and the per-decision cost constant. Missions within the window
+are observed whole, exactly as without it.
 """
 from __future__ import annotations
 
@@ -24,9 +31,42 @@ REQ_SCALE = 0.5
 TIME_SCALE = 0.1
 
 
-def observe(state: MissionState, a: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(task_feat [1+M, 2K+5], agent_feat [A, K+6], action mask [1+M]) for decider a (default: current)."""
+MAX_TASKS = 50
+MAX_AGENTS = 25
+
+
+def observe(state: MissionState, a: int | None = None, max_tasks: int = MAX_TASKS, max_agents: int = MAX_AGENTS):
+    """Observation of decider a (default: the current one), windowed for large missions.
+
+    Returns (task_feat [1+W, 2K+5], agent_feat [N, K+6], mask [1+W], nodes [1+W], decider row):
+    ``nodes`` maps task rows to state nodes (row 0 = depot = node 0).
+    """
     a = state.agent if a is None else a
+    tf, af, mask = _observe_full(state, a)
+    M, A = state.M, state.A
+    if M <= max_tasks and A <= max_agents:
+        return tf, af, mask, np.arange(M + 1), a
+    here = state.position(a)
+    if M > max_tasks:
+        d = np.hypot(*(state.inst.task_locations - here).T)  # [M]
+        key = np.where(mask[1:], d, d + 1e6)  # admissible first, then by distance
+        keep = np.sort(np.argsort(key, kind="stable")[:max_tasks]) + 1  # [W] task rows (1-based)
+        rows = np.concatenate([[0], keep])  # [1+W]
+        tf, mask = tf[rows], mask[rows]
+        nodes = rows
+    else:
+        nodes = np.arange(M + 1)
+    if A > max_agents:
+        d = np.hypot(*(state.positions() - here).T)  # [A]
+        d[a] = -1.0  # the decider itself always
+        keep = np.sort(np.argsort(d, kind="stable")[:max_agents])  # [N]
+        af = af[keep]
+        a = int(np.flatnonzero(keep == a)[0])
+    return tf, af, mask, nodes, a
+
+
+def _observe_full(state: MissionState, a: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(task_feat [1+M, 2K+5], agent_feat [A, K+6], action mask [1+M]) for decider a."""
     inst, K, M = state.inst, state.K, state.M
     if K > K_MAX:
         raise ValueError(f"the policy handles at most {K_MAX} skills, instance has {K}")
@@ -63,11 +103,12 @@ def observe(state: MissionState, a: int | None = None) -> tuple[np.ndarray, np.n
     return tf, af, state.mask()
 
 
-def batch_observations(states: list[MissionState]) -> dict[str, torch.Tensor]:
-    """Stack (and pad) the current observations of several states into one batch."""
-    obs = [observe(s) for s in states]
-    deciders = [s.agent for s in states]
-    return collate(obs, deciders)
+def batch_observations(states: list[MissionState], max_tasks: int = MAX_TASKS, max_agents: int = MAX_AGENTS):
+    """Stack (and pad) the current observations of several states into one batch.
+
+    Returns (batch dict of tensors, per-state node maps [1+W])."""
+    obs = [observe(s, None, max_tasks, max_agents) for s in states]
+    return collate([o[:3] for o in obs], [o[4] for o in obs]), [o[3] for o in obs]
 
 
 def collate(obs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], deciders: list[int]) -> dict[str, torch.Tensor]:

@@ -120,10 +120,13 @@ class RLDecider:
 
     def __call__(self, state: MissionState) -> int:
         with torch.inference_mode():
-            logits = self.pol.model(**batch_observations([state]))[0]  # [T]
+            obs, nodes = batch_observations([state])
+            logits = self.pol.model(**obs)[0]  # [T]
             if self.sample:
-                return int(torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen)[0])
-            return int(logits.argmax())
+                row = int(torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen)[0])
+            else:
+                row = int(logits.argmax())
+            return int(nodes[0][row])
 
 
 def rl_decider(sample: bool = False, seed: int = 0, checkpoint: str | None = None, **_: Any):

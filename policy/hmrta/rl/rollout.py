@@ -38,7 +38,7 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
         while active:
             for lo in range(0, len(active), max_batch):
                 idx = active[lo:lo + max_batch]
-                obs = batch_observations([states[i] for i in idx])
+                obs, nodes = batch_observations([states[i] for i in idx])
                 with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
                     logits = model(**obs).float()  # [b, T]
                 if sample:
@@ -50,8 +50,8 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
                     traj.obs.append(obs)
                     traj.actions.append(act.clone())
                     traj.episode.append(torch.tensor(idx, dtype=torch.long))
-                for i, n in zip(idx, act.tolist()):
-                    states[i].step(int(n))
+                for i, n, nm in zip(idx, act.tolist(), nodes):
+                    states[i].step(int(nm[n]))
             active = [i for i in active if not states[i].done]
     return traj
 

@@ -223,10 +223,11 @@ class Trainer:
         for inst in insts:
             st = MissionState(inst, seed=int(self.np_rng.integers(2**31)), rules=self.train_rules)
             while not st.done:
-                obs.append(observe(st))
-                deciders.append(st.agent)
+                tf, af, mask, nodes, row = observe(st)
                 n = greedy(st)
-                acts.append(n)
+                obs.append((tf, af, mask))
+                deciders.append(row)
+                acts.append(int(np.flatnonzero(nodes == n)[0]))
                 st.step(n)
         for g in self.opt.param_groups:
             g["lr"] = p["lr"]

@@ -36,7 +36,7 @@ def _insts():
 
 def test_shapes_and_mask(model):
     states = [MissionState(i, seed=3, rules=RULES) for i in _insts()]
-    obs = batch_observations(states)
+    obs, _ = batch_observations(states)
     B, T = obs["action_mask"].shape
     assert obs["tasks"].shape == (3, T, 15) and obs["agents"].shape[::2] == (3, 11)
     with torch.inference_mode():
@@ -54,9 +54,9 @@ def test_padding_invariance(model):
     insts = _insts()
     states = [MissionState(i, seed=5, rules=RULES) for i in insts]
     with torch.inference_mode():
-        together = model(**batch_observations(states))
+        together = model(**batch_observations(states)[0])
         for b, s in enumerate(states):
-            alone = model(**batch_observations([s]))[0]
+            alone = model(**batch_observations([s])[0])[0]
             n = len(alone)
             torch.testing.assert_close(together[b, :n], alone, rtol=1e-5, atol=1e-5)
             assert torch.isneginf(together[b, n:]).all()
@@ -73,6 +73,31 @@ def test_batched_rollout_equals_core_simulator(model):
         assert single.routes == b.routes
         assert single.makespan == b.makespan
         np.testing.assert_array_equal(single.start, b.start)
+
+
+def test_observation_window_on_large_missions(model):
+    from hmrta.rl.features import observe
+
+    inst = ScenarioGenerator("MA-AT", 30, 5, 60, 5).instance(3, 0)  # beyond 50 tasks / 25 agents
+    st = MissionState(inst, seed=2, rules=Rules(max_open=None, safety=True))
+    tf, af, mask, nodes, row = observe(st)
+    full = st.mask()
+    assert tf.shape == (51, 15) and af.shape == (25, 11) and nodes[0] == 0
+    assert (full[nodes] == mask).all()  # rows map to the right nodes
+    assert mask[1:].sum() == min(50, full[1:].sum())  # admissible tasks come first
+    here = st.position(st.agent)
+    d = np.hypot(*(inst.task_locations - here).T)
+    inside = nodes[1:] - 1
+    outside = np.setdiff1d(np.flatnonzero(full[1:]), inside)
+    if len(outside):  # every admissible task left out is farther than every admissible one kept
+        assert d[outside].min() >= d[inside[full[1:][inside]]].max()
+    assert af[row, 8:10].tolist() == [0.0, 0.0]  # the decider sees itself at relative (0, 0)
+    # windowed batched rollout == per-decision policy on the core simulator
+    b = MissionState(inst, seed=2, rules=RULES)
+    rollout(model, [b], sample=False)
+    pol = LoadedPolicy(model, {"rules": RULES.to_dict()}, "<memory>", {})
+    single = run(inst, RLDecider(pol, sample=False, seed=0), seed=2, rules=RULES)
+    assert b.success and single.routes == b.routes and single.makespan == b.makespan
 
 
 def test_greedy_rollouts_are_deterministic(model):
