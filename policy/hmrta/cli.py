@@ -215,6 +215,13 @@ def cmd_train(args) -> int:
         raise UserError(f"{run_dir} already holds a run: pass --resume to continue it or --run-dir for a new one")
     if args.threads:
         torch.set_num_threads(args.threads)
+    import signal
+
+    def _stop(signum, frame):  # SIGTERM / SIGINT: stop at once, the trainer saves last.pt on the way out
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)  # also when started in the background (SIGINT ignored there)
     tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: print(s, file=sys.stderr))
     if args.resume:
         src = Path(args.init) if args.init else last
@@ -225,7 +232,11 @@ def cmd_train(args) -> int:
             print(f"nothing to resume in {run_dir}: starting fresh", file=sys.stderr)
     write_config(cfg, run_dir / "config.yaml")
     print(f"training on {tr.device}; log {run_dir / 'log.csv'}", file=sys.stderr)
-    res = tr.run(progress=not args.no_progress)
+    try:
+        res = tr.run(progress=not args.no_progress)
+    except KeyboardInterrupt:
+        print(f"stopped: checkpoint saved to {last} (continue with --resume)", file=sys.stderr)
+        return 130
     print(json.dumps(res))
     if args.export:
         best = run_dir / "best.pt"

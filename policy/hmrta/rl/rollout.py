@@ -27,9 +27,10 @@ class Trajectories:
 
 def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
             generator: torch.Generator | None = None, record: bool = False,
-            max_batch: int = 4096, amp: bool = False) -> Trajectories | None:
+            max_batch: int = 4096, amp: bool = False, temperature: float = 1.0) -> Trajectories | None:
     """Advance every state to the end. Greedy (argmax) or sampled decoding.
 
+    ``temperature``: sampling from softmax(logits / temperature) (training exploration).
     ``amp``: bfloat16 autocast on CPU (training collection only; inference stays float32 so that
     results are exactly reproducible)."""
     traj = Trajectories() if record else None
@@ -42,7 +43,7 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
                 with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
                     logits = model(**obs).float()  # [b, T]
                 if sample:
-                    probs = torch.softmax(logits, dim=-1)  # [b, T]
+                    probs = torch.softmax(logits / temperature, dim=-1)  # [b, T]
                     act = torch.multinomial(probs, 1, generator=generator)[:, 0]  # [b]
                 else:
                     act = logits.argmax(dim=-1)  # [b]

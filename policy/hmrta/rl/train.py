@@ -54,6 +54,8 @@ DEFAULTS: dict[str, Any] = {
         "grad_clip": 1.0,
         "t_max": 1000.0,
         "rescore_chunk": 2048,
+        "temperature": 1.0,  # collection samples softmax(logits / T); the gradient is for that policy
+        "entropy_coef": 0.0,  # entropy bonus (of the tempered policy) in the loss
         "amp": True,  # bfloat16 autocast for collection and re-scoring (CPU); evaluation is float32
         "distribution": {"tasks": [15, 50], "species": [3, 5], "per_species": [3, 5], "skills": 5},
         "curriculum": [],  # [{until: ITER, tasks: [lo, hi]}, ...] narrows the task range early on
@@ -261,7 +263,7 @@ class Trainer:
         t0 = time.perf_counter()
         self.model.eval()
         traj = rollout(self.model, states, sample=True, generator=self.torch_gen, record=True,
-                       amp=t["amp"] and self.device.type == "cpu")
+                       amp=t["amp"] and self.device.type == "cpu", temperature=t["temperature"])
         t_collect = time.perf_counter() - t0
         R = returns(states, t["t_max"])  # [E]
         Rm = R.reshape(len(insts), beta)
@@ -284,15 +286,14 @@ class Trainer:
             batch = {k: v[sl].to(self.device) for k, v in allobs.items()}
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=t["amp"]):
                 logits = self.model(**batch).float()  # [c, T]
-            logp_all = torch.log_softmax(logits, dim=-1)  # [c, T]
+            logp_all = torch.log_softmax(logits / t["temperature"], dim=-1)  # [c, T]
             a = acts[sl].to(self.device)
             logp = logp_all.gather(1, a[:, None])[:, 0]  # [c]
-            loss = -(adv_t[eps[sl].to(self.device)] * logp).sum() / n_ep
+            p = logp_all.exp()
+            ent = -torch.where(batch["action_mask"], p * logp_all, torch.zeros_like(p)).sum(-1)  # [c]
+            loss = (-(adv_t[eps[sl].to(self.device)] * logp).sum() - t["entropy_coef"] * ent.sum()) / n_ep
             loss.backward()
-            with torch.no_grad():
-                p = logp_all.exp()
-                ent = -torch.where(batch["action_mask"], p * logp_all, torch.zeros_like(p)).sum(-1)
-                ent_sum += float(ent.sum())
+            ent_sum += float(ent.detach().sum())
             loss_sum += float(loss.detach())
         torch.nn.utils.clip_grad_norm_(self.model.parameters(), t["grad_clip"])
         self.opt.step()
