@@ -24,6 +24,9 @@ PAPER_ROWS: dict[str, list[tuple[int, int, int, int]]] = {
 }
 
 
+MAX_DRAWS = 10_000  # redraws of (traits, requirements) before giving up (paper rows need <= 3)
+
+
 def row_name(scenario: str, agents: int, species: int, tasks: int, skills: int) -> str:
     return f"{scenario}_{agents}-{species}-{tasks}-{skills}"
 
@@ -49,6 +52,9 @@ class ScenarioGenerator:
             raise ValueError(f"agents ({self.agents}) must be a multiple of species ({self.species})")
         if self.multi_skill and self.species > 2**self.skills - 1:
             raise ValueError(f"MA needs distinct non-zero trait vectors: at most {2**self.skills - 1} species")
+        if not self.multi_skill and self.species < self.skills:
+            # one-hot species cover only `species` skills: tasks needing the others are never feasible
+            raise ValueError(f"SA needs at least as many species as skills ({self.skills}), got {self.species}")
 
     @property
     def multi_skill(self) -> bool:
@@ -82,13 +88,16 @@ class ScenarioGenerator:
 
     def sample(self, rng: np.random.Generator, name: str | None = None) -> Instance:
         per = self.agents // self.species
-        while True:
+        for _ in range(MAX_DRAWS):
             traits = self._traits(rng)
             req = self._requirements(rng)
             team = traits.sum(0) * per  # [skills]
             ok = (req <= team).all() if self.additive else ((req > 0) <= (team > 0)).all()
             if ok:
                 break
+        else:  # e.g. AT with one agent per species: requirements of 2 are rarely coverable
+            raise ValueError(f"{self.name}: no feasible instance in {MAX_DRAWS} draws "
+                             "(too few agents per skill for these requirements)")
         depots = rng.random((self.species, 2))
         locs = rng.random((self.tasks, 2))
         durs = rng.random(self.tasks) * self.max_duration
