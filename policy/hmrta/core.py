@@ -17,8 +17,10 @@ The environment owns feasibility. Besides the SPEC's ability mask it applies (se
   below this guarantees that every feasible instance is completed whatever the policy picks.
 * **postponement** (flashforward): a decider with no admissible task is moved behind the other
   deciders of its instant; still blocked, it waits in place and is retried after the deciders of
-  later instants. With ``Rules.backdate`` (training only) its departure is back-dated to the
-  instant it first became free.
+  later instants. With ``Rules.backdate`` (default) its departure is back-dated to the instant it
+  first became free, so the schedule is exactly what route evaluation of its routes gives (it
+  never idles where leaving at once is as good). Set it False for real-time execution, where a
+  departure cannot lie in the past.
 * an agent with no empty/open task left to join goes home; agents parked at their depot (or on
   the way there) are offered a decision again after every completion event. When nothing is
   pending any more (a *stall*), parked and waiting agents are offered the tasks with the depot
@@ -48,7 +50,7 @@ STATUS_NAMES = ("empty", "open", "in_progress", "done", "cancelled")
 class Rules:
     max_open: int | None = None  # max-open-task rule (None: no limit)
     safety: bool = True  # deadlock-avoidance mask
-    backdate: bool = False  # flashforward back-dated departure (training only)
+    backdate: bool = True  # flashforward: a postponed agent's departure is back-dated (see module doc)
     t_max: float = math.inf  # episode fails when an event lies beyond this time
 
     def to_dict(self) -> dict[str, Any]:

@@ -65,7 +65,7 @@ def test_greedy_tie_breaks_by_lowest_id():
 
 
 def test_greedy_rules_are_documented():
-    assert GREEDY_RULES.max_open == 2 and GREEDY_RULES.safety and not GREEDY_RULES.backdate
+    assert GREEDY_RULES.max_open == 2 and GREEDY_RULES.safety and GREEDY_RULES.backdate
     import hmrta.baselines as b
 
     assert "nearest" in b.__doc__ and "max-open" in b.__doc__ and "deadlock" in b.__doc__

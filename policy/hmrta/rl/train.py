@@ -106,9 +106,10 @@ def code_version() -> str:
         return "unknown"
 
 
-def rules_from(cfg: dict, training: bool) -> Rules:
+def rules_from(cfg: dict) -> Rules:
+    """State-machine rules of a config (the same in training and at inference)."""
     r = cfg["rules"]
-    return Rules(max_open=r.get("max_open"), safety=r.get("safety", True), backdate=training)
+    return Rules(max_open=r.get("max_open"), safety=r.get("safety", True))
 
 
 def validation_set(cfg: dict) -> list:
@@ -139,8 +140,7 @@ class Trainer:
         self.best_val = math.inf
         self.greedy_val: float | None = None
         self.val_set = validation_set(cfg)
-        self.train_rules = rules_from(cfg, training=True)
-        self.eval_rules = rules_from(cfg, training=False)
+        self.train_rules = self.eval_rules = rules_from(cfg)
 
     # ---- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -162,6 +162,8 @@ class Trainer:
         }
 
     def save(self, path: Path) -> None:
+        if not all(torch.isfinite(v).all() for v in self.model.state_dict().values()):
+            raise RuntimeError(f"refusing to save non-finite weights to {path}")
         tmp = path.with_name(path.name + ".tmp")
         torch.save(self.state_dict(), tmp)
         tmp.replace(path)
@@ -289,14 +291,18 @@ class Trainer:
             logp_all = torch.log_softmax(logits / t["temperature"], dim=-1)  # [c, T]
             a = acts[sl].to(self.device)
             logp = logp_all.gather(1, a[:, None])[:, 0]  # [c]
-            p = logp_all.exp()
-            ent = -torch.where(batch["action_mask"], p * logp_all, torch.zeros_like(p)).sum(-1)  # [c]
+            safe = logp_all.masked_fill(~batch["action_mask"], 0.0)  # [c, T] (no 0 * -inf in the gradient)
+            ent = -(safe.exp() * safe).masked_fill(~batch["action_mask"], 0.0).sum(-1)  # [c]
             loss = (-(adv_t[eps[sl].to(self.device)] * logp).sum() - t["entropy_coef"] * ent.sum()) / n_ep
             loss.backward()
             ent_sum += float(ent.detach().sum())
             loss_sum += float(loss.detach())
-        torch.nn.utils.clip_grad_norm_(self.model.parameters(), t["grad_clip"])
-        self.opt.step()
+        gnorm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), t["grad_clip"])
+        if torch.isfinite(gnorm):
+            self.opt.step()
+        else:  # never let one bad batch poison the weights
+            self.log(f"iteration {self.iteration + 1}: non-finite gradient, update skipped")
+            self.opt.zero_grad(set_to_none=True)
         dt = time.perf_counter() - t0
         self.iteration += 1
         self.episodes += n_ep
