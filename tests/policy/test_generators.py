@@ -102,6 +102,7 @@ def test_requirement_values_are_all_drawn():
     (("MA-AT", 10, 3, 20, 3), "multiple of species"),
     (("MA-AT", 8, 4, 20, 2), "at most 3 species"),
     (("SA-AT", 0, 0, 20, 3), ">= 1"),
+    (("SA-BT", 4, 2, 20, 3), "SA needs at least as many species as skills"),  # would loop forever
 ])
 def test_generator_argument_errors(args, match):
     with pytest.raises(ValueError, match=match):
@@ -134,3 +135,10 @@ def test_training_curriculum_narrows_ranges():
     gen = TrainingGenerator(tasks=(4, 6), species=(2, 2), per_species=(1, 2), skills=3)
     for inst in itertools.islice(gen.stream(0), 50):
         assert 4 <= inst.n_tasks <= 6 and inst.n_species == 2 and inst.n_agents in (2, 4) and inst.skills == 3
+
+
+def test_hopeless_rows_fail_instead_of_looping():
+    """AT with one agent per species: two distinct 0/1 species can never cover requirements of 2
+    in all 3 skills; the generator gives up with a clear error (it used to loop forever)."""
+    with pytest.raises(ValueError, match="no feasible instance in 10000 draws"):
+        ScenarioGenerator("MA-AT", 2, 2, 30, 3).instance(seed=0, index=0)

@@ -1,0 +1,129 @@
+"""Property tests (hypothesis, derandomized): any feasible small instance x {greedy, random policy}
+-> every task satisfied, all agents home, start >= every member's arrival, AWT >= 0, and route
+evaluation reproduces the makespan (exactly without depot stops or delayed departures, else lower).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
+
+from hmrta.baselines import GREEDY_RULES, Greedy, RandomPolicy
+from hmrta.core import MissionState, Rules
+from hmrta.generators import SCENARIOS, ScenarioGenerator
+from hmrta.instance import instance_from_dict
+from hmrta.solution import solution_from_state
+
+SETTINGS = settings(max_examples=150, derandomize=True, deadline=None, database=None,
+                    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+
+GRID = [0.0, 0.25, 0.5, 0.75, 1.0]  # coarse grid: shared locations and equal distances (ties)
+
+
+@st.composite
+def generated(draw):
+    """An instance of a scenario generator with drawn small sizes and seed."""
+    scenario = draw(st.sampled_from(SCENARIOS))
+    skills = draw(st.integers(1, 4))
+    if scenario.startswith("MA"):
+        species = draw(st.integers(1, min(3, 2 ** skills - 1)))
+    else:  # SA: at least as many species as skills
+        species = draw(st.integers(skills, 4))
+    # AT needs >= 2 agents per species for requirements of 2 to be coverable quickly
+    per = draw(st.integers(2 if scenario.endswith("AT") else 1, 3))
+    tasks = draw(st.integers(1, 10))
+    seed = draw(st.integers(0, 2**32 - 1))
+    return ScenarioGenerator(scenario, species * per, species, tasks, skills).instance(seed, 0)
+
+
+@st.composite
+def arbitrary(draw):
+    """A hand-rolled feasible instance: integer traits 0..2, amounts up to 3, grid locations,
+    durations including 0, both requirement types, several velocities."""
+    rt = draw(st.sampled_from(["additive", "binary"]))
+    K = draw(st.integers(1, 3))
+    n_species = draw(st.integers(1, 3))
+    species = []
+    for _ in range(n_species):
+        traits = draw(st.lists(st.integers(0, 2), min_size=K, max_size=K))
+        traits[0] = traits[0] or (0 if any(traits) else 1)
+        species.append({"traits": traits, "count": draw(st.integers(1, 3)),
+                        "depot": [draw(st.sampled_from(GRID)), draw(st.sampled_from(GRID))]})
+    team = np.sum([np.array(s["traits"]) * s["count"] for s in species], axis=0)  # [K]
+    tasks = []
+    for _ in range(draw(st.integers(0, 8))):
+        q = np.array(draw(st.lists(st.integers(0, 3), min_size=K, max_size=K)))
+        q = np.minimum(q, team) if rt == "additive" else q * (team > 0)
+        if not q.any():
+            q[int(np.flatnonzero(team)[0])] = 1
+        tasks.append({"location": [draw(st.sampled_from(GRID)), draw(st.sampled_from(GRID))],
+                      "requirements": q.tolist(),
+                      "duration": draw(st.sampled_from([0, 0.5, 1, 2.5, 3.7]))})
+    return instance_from_dict({
+        "format": "hmrta-instance/1", "requirement_type": rt,
+        "velocity": draw(st.sampled_from([0.2, 0.125, 1.0])), "skills": K, "species": species, "tasks": tasks})
+
+
+# greedy under its documented rules and under real-time rules (no back-dated departures);
+# the random policy under several rule sets
+policies = st.one_of(
+    st.tuples(st.just("greedy"), st.none(),
+              st.sampled_from([GREEDY_RULES, dataclasses.replace(GREEDY_RULES, backdate=False)])),
+    st.tuples(st.just("random"), st.integers(0, 1000),
+              st.sampled_from([Rules(), Rules(max_open=1), Rules(max_open=2, backdate=True),
+                               Rules(max_open=2, backdate=False), Rules(backdate=False)])),
+)
+
+
+def _policy(spec):
+    name, pseed, rules = spec
+    if name == "greedy":
+        return Greedy(), rules
+    return RandomPolicy(pseed, depot_weight=0.5), rules
+
+
+@SETTINGS
+@given(inst=generated(), spec=policies, seed=st.integers(0, 1000))
+def test_generated_instances(inst, spec, seed, traced_run, check_rollout):
+    pol, rules = _policy(spec)
+    state, trace = traced_run(inst, pol, seed, rules)
+    sol = solution_from_state(state, spec[0], seed, 0.0)
+    ev = check_rollout(inst, state, trace, sol)
+    event(f"{spec[0]} backdate={rules.backdate}: evaluate {'==' if ev.makespan == sol.makespan else '<'} simulate")
+    event(f"tasks {'0' if inst.n_tasks == 0 else '1-4' if inst.n_tasks < 5 else '5+'}")
+    event(f"depot stops: {'depot_stops' in sol.extra}")
+
+
+@SETTINGS
+@given(inst=arbitrary(), spec=policies, seed=st.integers(0, 1000))
+def test_arbitrary_instances(inst, spec, seed, traced_run, check_rollout):
+    pol, rules = _policy(spec)
+    state, trace = traced_run(inst, pol, seed, rules)
+    sol = solution_from_state(state, spec[0], seed, 0.0)
+    ev = check_rollout(inst, state, trace, sol)
+    event(f"{spec[0]} backdate={rules.backdate}: evaluate {'==' if ev.makespan == sol.makespan else '<'} simulate")
+    event(f"tasks {'0' if inst.n_tasks == 0 else '1-4' if inst.n_tasks < 5 else '5+'}")
+    event(f"depot stops: {'depot_stops' in sol.extra}")
+
+
+@settings(max_examples=40, derandomize=True, deadline=None, database=None)
+@given(inst=arbitrary(), pseed=st.integers(0, 1000), seed=st.integers(0, 1000), cut=st.floats(0, 1))
+def test_snapshot_anywhere_continues_identically(inst, pseed, seed, cut):
+    rules = Rules(max_open=2)
+    state = MissionState(inst, seed, rules)
+    pol = RandomPolicy(pseed)
+    steps = 0
+    while not state.done and steps < 40 * cut:
+        state.step(pol(state))
+        steps += 1
+    restored = MissionState.from_snapshot(inst, json.loads(json.dumps(state.snapshot())))
+    pol2 = RandomPolicy(pseed)
+    pol2.rng.setstate(pol.rng.getstate())
+    for s, p in ((state, pol), (restored, pol2)):
+        while not s.done:
+            s.step(p(s))
+    assert json.dumps(solution_from_state(state, "r", seed, 0).to_dict()) == \
+        json.dumps(solution_from_state(restored, "r", seed, 0).to_dict())
