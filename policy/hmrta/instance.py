@@ -134,7 +134,7 @@ class Instance:
         d = self.to_dict()
         lines = [
             f"format: {FORMAT}",
-            f"name: {json.dumps(d['name'])}",
+            f"name: {_yaml_str(d['name'])}",
             f"requirement_type: {d['requirement_type']}",
             f"velocity: {_fmt(d['velocity'])}",
             f"skills: {d['skills']}",
@@ -188,6 +188,12 @@ def _fmt(v: float | int) -> str:
     r = repr(v)
     # YAML 1.1 (PyYAML) reads '1e-05' as a string: its floats need a '.' in the mantissa
     return r.replace("e", ".0e", 1) if "e" in r and "." not in r else r
+
+
+def _yaml_str(s: str) -> str:
+    """Double-quoted YAML scalar. JSON escapes, except characters beyond U+FFFF as \\UXXXXXXXX:
+    YAML reads JSON's surrogate-pair escapes back as two lone surrogates."""
+    return '"' + "".join(f"\\U{ord(c):08x}" if ord(c) > 0xFFFF else json.dumps(c)[1:-1] for c in s) + '"'
 
 
 def _fmt_list(vs: Sequence[float | int]) -> str:

@@ -221,13 +221,14 @@ def test_round_trip_awkward_floats(tmp_path):
         "additive", 0.2, 2,
         (Species((1.0, 2.5), 2, (1e-05, 0.1 + 0.2)), Species((3e-07, 0.0), 1, (1.0, 0.0))),
         (Task((0.5, 1e-10), (1.0, 2.0), 4.999999999999999), Task((0.0, 1.0), (3e-07, 1.0), 0.0)),
-        name='odd "name": x',
+        name='odd "name": x \\ é \N{GRINNING FACE}',
     )
     p = tmp_path / "odd.yaml"
     inst.save(p)
     back = load_instance(p)
     assert back.to_dict() == inst.to_dict()
     assert back.to_yaml() == inst.to_yaml()
+    assert back.name.endswith("\N{GRINNING FACE}")  # not two lone surrogates
 
 
 def test_example_fixture_file(data_dir):
