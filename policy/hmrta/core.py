@@ -486,6 +486,8 @@ class MissionState:
     def snapshot(self) -> dict[str, Any]:
         """A JSON-serialisable copy of the full state (exact floats; restore with from_snapshot)."""
         d: dict[str, Any] = {k: getattr(self, k).tolist() for k in self._ARRAYS}
+        for k in ("start", "finish"):  # strict JSON: not-yet-started tasks are null, not NaN
+            d[k] = [None if x != x else x for x in d[k]]
         d.update({k: getattr(self, k) for k in self._SCALARS})
         d["rules"] = self.rules.to_dict()
         d["members"] = self.members
@@ -510,7 +512,7 @@ class MissionState:
         self.req = np.array(inst.requirements if self.additive else inst.requirements > 0, dtype=np.float64)
         for k in cls._ARRAYS:
             ref = getattr(self, k, None)
-            arr = np.array(d[k])
+            arr = np.array([math.nan if x is None else x for x in d[k]]) if k in ("start", "finish") else np.array(d[k])
             if k in ("status", "mode", "target", "depot_stops"):
                 arr = arr.astype(np.int64)
             else:

@@ -311,6 +311,24 @@ def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
     return inst
 
 
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader that rejects a key written twice in one mapping (the last would silently win)."""
+
+
+def _no_duplicates(loader: yaml.SafeLoader, node: yaml.MappingNode, deep: bool = False):
+    seen: dict = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key {key!r} (first on line {seen[key] + 1})", key_node.start_mark)
+        seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _no_duplicates)
+
+
 def load_instance(path: str | Path) -> Instance:
     """Load an `hmrta-instance/1` YAML file, or a CTAS-D-family ``config.json`` (SPEC §6)."""
     p = Path(path)
@@ -334,7 +352,7 @@ def load_instance(path: str | Path) -> Instance:
             raise InstanceError(f"{p}:{e.lineno}: invalid JSON ({e.msg})") from None
         return instance_from_ctas_config(data, source=str(p))
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_StrictLoader)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         line = f":{mark.line + 1}" if mark is not None else ""

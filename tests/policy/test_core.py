@@ -332,3 +332,24 @@ def test_empty_instance():
     inst = make("additive", 1, [([1], 2, (1, 2))], [])
     sol = simulate(inst, Greedy(), 0, GREEDY_RULES)
     assert sol.success and sol.makespan == 0.0 and sol.routes == [[], []] and sol.redundancy == 0.0
+
+
+def test_snapshot_is_strict_json_and_restores_exactly():
+    import json
+
+    from hmrta.baselines import Greedy
+    from hmrta.core import MissionState, Rules
+    from hmrta.generators import ScenarioGenerator
+
+    inst = ScenarioGenerator("MA-AT", 9, 3, 20, 3).instance(3, 0)
+    s = MissionState(inst, seed=4, rules=Rules(max_open=2))
+    for _ in range(5):
+        s.step(Greedy()(s))
+    text = json.dumps(s.snapshot(), allow_nan=False)  # raises on NaN / inf
+    r = MissionState.from_snapshot(inst, json.loads(text))
+    while not s.done:
+        n = Greedy()(s)
+        assert Greedy()(r) == n
+        s.step(n)
+        r.step(n)
+    assert r.routes == s.routes and r.makespan == s.makespan

@@ -238,3 +238,13 @@ def test_example_fixture_file(data_dir):
     assert inst.species[0].traits == (1.0, 0.0, 1.0) and inst.species[0].count == 3
     assert np.array_equal(inst.requirements[0], [0, 2, 1])
     assert math.isclose(inst.durations[0], 3.5)
+
+
+def test_duplicate_yaml_key_is_rejected_with_its_line(tmp_path):
+    from hmrta.instance import InstanceError, load_instance
+
+    p = tmp_path / "dup.yaml"
+    p.write_text("format: hmrta-instance/1\nrequirement_type: additive\nvelocity: 0.2\nvelocity: 0.3\nskills: 1\n"
+                 "species: [{traits: [1], count: 1, depot: [0, 0]}]\ntasks: []\n")
+    with pytest.raises(InstanceError, match=r"dup.yaml:4: .*duplicate key 'velocity' \(first on line 3\)"):
+        load_instance(p)
