@@ -253,7 +253,8 @@ def _animate(inst: Instance, sol: Solution, path: Path, frames: int, fps: int) -
     dots = ax_map.scatter([p[0] for p in homes], [p[1] for p in homes], s=38, zorder=9,
                           c=[colors[int(s)] for s in inst.agent_species], edgecolors="black", linewidths=0.8)
     cursor = ax_g.axvline(0.0, color="red", lw=1.5)
-    clock = ax_map.text(0.98, 1.02, "", transform=ax_map.transAxes, ha="right", fontsize=9)
+    clock = ax_map.text(0.98, 0.02, "", transform=ax_map.transAxes, ha="right", va="bottom", fontsize=10,
+                        zorder=10, bbox=dict(facecolor="white", edgecolor="grey", alpha=0.85))
     starts = np.array([t["start"] if t["start"] is not None else np.inf for t in sol.tasks], dtype=float)
     fins = np.array([t["finish"] if t["finish"] is not None else np.inf for t in sol.tasks], dtype=float)
     ring = ax_map.scatter(inst.task_locations[:, 0], inst.task_locations[:, 1], s=230, facecolors="none",

@@ -191,8 +191,13 @@ def _hint_valid(D: _Data, routes: list[list[int]]) -> bool:
 # ---------------------------------------------------------------------------------------------
 # model
 # ---------------------------------------------------------------------------------------------
-def _build(D: _Data, ub_C: int, lb_C: int, hint_routes: list[list[int]] | None):
+DEFAULT_OPTS = {"workload": True, "species_cumulative": True, "skill_cumulative": True, "forced_sharing": True}
+
+
+def _build(D: _Data, ub_C: int, lb_C: int, hint_routes: list[list[int]] | None, opts: dict | None = None):
     from ortools.sat.python import cp_model
+
+    o = {**DEFAULT_OPTS, **(opts or {})}
 
     md = cp_model.CpModel()
     S, M = D.S, D.M
@@ -260,14 +265,15 @@ def _build(D: _Data, ub_C: int, lb_C: int, hint_routes: list[list[int]] | None):
         work = [f[s, i, j] * ((D.dur[i] if i >= 0 else 0)
                               + (D.t[i][j] if i >= 0 and j >= 0 else D.t_out[s][j] if i < 0 else D.t_back[s][i]))
                 for (ss, i, j) in f if ss == s]
-        md.Add(sum(work) <= D.count[s] * C)
+        if o["workload"]:
+            md.Add(sum(work) <= D.count[s] * C)
         # cumulative: the species' agents are each in at most one task window at a time
         ivs, dem = [], []
         for m in D.useful[s]:
             a = D.min_in(s, m)
             ivs.append(md.NewFixedSizeIntervalVar(start[m] - a, a + D.dur[m], f"iv{s}_{m}"))
             dem.append(x[s, m])
-        if ivs:
+        if ivs and o["species_cumulative"]:
             md.AddCumulative(ivs, dem, D.count[s])
     # arcs => precedence (shared by all species)
     y: dict[tuple[int, int], Any] = {}
@@ -281,6 +287,31 @@ def _build(D: _Data, ub_C: int, lb_C: int, hint_routes: list[list[int]] | None):
     for (i, j), yy in y.items():
         if i < j and (j, i) in y:
             md.AddBoolOr([yy.Not(), y[j, i].Not()])
+    # forced sharing: if x[s,i] + x[s,j] > count_s, some agent does both tasks, so (triangle
+    # inequality) one of them precedes the other by its duration + the travel between them
+    order: dict[tuple[int, int], Any] = {}
+    share_lits: list = []
+    if o["forced_sharing"]:
+        for s in range(S):
+            us = D.useful[s]
+            for a_, i in enumerate(us):
+                for j in us[a_ + 1:]:
+                    if int(D.ub[s, i]) + int(D.ub[s, j]) <= D.count[s]:
+                        continue
+                    sh = md.NewBoolVar(f"sh{s}_{i}_{j}")
+                    md.Add(x[s, i] + x[s, j] <= D.count[s]).OnlyEnforceIf(sh.Not())
+                    if (i, j) not in order:
+                        order[i, j] = md.NewBoolVar(f"o{i}_{j}")
+                    oij = order[i, j]
+                    # (-1: the triangle inequality may lose one unit to rounding up)
+                    md.Add(start[j] >= start[i] + D.arc(i, j) - 1).OnlyEnforceIf([sh, oij])
+                    md.Add(start[i] >= start[j] + D.arc(j, i) - 1).OnlyEnforceIf([sh, oij.Not()])
+                    share_lits.append((s, i, j, sh))
+        for (i, j), oij in order.items():
+            if (i, j) in y:
+                md.AddImplication(y[i, j], oij)
+            if (j, i) in y:
+                md.AddImplication(y[j, i], oij.Not())
     # per-skill cumulative with constant demand (capacity = team total of the skill)
     for k in range(D.K):
         capk = sum(int(D.c[s, k]) * D.count[s] for s in range(S))
@@ -292,7 +323,7 @@ def _build(D: _Data, ub_C: int, lb_C: int, hint_routes: list[list[int]] | None):
             a = min(D.min_in(s, m) for s in sk)
             ivs.append(md.NewFixedSizeIntervalVar(start[m] - a, a + D.dur[m], f"ivk{k}_{m}"))
             dem.append(int(D.q[m, k]))
-        if ivs and sum(dem) > capk:
+        if ivs and sum(dem) > capk and o["skill_cumulative"]:
             md.AddCumulative(ivs, dem, capk)
     md.Minimize(C)
 
@@ -329,6 +360,10 @@ def _build(D: _Data, ub_C: int, lb_C: int, hint_routes: list[list[int]] | None):
         yh = {(i, j) for (s, i, j), n in fl.items() if n and i >= 0 and j >= 0}
         for key, v in y.items():
             md.AddHint(v, 1 if key in yh else 0)
+        for (s_, i, j, sh) in share_lits:
+            md.AddHint(sh, 1 if cnt.get((s_, i), 0) + cnt.get((s_, j), 0) > D.count[s_] else 0)
+        for (i, j), oij in order.items():
+            md.AddHint(oij, 1 if st[i] < st[j] or (st[i] == st[j] and i < j) else 0)
     return md, C, start, f
 
 
@@ -408,14 +443,14 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     warm = _warm(inst, warm_start, seed)
     warm_eval = _reeval(inst, warm, seed)
     cands = [c for c in (warm_eval, _reeval(inst, solve(inst, "greedy", seed), seed)) if c is not None]
-    hs = heuristic_seconds if heuristic_seconds is not None else 0.2 * time_limit
+    hs = heuristic_seconds if heuristic_seconds is not None else 0.25 * time_limit
     best0 = min(cands, key=lambda c: c.makespan) if cands else None
-    ls = best_list_schedule(inst, seed, min(1.0, 0.25 * hs), incumbent=best0)
+    ls = best_list_schedule(inst, seed, min(1.0, 0.1 * hs), incumbent=best0)
     if ls is not None:
         cands.append(ls)
         left = hs - (time.perf_counter() - t0)
         if left > 0:
-            _, order = anneal(inst, order_of(ls), seed, left)
+            _, order = anneal(inst, order_of(ls), seed, left, target=cheap)
             _, r = SerialDecoder(inst).decode(order, routes_out=True)
             cands.append(evaluate_routes(inst, r, "cpsat", seed))
     # model hint: the best candidate, pruned to minimal coalitions

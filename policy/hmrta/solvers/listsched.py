@@ -185,17 +185,30 @@ class SerialDecoder:
                      for m in range(self.M)]
         self.needk = [[k for k in range(self.K) if req[m, k] > 0] for m in range(self.M)]
 
-    def decode(self, order, routes_out: bool = False, key_noise: list | None = None):
-        S, Tl, cap, dur = self.S, self.Tl, self.cap, self.dur
-        ready = [0.0] * self.A
-        pos = list(self.home)
+    def decode(self, order, routes_out: bool = False):
+        """Makespan of the order (and the routes with ``routes_out``)."""
+        ms, _, routes = self.run(order, 0, None, record=False, routes_out=routes_out)
+        return (ms, routes) if routes_out else ms
+
+    def run(self, order, p: int, snap, record: bool = True, routes_out: bool = False):
+        """Decode ``order[p:]`` from ``snap`` = (ready, pos) before position p (None: the start).
+        Returns (makespan, snapshots before each position p.. if ``record``, routes or None)."""
+        S, Tl, cap, dur, K = self.S, self.Tl, self.cap, self.dur, self.K
+        if snap is None:
+            ready, pos = [0.0] * self.A, list(self.home)
+        else:
+            ready, pos = list(snap[0]), list(snap[1])
+        snaps = [] if record else None
         routes = [[] for _ in range(self.A)] if routes_out else None
-        for m in order:
+        for idx in range(p, len(order)):
+            if record:
+                snaps.append((ready[:], pos[:]))
+            m = order[idx]
             col = S + m
             req = self.req[m]
             ks = self.needk[m]
-            arr = sorted((ready[a] + Tl[pos[a]][col], a) for a in self.cand[m])
-            have = [0.0] * self.K
+            arr = sorted([(ready[a] + Tl[pos[a]][col], a) for a in self.cand[m]])
+            have = [0.0] * K
             members = []
             for t, a in arr:
                 members.append((t, a))
@@ -204,29 +217,27 @@ class SerialDecoder:
                     have[k] += ca[k]
                 if all(have[k] >= req[k] for k in ks):
                     break
-            # prune latest first
-            if len(members) > 1:
-                for idx in range(len(members) - 1, -1, -1):
-                    a = members[idx][1]
-                    ca = cap[a]
+            if len(members) > 1:  # prune unnecessary members, latest arrivals first
+                for i in range(len(members) - 1, -1, -1):
+                    ca = cap[members[i][1]]
                     if all(have[k] - ca[k] >= req[k] for k in ks):
                         for k in ks:
                             have[k] -= ca[k]
-                        members[idx] = None
+                        members[i] = None
                 members = [x for x in members if x is not None]
-            start = max(t for t, _ in members)
-            fin = start + dur[m]
+            fin = max(t for t, _ in members) + dur[m]
             for _, a in members:
                 ready[a] = fin
                 pos[a] = col
                 if routes_out:
                     routes[a].append(m)
         ms = 0.0
+        home = self.home
         for a in range(self.A):
-            v = ready[a] + Tl[pos[a]][self.home[a]]
+            v = ready[a] + Tl[pos[a]][home[a]]
             if v > ms:
                 ms = v
-        return (ms, routes) if routes_out else ms
+        return ms, snaps, routes
 
 
 def order_of(sol: Solution) -> list[int]:
@@ -235,36 +246,45 @@ def order_of(sol: Solution) -> list[int]:
 
 
 def anneal(inst: Instance, order: list[int], seed: int = 0, seconds: float = 1.0,
-           max_evals: int = 10**9) -> tuple[float, list[int]]:
-    """Simulated annealing over task orders with the serial decoder (insert / swap moves).
+           max_evals: int = 10**9, patience: int | None = None, target: float = 0.0,
+           t0_frac: float = 0.02) -> tuple[float, list[int]]:
+    """Simulated annealing over task orders with the serial decoder (insert / swap moves, only
+    the suffix after the first changed position is re-decoded). Stops after ``seconds``,
+    ``max_evals`` decodes, ``patience`` decodes without improvement (default
+    max(20000, 2000 x tasks)), or on reaching ``target`` (e.g. a lower bound).
     Returns (best makespan, best order)."""
     dec = SerialDecoder(inst)
     rng = random.Random(seed)
+    M = len(order)
     cur = list(order)
-    cur_v = dec.decode(cur)
+    cur_v, snaps, _ = dec.run(cur, 0, None)
     best_v, best = cur_v, list(cur)
-    M = len(cur)
     if M < 2:
         return best_v, best
+    patience = patience if patience is not None else max(20000, 2000 * M)
     t0 = time.perf_counter()
-    T0 = 0.02 * cur_v
-    n = 0
-    while n < max_evals:
+    T0 = t0_frac * cur_v
+    n = last = 0
+    while n < max_evals and n - last < patience and best_v > target + 1e-9:
         el = time.perf_counter() - t0
         if el >= seconds:
             break
-        temp = T0 * (1.0 - el / seconds) + 1e-9
+        temp = T0 * (1.0 - max(el / seconds, n / max_evals)) + 1e-9
         for _ in range(50):
             cand = list(cur)
             i, j = rng.randrange(M), rng.randrange(M)
+            if i == j:
+                continue
             if rng.random() < 0.5:
                 cand.insert(j, cand.pop(i))
             else:
                 cand[i], cand[j] = cand[j], cand[i]
-            v = dec.decode(cand)
+            p = min(i, j)
+            v, tail, _ = dec.run(cand, p, snaps[p])
             n += 1
             if v <= cur_v or rng.random() < math.exp((cur_v - v) / temp):
                 cur, cur_v = cand, v
+                snaps = snaps[:p] + tail
                 if v < best_v - 1e-12:
-                    best_v, best = v, list(cand)
+                    best_v, best, last = v, list(cand), n
     return best_v, best

@@ -1,0 +1,72 @@
+"""Cheap lower bounds: valid (never above an optimum or any solution), exact where they should be."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from hmrta.bounds import BOUND_DOCS, lower_bounds
+from hmrta.generators import ScenarioGenerator
+from hmrta.instance import Instance, Species, Task
+from hmrta.methods import solve
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+
+def test_keys_and_best():
+    inst = ScenarioGenerator("MA-AT", 15, 5, 20, 5).instance(1, 0)
+    b = lower_bounds(inst)
+    assert set(BOUND_DOCS) <= set(b)
+    assert b["best"] == max(b[k] for k in BOUND_DOCS)
+    assert b[b["best_name"]] == b["best"]
+    assert all(v >= 0 for k, v in b.items() if k != "best_name")
+
+
+def test_single_task_round_trip_is_exact():
+    # one agent: out 5, work 2, back 5
+    inst = Instance("additive", 0.2, 1, (Species((1.0,), 1, (0.0, 0.0)),), (Task((0.6, 0.8), (1.0,), 2.0),))
+    b = lower_bounds(inst)
+    assert b["task_round_trip"] == pytest.approx(12.0)
+    assert b["best"] == pytest.approx(solve(inst, "greedy").makespan)
+
+
+def test_round_trip_needs_enough_of_a_skill():
+    # skill 0 needs 2: the near species has only 1 agent, so the far species must come too
+    near = Species((1.0,), 1, (0.5, 0.5))
+    far = Species((1.0,), 1, (0.5, 0.0))
+    inst = Instance("additive", 0.2, 1, (near, far), (Task((0.5, 0.6), (2.0,), 1.0),))
+    b = lower_bounds(inst)
+    far_trip = 2 * inst.travel_time((0.5, 0.0), (0.5, 0.6))
+    assert b["task_round_trip"] == pytest.approx(far_trip + 1.0)
+    assert b["best"] <= solve(inst, "greedy").makespan + 1e-9
+
+
+def test_empty_instance():
+    inst = Instance("binary", 0.2, 1, (Species((1.0,), 1, (0.0, 0.0)),), ())
+    assert lower_bounds(inst)["best"] == 0.0
+
+
+@pytest.mark.parametrize("scen,row", [("MA-AT", (3, 3, 4, 3)), ("SA-AT", (4, 2, 4, 2)), ("MA-BT", (3, 3, 4, 3)),
+                                      ("SA-BT", (4, 2, 5, 2))])
+def test_below_brute_force_optimum(scen, row):
+    from test_cpsat import brute_force
+
+    for i in range(3):
+        inst = ScenarioGenerator(scen, *row).instance(11, i)
+        opt, _ = brute_force(inst)
+        b = lower_bounds(inst)
+        for k in BOUND_DOCS:
+            assert b[k] <= opt + 1e-9, (k, b[k], opt)
+
+
+@pytest.mark.parametrize("scen,row", [("MA-AT", (15, 5, 20, 5)), ("SA-AT", (9, 3, 20, 3)), ("SA-BT", (25, 5, 20, 5)),
+                                      ("MA-AT", (50, 5, 50, 5))])
+def test_below_heuristic_solutions(scen, row):
+    from hmrta.solvers.listsched import best_list_schedule
+
+    for i in range(3):
+        inst = ScenarioGenerator(scen, *row).instance(2, i)
+        b = lower_bounds(inst)["best"]
+        assert 0 < b <= solve(inst, "greedy").makespan + 1e-9
+        assert b <= best_list_schedule(inst, 0, 0.0).makespan + 1e-9

@@ -1,0 +1,68 @@
+"""Rendering: a PNG with map + Gantt, and an animated GIF; timelines consistent with the solution."""
+from __future__ import annotations
+
+import pytest
+
+pytest.importorskip("matplotlib")
+
+from hmrta.generators import ScenarioGenerator  # noqa: E402
+from hmrta.methods import solve  # noqa: E402
+from hmrta.render import agent_timeline, render  # noqa: E402
+from hmrta.solution import Solution  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def case():
+    inst = ScenarioGenerator("MA-AT", 9, 3, 8, 3).instance(4, 0)
+    return inst, solve(inst, "greedy", seed=0)
+
+
+def test_png(tmp_path, case):
+    inst, sol = case
+    out = render(inst, sol, tmp_path / "fig.png")
+    assert out == [tmp_path / "fig.png"]
+    data = out[0].read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20000
+
+
+def test_gif(tmp_path, case):
+    from PIL import Image
+
+    inst, sol = case
+    out = render(inst, sol, tmp_path / "fig.png", gif=True, frames=6)
+    assert [p.suffix for p in out] == [".png", ".gif"]
+    with Image.open(out[1]) as im:
+        assert im.format == "GIF" and im.n_frames == 6
+    only = render(inst, sol, tmp_path / "anim.gif", frames=3)
+    assert only == [tmp_path / "anim.gif"]
+
+
+def test_timeline_matches_solution(case):
+    inst, sol = case
+    tl = agent_timeline(inst, sol)
+    assert len(tl) == inst.n_agents
+    for a, segs in enumerate(tl):
+        works = [s["task"] for s in segs if s["kind"] == "work"]
+        assert works == sol.routes[a]
+        for s in segs:
+            assert s["t1"] >= s["t0"] - 1e-12
+            if s["kind"] == "work":
+                assert s["t0"] == sol.tasks[s["task"]]["start"] and s["t1"] == sol.tasks[s["task"]]["finish"]
+        if segs:  # ends at home at its return time
+            assert segs[-1]["t1"] == pytest.approx(sol.agents[a]["return_time"])
+        # waiting per agent sums to the solution's AWT on average
+    wait = sum(s["t1"] - s["t0"] for segs in tl for s in segs if s["kind"] == "wait")
+    assert wait / inst.n_agents == pytest.approx(sol.awt, abs=1e-6)
+
+
+def test_failed_solution_and_mismatch(tmp_path, case):
+    inst, sol = case
+    failed = Solution(inst.name, "x", 0, False, float("nan"), float("nan"), float("nan"), 0.0,
+                      [[] for _ in range(inst.n_agents)],
+                      [{"start": float("nan"), "finish": float("nan"), "members": []} for _ in range(inst.n_tasks)],
+                      [{"species": 0, "return_time": float("nan")} for _ in range(inst.n_agents)],
+                      {"failure": "deadlock"})
+    assert render(inst, failed, tmp_path / "f.png")[0].exists()
+    other = ScenarioGenerator("MA-AT", 15, 5, 8, 5).instance(4, 0)
+    with pytest.raises(ValueError, match="does not match"):
+        render(other, sol, tmp_path / "g.png")
