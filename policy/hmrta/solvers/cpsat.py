@@ -46,7 +46,7 @@ import numpy as np
 from ..instance import Instance
 from ..methods import MethodError, register
 from ..solution import Solution, evaluate_routes
-from .listsched import SerialDecoder, anneal, best_list_schedule, order_of, prune_routes
+from .listsched import SerialDecoder, best_list_schedule, order_of, parallel_anneal, prune_routes
 
 SCALE = 1000
 
@@ -450,7 +450,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
         cands.append(ls)
         left = hs - (time.perf_counter() - t0)
         if left > 0:
-            _, order = anneal(inst, order_of(ls), seed, left, target=cheap)
+            _, order = parallel_anneal(inst, order_of(ls), seed, left, int(workers), target=cheap)
             _, r = SerialDecoder(inst).decode(order, routes_out=True)
             cands.append(evaluate_routes(inst, r, "cpsat", seed))
     # model hint: the best candidate, pruned to minimal coalitions

@@ -247,44 +247,100 @@ def order_of(sol: Solution) -> list[int]:
 
 def anneal(inst: Instance, order: list[int], seed: int = 0, seconds: float = 1.0,
            max_evals: int = 10**9, patience: int | None = None, target: float = 0.0,
-           t0_frac: float = 0.02) -> tuple[float, list[int]]:
-    """Simulated annealing over task orders with the serial decoder (insert / swap moves, only
-    the suffix after the first changed position is re-decoded). Stops after ``seconds``,
-    ``max_evals`` decodes, ``patience`` decodes without improvement (default
-    max(20000, 2000 x tasks)), or on reaching ``target`` (e.g. a lower bound).
+           t0_frac: float = 0.02, cycles: int = 2) -> tuple[float, list[int]]:
+    """Simulated annealing over task orders with the serial decoder (insert / swap moves; only
+    the suffix after the first changed position is re-decoded). ``cycles`` equal cooling cycles
+    (linear cooling from ``t0_frac`` x makespan, halved each cycle), each restarting from the best
+    order so far. Stops after ``seconds``, ``max_evals`` decodes, ``patience`` decodes without
+    improvement (default max(20000, 2000 x tasks)), or on reaching ``target`` (a lower bound).
     Returns (best makespan, best order)."""
     dec = SerialDecoder(inst)
     rng = random.Random(seed)
     M = len(order)
-    cur = list(order)
-    cur_v, snaps, _ = dec.run(cur, 0, None)
-    best_v, best = cur_v, list(cur)
+    best_v, _, _ = dec.run(order, 0, None, record=False)
+    best = list(order)
     if M < 2:
         return best_v, best
     patience = patience if patience is not None else max(20000, 2000 * M)
-    t0 = time.perf_counter()
-    T0 = t0_frac * cur_v
+    t_start = time.perf_counter()
     n = last = 0
-    while n < max_evals and n - last < patience and best_v > target + 1e-9:
-        el = time.perf_counter() - t0
-        if el >= seconds:
-            break
-        temp = T0 * (1.0 - max(el / seconds, n / max_evals)) + 1e-9
-        for _ in range(50):
-            cand = list(cur)
-            i, j = rng.randrange(M), rng.randrange(M)
-            if i == j:
-                continue
-            if rng.random() < 0.5:
-                cand.insert(j, cand.pop(i))
-            else:
-                cand[i], cand[j] = cand[j], cand[i]
-            p = min(i, j)
-            v, tail, _ = dec.run(cand, p, snaps[p])
-            n += 1
-            if v <= cur_v or rng.random() < math.exp((cur_v - v) / temp):
-                cur, cur_v = cand, v
-                snaps = snaps[:p] + tail
-                if v < best_v - 1e-12:
-                    best_v, best, last = v, list(cand), n
+    for c in range(cycles):
+        cur = list(best)
+        cur_v, snaps, _ = dec.run(cur, 0, None)
+        T0 = t0_frac * cur_v * 0.5**c
+        c_t0, c_n0 = time.perf_counter(), n
+        c_sec = (seconds - (c_t0 - t_start)) / (cycles - c)
+        c_evals = (max_evals - n) // (cycles - c)
+        while n - c_n0 < c_evals and n - last < patience and best_v > target + 1e-9:
+            el = time.perf_counter() - c_t0
+            if el >= c_sec:
+                break
+            temp = T0 * (1.0 - max(el / c_sec, (n - c_n0) / c_evals)) + 1e-9
+            for _ in range(50):
+                cand = list(cur)
+                i, j = rng.randrange(M), rng.randrange(M)
+                if i == j:
+                    continue
+                if rng.random() < 0.5:
+                    cand.insert(j, cand.pop(i))
+                else:
+                    cand[i], cand[j] = cand[j], cand[i]
+                p = min(i, j)
+                v, tail, _ = dec.run(cand, p, snaps[p])
+                n += 1
+                if v <= cur_v or rng.random() < math.exp((cur_v - v) / temp):
+                    cur, cur_v = cand, v
+                    snaps = snaps[:p] + tail
+                    if v < best_v - 1e-12:
+                        best_v, best, last = v, list(cand), n
     return best_v, best
+
+
+def _anneal_child(queue, inst_dict, order, seed, seconds, target) -> None:  # pragma: no cover - subprocess
+    try:
+        from ..instance import instance_from_dict
+
+        inst = instance_from_dict(inst_dict)
+        queue.put(anneal(inst, order, seed, seconds, target=target))
+    except BaseException as e:  # report, never hang the parent
+        queue.put(e)
+
+
+def parallel_anneal(inst: Instance, order: list[int], seed: int, seconds: float, workers: int = 1,
+                    target: float = 0.0) -> tuple[float, list[int]]:
+    """``workers`` independent annealing runs (different seeds) at once: the calling process runs
+    one, ``workers - 1`` spawned processes run the others; the best order wins. Falls back to the
+    single local run when processes cannot be started or do not answer in time."""
+    import multiprocessing as mp
+    import queue as _queue
+
+    procs = []
+    if workers > 1 and seconds >= 3.0:
+        try:
+            ctx = mp.get_context("spawn")
+            q = ctx.Queue()
+            d = inst.to_dict()
+            for w in range(1, workers):
+                # a spawned process needs ~1 s to import; give it correspondingly less time
+                p = ctx.Process(target=_anneal_child, args=(q, d, list(order), seed + 7919 * w,
+                                                            max(0.5, seconds - 1.0), target), daemon=True)
+                p.start()
+                procs.append(p)
+        except Exception:
+            procs = []
+    best = anneal(inst, order, seed, seconds, target=target)
+    if procs:
+        deadline = time.perf_counter() + 3.0
+        for _ in procs:
+            try:
+                r = q.get(timeout=max(0.05, deadline - time.perf_counter()))
+            except _queue.Empty:
+                break
+            if isinstance(r, tuple) and r[0] < best[0]:
+                best = r
+        for p in procs:
+            p.join(timeout=0.5)
+            if p.is_alive():
+                p.terminate()
+                p.join(timeout=0.5)
+    return best
