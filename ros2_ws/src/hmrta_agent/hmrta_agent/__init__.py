@@ -1,0 +1,1 @@
+"""HMRTA agent: one decision maker per robot (see agent_node)."""

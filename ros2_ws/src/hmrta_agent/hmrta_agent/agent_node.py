@@ -1,0 +1,286 @@
+"""agent_node: one robot's decision maker.
+
+Builds its view only from received topics: the mission (``/hmrta/mission``) and the board
+(``/hmrta/board``). When the board names this robot as the current decider it rebuilds the
+mission state from the board's snapshot, runs its own copy of the policy and publishes its choice
+(``/hmrta/choice``, tagged with the board version it answers). The board lists every leg the
+robot must drive (its own choices and automatic ones such as going home); when the mission clock
+(``/clock``) reaches a leg's departure time the agent publishes it as a ``geometry_msgs/PoseStamped``
+goal on ``goal_pose`` (stamp = departure time), which a Nav2 navigator or ``sim_robot`` consumes
+unchanged. A heartbeat on ``/hmrta/agent_status`` tells the board it is alive.
+
+One robot per process::
+
+    agent_node --ros-args -r __ns:=/robot_3 -p policy:=greedy -p seed:=1
+
+or many robots in one process (lean nodes on one executor, one shared copy of the policy)::
+
+    agent_node --robots robot_0,robot_1,robot_2 --ros-args -p policy:=rl
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import sys
+import time
+from typing import Any
+
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.task import Future
+from rclpy.utilities import remove_ros_args
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import String
+
+from hmrta.core import MissionState
+from hmrta.methods import MethodError, decider
+from hmrta_msgs_py import topics
+from hmrta_msgs_py.codec import (BoardDecoder, Choice, DecodeError, Mission, Status, choice_to_msg, clock_from_msg,
+                                 mission_from_msg, pose_to_msg, status_to_msg)
+from hmrta_msgs_py.runtime import LEAN_NODE, method_name, spin_nodes
+
+
+EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
+
+
+class Host:
+    """What the agents of one process share: the policy (one read-only copy of the weights), the
+    decoded mission and board, the mission clock and the heartbeat."""
+
+    def __init__(self) -> None:
+        self.boards = BoardDecoder()
+        self._deciders: dict[tuple, Any] = {}
+        self._mission_text: str | None = None
+        self._mission: Mission | None = None
+        self.agents: list["AgentNode"] = []
+        self.all_done = Future()
+        self._seq = 0
+        self._status_pub = None
+        self.clock = 0.0
+
+    def decider(self, method: str, seed: int, checkpoint: str):
+        key = (method, seed, checkpoint)
+        if key not in self._deciders:
+            opts = {"checkpoint": checkpoint} if checkpoint else {}
+            self._deciders[key] = decider(method, seed, **opts)
+        return self._deciders[key]
+
+    def mission(self, msg: String) -> Mission:
+        if msg.data != self._mission_text:
+            self._mission = mission_from_msg(msg)
+            self._mission_text = msg.data
+        return self._mission
+
+    def attach(self, node: Node, period: float) -> None:
+        """Subscribe the mission clock and start the heartbeat (one status message per period
+        lists every robot this process hosts) on one node of the process."""
+        node.create_subscription(Clock, topics.CLOCK, self._on_clock, topics.CLOCK_QOS)
+        self._status_pub = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
+        self._host = f"{socket.gethostname()}:{os.getpid()}"
+        node.create_timer(period, self._beat)
+        self._beat()
+
+    def _on_clock(self, msg: Clock) -> None:
+        t = clock_from_msg(msg)
+        if t > self.clock:
+            self.clock = t
+            for a in self.agents:
+                if a.pending:
+                    a.flush_goals()
+
+    def _beat(self) -> None:
+        if not rclpy.ok():
+            return
+        robots = tuple(a.robot for a in self.agents if not a.finished and a.is_ready())
+        if robots:
+            self._seq += 1
+            self._status_pub.publish(status_to_msg(Status(robots, self._seq, self._host)))
+
+    def agent_finished(self) -> None:
+        if all(a.finished for a in self.agents) and not self.all_done.done():
+            self.all_done.set_result(True)
+
+
+class AgentNode(Node):
+    def __init__(self, host: Host, **node_kw: Any):
+        super().__init__("agent", **node_kw)
+        self.host = host
+        host.agents.append(self)
+        robot = self.declare_parameter("robot", "").value
+        self.robot = robot or self.get_namespace().strip("/").split("/")[-1]
+        if not self.robot:
+            raise SystemExit("agent_node: set the robot name (-p robot:=NAME or a namespace, -r __ns:=/NAME)")
+        self.index_param = self.declare_parameter("index", -1).value
+        self.species_param = self.declare_parameter("species", -1).value
+        policy = self.declare_parameter("policy", "greedy").value
+        decoding = self.declare_parameter("decoding", "greedy").value
+        checkpoint = self.declare_parameter("checkpoint", "").value
+        self.seed = self.declare_parameter("seed", 0).value
+        self.exit_on_done = self.declare_parameter("exit_on_done", True).value
+        self.method = method_name(policy, decoding)
+        self.decide, self.rules = host.decider(self.method, self.seed, checkpoint)
+
+        self.mission: Mission | None = None
+        self.index: int | None = None
+        self.finished = False
+        self.answered = -1  # board version last answered
+        self.leg_seq: int | None = None  # number of this robot's legs already taken from the board
+        self.pending: list = []  # legs whose departure time has not come yet
+        self.ready = False
+        self._early_board: String | None = None  # a board that came before the mission
+        self.seq = 0
+        self._warned: set[str] = set()
+        self.choice_pub = self.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
+        self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
+        self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
+        self.create_subscription(String, topics.BOARD, self.on_board, topics.BOARD_QOS)
+
+    # ------------------------------------------------------------------------------------------
+    def is_ready(self) -> bool:
+        """Reported in the heartbeat only once ready: it has the mission and the board, and both the
+        board (choices) and the robot's driver (goals) are listening, so nothing it sends is lost."""
+        if not self.ready:
+            self.ready = (self.leg_seq is not None and self.choice_pub.get_subscription_count() > 0
+                          and self.goal_pub.get_subscription_count() > 0)
+        return self.ready
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(text)
+
+    def on_mission(self, msg: String) -> None:
+        try:
+            mission = self.host.mission(msg)
+        except DecodeError as e:
+            self.get_logger().error(f"ignoring malformed mission: {e}")
+            return
+        if self.mission is not None and mission.session == self.mission.session:
+            return
+        idx = mission.index(self.robot) if self.index_param < 0 else self.index_param
+        if idx is None or not 0 <= idx < mission.instance.n_agents or mission.robots[idx] != self.robot:
+            self.get_logger().error(f"robot {self.robot!r} (index {self.index_param}) is not in mission "
+                                    f"{mission.instance.name} (robots {', '.join(mission.robots[:5])}...)")
+            return
+        species = int(mission.instance.agent_species[idx])
+        if self.species_param >= 0 and self.species_param != species:
+            self.get_logger().error(f"robot {self.robot!r} is species {self.species_param} but the mission "
+                                    f"lists it as species {species}: not taking part")
+            return
+        self.mission, self.index = mission, idx
+        self.answered, self.leg_seq, self.pending = -1, None, []
+        self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "
+                               f"{mission.instance.name}, policy {self.method}")
+        if self._early_board is not None:
+            self.on_board(self._early_board)
+
+    def on_board(self, msg: String) -> None:
+        t_recv = time.perf_counter()
+        if self.mission is None:
+            self._early_board = msg  # the two latched topics may arrive in either order
+            return
+        self._early_board = None
+        if self.finished:
+            return
+        try:
+            board = self.host.boards.decode(msg)
+        except DecodeError as e:
+            self._warn_once("board", f"ignoring malformed board: {e}")
+            return
+        if board.session != self.mission.session:
+            return
+        a = self.index
+        if a in board.lost:
+            self._warn_once("lost", f"{self.robot}: the board declared this robot lost; stopping")
+            return self._finish()
+        entry = board.legs[a] if a < len(board.legs) else None
+        if entry is not None:
+            self._take_legs(*entry)
+        if board.phase == "done":
+            return self._finish()
+        if board.phase == "decide" and board.decider == a and board.version != self.answered:
+            self.answered = board.version
+            self._decide(msg, board.version, t_recv)
+
+    def _take_legs(self, seq: int, legs: tuple) -> None:
+        """Queue this robot's legs that are new since the last board (all of them in order)."""
+        if self.leg_seq is None:  # first board seen (start or restart): only the latest leg matters
+            self.leg_seq = seq - 1 if legs else seq
+        first = seq - len(legs) + 1
+        new = [g for i, g in enumerate(legs) if first + i > self.leg_seq]
+        if new:
+            self.leg_seq = seq
+            self.pending += new
+            self.flush_goals()
+
+    def flush_goals(self) -> None:
+        """Publish the queued legs whose departure time the mission clock has reached."""
+        m = self.mission
+        while self.pending and self.pending[0][3] <= self.host.clock + EPS:
+            node, x, y, depart = self.pending.pop(0)
+            self.goal_pub.publish(pose_to_msg((x, y), depart, m.frame_id, m.scale))
+            self.get_logger().debug(f"goal node {node} at ({x:.3f}, {y:.3f}), departing t={depart:.3f}")
+
+    def _decide(self, msg: String, version: int, t_recv: float) -> None:
+        try:
+            snap = self.host.boards.state(msg)
+            state = MissionState.from_snapshot(self.mission.instance, snap)
+        except (DecodeError, KeyError, TypeError, ValueError) as e:
+            self.get_logger().error(f"cannot rebuild the mission state from board {version}: {e}")
+            return
+        if state.agent != self.index:
+            self.get_logger().error(f"board {version} names agent {self.index} but its state's decider is "
+                                    f"{state.agent}: not answering")
+            return
+        if snap.get("rules") != self.rules.to_dict():
+            self._warn_once("rules", f"{self.robot}: policy {self.method} expects rules {self.rules.to_dict()} "
+                                     f"but the mission runs {snap.get('rules')}")
+        node = int(self.decide(state))
+        self.seq += 1
+        ms = (time.perf_counter() - t_recv) * 1e3
+        self.choice_pub.publish(choice_to_msg(Choice(self.robot, version, node, self.seq, round(ms, 3))))
+        self.get_logger().debug(f"board {version}: chose node {node} ({ms:.1f} ms)")
+
+    def _finish(self) -> None:
+        if not self.finished and self.exit_on_done:
+            self.finished = True
+            self.host.agent_finished()
+
+
+def robots_arg(text: str) -> list[str]:
+    names = [r.strip().strip("/") for r in text.split(",") if r.strip()]
+    if not names or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"expected distinct comma-separated robot names, got {text!r}")
+    return names
+
+
+def main(args: list[str] | None = None) -> None:
+    argv = sys.argv if args is None else args
+    p = argparse.ArgumentParser(prog="agent_node", description=__doc__.split("\n\n")[0])
+    p.add_argument("--robots", type=robots_arg, default=None,
+                   help="host several robots in this process (node /<robot>/agent each); default: one "
+                        "robot named by -p robot:=NAME or by the namespace")
+    p.add_argument("--heartbeat-period", type=float, default=0.5, help="seconds between status messages")
+    cli = p.parse_args(remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
+    host = Host()
+    try:
+        if cli.robots:
+            lean = LEAN_NODE if len(cli.robots) > 1 else {}
+            nodes = [AgentNode(host, namespace="/" + r, parameter_overrides=[Parameter("robot", value=r)], **lean)
+                     for r in cli.robots]
+        else:
+            nodes = [AgentNode(host)]
+    except (MethodError, ValueError) as e:  # bad policy / checkpoint: a user error
+        print(f"agent_node: {e}", file=sys.stderr)
+        rclpy.try_shutdown()
+        raise SystemExit(2) from None
+    host.attach(nodes[0], cli.heartbeat_period)
+    spin_nodes(nodes, until=host.all_done)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""HMRTA coordinator: task_board, sim_robot and the mission launcher."""

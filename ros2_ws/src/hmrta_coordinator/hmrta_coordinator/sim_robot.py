@@ -1,0 +1,204 @@
+"""sim_robot: simulated kinematics for any number of robots, and the mission clock.
+
+Each simulated robot consumes goals on ``/<robot>/goal_pose`` (``geometry_msgs/PoseStamped``,
+stamp = departure time) and drives there in a straight line at the instance velocity; it
+publishes its pose on ``/<robot>/pose`` when it arrives, as a heartbeat, and (paced mode) while
+moving. The node publishes ``/clock`` (``rosgraph_msgs/Clock``): it advances sim time up to the
+horizon the board allows, at once (``time_scale`` 0: as fast as possible) or at ``time_scale``
+sim seconds per wall second. Robots named in ``external`` (real robots, drivers elsewhere) are
+not simulated; with every robot external this node is just the mission clock.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.task import Future
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import String
+
+from hmrta_msgs_py import topics
+from hmrta_msgs_py.codec import (DecodeError, Mission, board_from_msg, clock_to_msg, mission_from_msg,
+                                 pose_from_msg, pose_to_msg)
+from hmrta_msgs_py.runtime import spin_nodes
+
+EPS = 1e-6
+
+
+@dataclass
+class Leg:
+    start: tuple[float, float]
+    goal: tuple[float, float]
+    depart: float
+    arrive: float
+    announced: bool = False
+
+
+@dataclass
+class SimulatedRobot:
+    name: str
+    base: tuple[float, float]  # where it is before its first remembered leg (its depot at first)
+    pub: Any
+    legs: list[Leg] = field(default_factory=list)  # in departure order; later goals replace later legs
+
+    def position(self, t: float) -> tuple[float, float]:
+        pos = self.base
+        for g in self.legs:
+            if g.depart > t:
+                break
+            if t >= g.arrive or g.arrive <= g.depart:
+                pos = g.goal
+            else:
+                f = (t - g.depart) / (g.arrive - g.depart)
+                pos = (g.start[0] + (g.goal[0] - g.start[0]) * f, g.start[1] + (g.goal[1] - g.start[1]) * f)
+        return pos
+
+    def moving(self, t: float) -> bool:
+        return any(g.depart <= t < g.arrive for g in self.legs)
+
+
+class SimRobot(Node):
+    def __init__(self, **node_kw: Any):
+        super().__init__("sim_robot", **node_kw)
+        P = self.declare_parameter
+        self.only = list(P("robots", Parameter.Type.STRING_ARRAY).value or [])
+        self.external = set(P("external", Parameter.Type.STRING_ARRAY).value or [])
+        self.time_scale = P("time_scale", 0.0).value
+        rate = P("rate", 20.0).value
+        heartbeat = P("heartbeat_period", 1.0).value
+        self.exit_on_done = P("exit_on_done", True).value
+        self.mission: Mission | None = None
+        self.robots: dict[str, SimulatedRobot] = {}
+        self.now = 0.0
+        self.horizon = 0.0
+        self._early_board: String | None = None  # a board that came before the mission
+        self.done = Future()
+        self.pub_clock = self.create_publisher(Clock, topics.CLOCK, topics.CLOCK_QOS)
+        self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
+        self.create_subscription(String, topics.BOARD, self.on_board, topics.BOARD_QOS)
+        self.create_timer(heartbeat, self.on_heartbeat)
+        if self.time_scale > 0:
+            self._wall = time.monotonic()
+            self.create_timer(1.0 / rate, self.on_tick)
+
+    # ------------------------------------------------------------------------------------------
+    def on_mission(self, msg: String) -> None:
+        try:
+            m = mission_from_msg(msg)
+        except DecodeError as e:
+            self.get_logger().error(f"ignoring malformed mission: {e}")
+            return
+        if self.mission is not None:
+            if m.session != self.mission.session:
+                self.get_logger().warning("a new mission session appeared; this node keeps its first mission")
+            return
+        self.mission = m
+        inst = m.instance
+        names = self.only or [n for n in m.robots if n not in self.external]
+        for n in names:
+            a = m.index(n)
+            if a is None:
+                self.get_logger().error(f"robot {n!r} is not in the mission; not simulating it")
+                continue
+            home = (float(inst.depots[a, 0]), float(inst.depots[a, 1]))
+            pub = self.create_publisher(PoseStamped, topics.robot_topic(n, topics.POSE), topics.POSE_PUB_QOS)
+            r = self.robots[n] = SimulatedRobot(n, home, pub)
+            self.create_subscription(PoseStamped, topics.robot_topic(n, topics.GOAL),
+                                     lambda g, r=r: self.on_goal(r, g), topics.GOAL_QOS)
+        self.get_logger().info(f"simulating {len(self.robots)} robot(s) at velocity {inst.velocity:g}; "
+                               + ("as fast as possible" if self.time_scale <= 0 else f"x{self.time_scale:g} real time"))
+        self.on_heartbeat()
+        if self._early_board is not None:
+            self.on_board(self._early_board)
+
+    def on_board(self, msg: String) -> None:
+        if self.mission is None:
+            self._early_board = msg  # the two latched topics may arrive in either order
+            return
+        self._early_board = None
+        try:
+            b = board_from_msg(msg, legs=False, state=False)
+        except DecodeError as e:
+            self.get_logger().error(f"ignoring malformed board: {e}")
+            return
+        if b.session != self.mission.session:
+            return
+        self.horizon = max(self.horizon, b.horizon)
+        if b.phase == "done":
+            self.advance(max(self.now, b.clock))
+            if self.exit_on_done and not self.done.done():
+                self.done.set_result(True)
+            return
+        if self.time_scale <= 0:
+            self.advance(self.horizon)
+
+    def on_goal(self, r: SimulatedRobot, msg: PoseStamped) -> None:
+        try:
+            x, y, t = pose_from_msg(msg, self.mission.scale)
+        except DecodeError as e:
+            self.get_logger().error(f"ignoring malformed goal for {r.name}: {e}")
+            return
+        start = r.position(t)
+        r.legs = [g for g in r.legs if g.depart < t]  # a goal replaces whatever was planned after it
+        dist = math.hypot(x - start[0], y - start[1])
+        r.legs.append(Leg(start, (x, y), t, t + dist / self.mission.instance.velocity))
+        self.get_logger().debug(f"{r.name}: goal ({x:.3f}, {y:.3f}) from ({start[0]:.3f}, {start[1]:.3f}) departing "
+                                f"t={t:.6f}, arriving t={r.legs[-1].arrive:.6f} (now {self.now:.6f})")
+        self._announce(r)
+
+    # ------------------------------------------------------------------------------------------
+    def _announce(self, r: SimulatedRobot) -> None:
+        """Publish the arrivals of r up to now (in order)."""
+        m = self.mission
+        for g in r.legs:
+            if not g.announced and g.arrive <= self.now + EPS:
+                g.announced = True
+                r.pub.publish(pose_to_msg(g.goal, max(g.arrive, 0.0), m.frame_id, m.scale))
+        done = 0  # forget finished legs (all but the last), keeping where they ended
+        while done < len(r.legs) - 1 and r.legs[done].announced and r.legs[done + 1].depart <= self.now:
+            done += 1
+        if done:
+            r.base, r.legs = r.legs[done - 1].goal, r.legs[done:]
+
+    def advance(self, t: float) -> None:
+        if t <= self.now:
+            return
+        self.now = t
+        m = self.mission
+        for r in self.robots.values():
+            self._announce(r)
+            if self.time_scale > 0 and r.moving(t):
+                r.pub.publish(pose_to_msg(r.position(t), t, m.frame_id, m.scale))
+        self.pub_clock.publish(clock_to_msg(t))
+
+    def on_tick(self) -> None:
+        wall = time.monotonic()
+        dt, self._wall = wall - self._wall, wall
+        if self.mission is not None and self.horizon > self.now:
+            self.advance(min(self.horizon, self.now + dt * self.time_scale))
+
+    def on_heartbeat(self) -> None:
+        if self.mission is None:
+            return
+        m = self.mission
+        for r in self.robots.values():
+            r.pub.publish(pose_to_msg(r.position(self.now), self.now, m.frame_id, m.scale))
+        self.pub_clock.publish(clock_to_msg(self.now))
+
+
+def main(args: list[str] | None = None) -> None:
+    argv = sys.argv if args is None else args
+    rclpy.init(args=argv)
+    node = SimRobot()
+    spin_nodes([node], until=node.done if node.exit_on_done else None)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,480 @@
+"""Payload codecs: pairs of pure functions ``*_to_msg`` / ``*_from_msg``.
+
+Structured payloads are JSON objects with a ``schema`` field inside ``std_msgs/String``; standard
+types are used where they exist (``geometry_msgs/PoseStamped`` for poses and goals,
+``rosgraph_msgs/Clock`` for sim time, ``visualization_msgs/MarkerArray`` for RViz). Every decoder
+validates what it reads and raises :class:`DecodeError` (one line, names the field) on anything
+malformed; nothing else escapes a ``*_from_msg``.
+
+Board wire format (``hmrta-board/1``): three JSON documents separated by newlines (JSON text
+never contains a raw newline): the header (small), the legs (one entry per robot) and the full
+mission-state snapshot (:meth:`hmrta.core.MissionState.snapshot`). Readers that only need the
+header never parse the rest; :class:`BoardDecoder` shares one decoded copy between the nodes of a
+process.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point, PoseStamped
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import String
+from visualization_msgs.msg import Marker, MarkerArray
+
+from hmrta.instance import Instance, InstanceError, instance_from_dict
+
+MISSION_SCHEMA = "hmrta-mission/1"
+BOARD_SCHEMA = "hmrta-board/1"
+CHOICE_SCHEMA = "hmrta-choice/1"
+STATUS_SCHEMA = "hmrta-status/1"
+REJECTION_SCHEMA = "hmrta-rejection/1"
+RESULT_FORMAT = "hmrta-solution/1"
+
+PHASES = ("starting", "wait", "decide", "closing", "done")
+HOLD = -1  # leg node: stay where you are (0 = own depot, 1 + m = task m)
+
+
+class DecodeError(ValueError):
+    """A received payload is malformed (bad JSON, wrong schema, missing or mistyped field)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------
+def _dumps(d: Any) -> str:
+    return json.dumps(d, separators=(",", ":"), allow_nan=False)
+
+
+def _loads(text: Any, what: str) -> Any:
+    if not isinstance(text, str):
+        raise DecodeError(f"{what}: expected text, got {type(text).__name__}")
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as e:
+        raise DecodeError(f"{what}: invalid JSON ({getattr(e, 'msg', e)})") from None
+
+
+def _obj(text: Any, schema: str) -> dict[str, Any]:
+    d = _loads(text, schema)
+    if not isinstance(d, dict):
+        raise DecodeError(f"{schema}: expected a JSON object, got {type(d).__name__}")
+    if d.get("schema") != schema:
+        raise DecodeError(f"expected schema {schema!r}, got {d.get('schema')!r}")
+    return d
+
+
+def _get(d: dict[str, Any], key: str, kind: type | tuple[type, ...], what: str, *, optional: bool = False,
+         default: Any = None) -> Any:
+    if key not in d:
+        if optional:
+            return default
+        raise DecodeError(f"{what}: missing field {key!r}")
+    v = d[key]
+    if v is None and optional:
+        return default
+    kinds = kind if isinstance(kind, tuple) else (kind,)
+    if isinstance(v, bool) and bool not in kinds:  # bool is an int subclass: never accept it as a number
+        raise DecodeError(f"{what}.{key}: expected {'/'.join(k.__name__ for k in kinds)}, got {v!r}")
+    if not isinstance(v, kinds):
+        raise DecodeError(f"{what}.{key}: expected {'/'.join(k.__name__ for k in kinds)}, got {v!r}")
+    if isinstance(v, float) and not math.isfinite(v):
+        raise DecodeError(f"{what}.{key}: expected a finite number, got {v!r}")
+    return v
+
+
+def _num(d: dict[str, Any], key: str, what: str, **kw: Any) -> float:
+    v = _get(d, key, (int, float), what, **kw)
+    return v if v is None else float(v)
+
+
+def _str(text: str) -> String:
+    msg = String()
+    msg.data = text
+    return msg
+
+
+def _name(v: Any, what: str) -> str:
+    if not isinstance(v, str) or not v or len(v) > 256:
+        raise DecodeError(f"{what}: expected a non-empty robot name, got {v!r}")
+    return v
+
+
+# ---------------------------------------------------------------------------------------------
+# time
+# ---------------------------------------------------------------------------------------------
+def time_to_stamp(t: float) -> Time:
+    """Seconds (>= 0) -> builtin_interfaces/Time, rounded to the nanosecond."""
+    ns = int(round(float(t) * 1e9))
+    if ns < 0:
+        raise ValueError(f"time must be >= 0, got {t}")
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def stamp_to_time(stamp: Time) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def clock_to_msg(t: float) -> Clock:
+    return Clock(clock=time_to_stamp(t))
+
+
+def clock_from_msg(msg: Clock) -> float:
+    return stamp_to_time(msg.clock)
+
+
+# ---------------------------------------------------------------------------------------------
+# poses and goals (geometry_msgs/PoseStamped; mission coordinates x scale = frame coordinates)
+# ---------------------------------------------------------------------------------------------
+def pose_to_msg(xy: Sequence[float], stamp: float, frame_id: str = "map", scale: float = 1.0) -> PoseStamped:
+    msg = PoseStamped()
+    msg.header.stamp = time_to_stamp(stamp)
+    msg.header.frame_id = frame_id
+    msg.pose.position.x = float(xy[0]) * scale
+    msg.pose.position.y = float(xy[1]) * scale
+    msg.pose.orientation.w = 1.0
+    return msg
+
+
+def pose_from_msg(msg: PoseStamped, scale: float = 1.0) -> tuple[float, float, float]:
+    """-> (x, y, stamp seconds) in mission coordinates."""
+    x, y = msg.pose.position.x, msg.pose.position.y
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise DecodeError(f"pose: non-finite position ({x}, {y})")
+    return x / scale, y / scale, stamp_to_time(msg.header.stamp)
+
+
+# ---------------------------------------------------------------------------------------------
+# mission (the instance, robot names and run settings; transient local)
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Mission:
+    session: str  # random id of this board run: caches and restarts key on it
+    instance: Instance
+    robots: tuple[str, ...]  # robot name of agent index a
+    seed: int
+    policy: str
+    frame_id: str = "map"
+    scale: float = 1.0  # frame units per mission unit
+
+    def index(self, robot: str) -> int | None:
+        try:
+            return self.robots.index(robot)
+        except ValueError:
+            return None
+
+
+def mission_to_msg(m: Mission) -> String:
+    return _str(_dumps({"schema": MISSION_SCHEMA, "session": m.session, "instance": m.instance.to_dict(),
+                        "robots": list(m.robots), "seed": m.seed, "policy": m.policy,
+                        "frame_id": m.frame_id, "scale": m.scale}))
+
+
+def mission_from_msg(msg: String) -> Mission:
+    w = MISSION_SCHEMA
+    d = _obj(msg.data, w)
+    try:
+        inst = instance_from_dict(_get(d, "instance", dict, w), source="mission")
+    except InstanceError as e:
+        raise DecodeError(f"{w}.instance: {e}") from None
+    robots = _get(d, "robots", list, w)
+    names = tuple(_name(r, f"{w}.robots[{i}]") for i, r in enumerate(robots))
+    if len(names) != inst.n_agents or len(set(names)) != len(names):
+        raise DecodeError(f"{w}.robots: expected {inst.n_agents} distinct names, got {len(names)}")
+    scale = _num(d, "scale", w)
+    if scale <= 0:
+        raise DecodeError(f"{w}.scale: expected a positive number, got {scale}")
+    return Mission(_get(d, "session", str, w), inst, names, _get(d, "seed", int, w), _get(d, "policy", str, w),
+                   _get(d, "frame_id", str, w), scale)
+
+
+# ---------------------------------------------------------------------------------------------
+# board (header + legs + state snapshot; transient local, depth 1)
+# ---------------------------------------------------------------------------------------------
+Leg = tuple[int, float, float, float]  # (node, x, y, depart): go to (x, y) when the clock reaches depart
+# per robot: (seq of its latest leg, its latest legs in order, the last one numbered seq); None: lost
+RobotLegs = tuple[int, tuple[Leg, ...]]
+
+
+@dataclass(frozen=True, eq=False)
+class Board:
+    session: str
+    version: int  # increments whenever anything published changes; choices name the version they answer
+    rev: int  # state revision: increments when the mission state changes
+    phase: str  # starting | wait | decide | closing | done
+    decider: int | None  # agent whose turn it is (phase 'decide')
+    clock: float  # mission time of the state
+    horizon: float  # the sim clock may advance up to here
+    n_done: int
+    n_cancelled: int
+    n_tasks: int
+    lost: tuple[int, ...] = ()
+    legs: tuple[RobotLegs | None, ...] | None = None  # per agent; None for a lost robot
+    state: dict[str, Any] | None = field(default=None, repr=False)
+
+    def header(self) -> dict[str, Any]:
+        return {"schema": BOARD_SCHEMA, "session": self.session, "version": self.version, "rev": self.rev,
+                "phase": self.phase, "decider": self.decider, "clock": self.clock, "horizon": self.horizon,
+                "n_done": self.n_done, "n_cancelled": self.n_cancelled, "n_tasks": self.n_tasks,
+                "lost": list(self.lost)}
+
+
+def board_to_msg(b: Board, state_json: str | None = None) -> String:
+    """``state_json`` (optional) is ``json.dumps(b.state)`` computed once by the caller."""
+    if b.legs is None or (b.state is None and state_json is None):
+        raise ValueError("board_to_msg needs legs and state")
+    legs = _dumps([None if g is None else [g[0], [list(x) for x in g[1]]] for g in b.legs])
+    return _str("\n".join((_dumps(b.header()), legs, state_json if state_json is not None else state_to_json(b.state))))
+
+
+def state_to_json(state: dict[str, Any]) -> str:
+    """The snapshot line (exact floats; NaN stands for unset task times, as in the core's snapshots)."""
+    return json.dumps(state, separators=(",", ":"))
+
+
+def _split(data: Any) -> list[str]:
+    if not isinstance(data, str):
+        raise DecodeError(f"{BOARD_SCHEMA}: expected text")
+    return data.split("\n", 2)
+
+
+def _board_header(text: str) -> Board:
+    w = BOARD_SCHEMA
+    d = _obj(text, w)
+    phase = _get(d, "phase", str, w)
+    if phase not in PHASES:
+        raise DecodeError(f"{w}.phase: expected one of {PHASES}, got {phase!r}")
+    lost = _get(d, "lost", list, w)
+    if not all(isinstance(a, int) and not isinstance(a, bool) for a in lost):
+        raise DecodeError(f"{w}.lost: expected a list of agent indices")
+    return Board(_get(d, "session", str, w), _get(d, "version", int, w), _get(d, "rev", int, w), phase,
+                 _get(d, "decider", int, w, optional=True), _num(d, "clock", w), _num(d, "horizon", w),
+                 _get(d, "n_done", int, w), _get(d, "n_cancelled", int, w), _get(d, "n_tasks", int, w), tuple(lost))
+
+
+def _leg(g: Any, where: str) -> Leg:
+    if (not isinstance(g, list) or len(g) != 4 or not isinstance(g[0], int) or isinstance(g[0], bool)
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in g[1:])):
+        raise DecodeError(f"{where}: expected [node, x, y, depart], got {g!r}")
+    return g[0], float(g[1]), float(g[2]), float(g[3])
+
+
+def _legs(text: str) -> tuple[RobotLegs | None, ...]:
+    w = f"{BOARD_SCHEMA}.legs"
+    legs = _loads(text, w)
+    if not isinstance(legs, list):
+        raise DecodeError(f"{w}: expected a list")
+    out: list[RobotLegs | None] = []
+    for i, e in enumerate(legs):
+        if e is None:
+            out.append(None)
+            continue
+        if (not isinstance(e, list) or len(e) != 2 or not isinstance(e[0], int) or isinstance(e[0], bool)
+                or not isinstance(e[1], list) or len(e[1]) > e[0]):
+            raise DecodeError(f"{w}[{i}]: expected [seq, [legs...]], got {e!r}")
+        out.append((e[0], tuple(_leg(g, f"{w}[{i}][1][{j}]") for j, g in enumerate(e[1]))))
+    return tuple(out)
+
+
+def board_from_msg(msg: String, *, legs: bool = True, state: bool = True) -> Board:
+    """Decode a board; ``legs`` / ``state`` False skips parsing those parts (they stay None)."""
+    parts = _split(msg.data)
+    if len(parts) != 3:
+        raise DecodeError(f"{BOARD_SCHEMA}: expected header, legs and state lines")
+    b = _board_header(parts[0])
+    lg = _legs(parts[1]) if legs else None
+    st = None
+    if state:
+        st = _loads(parts[2], f"{BOARD_SCHEMA}.state")
+        if not isinstance(st, dict):
+            raise DecodeError(f"{BOARD_SCHEMA}.state: expected a JSON object")
+    return Board(**{**b.__dict__, "legs": lg, "state": st})
+
+
+class BoardDecoder:
+    """Decodes each board once per process: nodes hosted together share one read-only copy.
+
+    ``decode(msg)`` returns the header and legs; ``state(msg)`` the snapshot (parsed on first
+    use). Keyed by the header line, which names the board session and version.
+    """
+
+    def __init__(self) -> None:
+        self._key: str | None = None
+        self._board: Board | None = None
+        self._state_text: str | None = None
+        self._state: dict[str, Any] | None = None
+
+    def decode(self, msg: String) -> Board:
+        data = msg.data
+        cut = data.find("\n") if isinstance(data, str) else -1
+        key = data[:cut] if cut >= 0 else None
+        if key is not None and key == self._key and self._board is not None:
+            return self._board
+        b = board_from_msg(msg, legs=True, state=False)
+        self._key, self._board = key, b
+        self._state_text, self._state = _split(data)[2], None
+        return b
+
+    def state(self, msg: String) -> dict[str, Any]:
+        self.decode(msg)
+        if self._state is None:
+            st = _loads(self._state_text, f"{BOARD_SCHEMA}.state")
+            if not isinstance(st, dict):
+                raise DecodeError(f"{BOARD_SCHEMA}.state: expected a JSON object")
+            self._state = st
+        return self._state
+
+
+# ---------------------------------------------------------------------------------------------
+# choice (agent -> board)
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Choice:
+    robot: str
+    version: int  # the board version this answers
+    node: int  # 0 = own depot, 1 + m = task m
+    seq: int = 0  # the agent's own counter (for logs)
+    compute_ms: float = 0.0  # board received -> choice published, measured by the agent
+
+
+def choice_to_msg(c: Choice) -> String:
+    return _str(_dumps({"schema": CHOICE_SCHEMA, "robot": c.robot, "version": c.version, "node": c.node,
+                        "seq": c.seq, "compute_ms": c.compute_ms}))
+
+
+def choice_from_msg(msg: String) -> Choice:
+    w = CHOICE_SCHEMA
+    d = _obj(msg.data, w)
+    return Choice(_name(d.get("robot"), f"{w}.robot"), _get(d, "version", int, w), _get(d, "node", int, w),
+                  _get(d, "seq", int, w, optional=True, default=0),
+                  _num(d, "compute_ms", w, optional=True, default=0.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# agent status (heartbeat; one message per agent process lists the robots it hosts)
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Status:
+    robots: tuple[str, ...]
+    seq: int
+    host: str = ""
+
+
+def status_to_msg(s: Status) -> String:
+    return _str(_dumps({"schema": STATUS_SCHEMA, "robots": list(s.robots), "seq": s.seq, "host": s.host}))
+
+
+def status_from_msg(msg: String) -> Status:
+    w = STATUS_SCHEMA
+    d = _obj(msg.data, w)
+    robots = _get(d, "robots", list, w)
+    return Status(tuple(_name(r, f"{w}.robots[{i}]") for i, r in enumerate(robots)), _get(d, "seq", int, w),
+                  _get(d, "host", str, w, optional=True, default=""))
+
+
+# ---------------------------------------------------------------------------------------------
+# rejection (board -> anyone: why a message was refused)
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Rejection:
+    reason: str  # short code: malformed | unknown_robot | lost | duplicate | stale | not_released | not_your_turn | masked
+    detail: str
+    robot: str = ""
+    version: int = -1
+
+
+def rejection_to_msg(r: Rejection) -> String:
+    return _str(_dumps({"schema": REJECTION_SCHEMA, "reason": r.reason, "detail": r.detail, "robot": r.robot,
+                        "version": r.version}))
+
+
+def rejection_from_msg(msg: String) -> Rejection:
+    w = REJECTION_SCHEMA
+    d = _obj(msg.data, w)
+    return Rejection(_get(d, "reason", str, w), _get(d, "detail", str, w),
+                     _get(d, "robot", str, w, optional=True, default=""),
+                     _get(d, "version", int, w, optional=True, default=-1))
+
+
+# ---------------------------------------------------------------------------------------------
+# mission result (the hmrta-solution/1 JSON; transient local)
+# ---------------------------------------------------------------------------------------------
+def result_to_msg(solution: dict[str, Any]) -> String:
+    if solution.get("format") != RESULT_FORMAT:
+        raise ValueError(f"expected an {RESULT_FORMAT} mapping")
+    return _str(json.dumps(solution))  # NaN-free: Solution.to_dict writes null for non-finite values
+
+
+def result_from_msg(msg: String) -> dict[str, Any]:
+    d = _loads(msg.data, RESULT_FORMAT)
+    if not isinstance(d, dict) or d.get("format") != RESULT_FORMAT:
+        raise DecodeError(f"expected format {RESULT_FORMAT!r}")
+    for k in ("routes", "tasks", "agents", "success"):
+        if k not in d:
+            raise DecodeError(f"{RESULT_FORMAT}: missing field {k!r}")
+    return d
+
+
+# ---------------------------------------------------------------------------------------------
+# RViz markers (visualization_msgs/MarkerArray)
+# ---------------------------------------------------------------------------------------------
+STATUS_COLORS = {  # task status name -> RGBA
+    "empty": (0.6, 0.6, 0.6, 0.8), "open": (1.0, 0.6, 0.0, 0.9), "in_progress": (0.1, 0.5, 1.0, 0.9),
+    "done": (0.1, 0.8, 0.2, 0.9), "cancelled": (0.8, 0.1, 0.1, 0.9),
+}
+
+
+@dataclass(frozen=True)
+class MarkerView:
+    tasks: tuple[tuple[float, float, str], ...]  # (x, y, status name)
+    robots: tuple[tuple[str, float, float, bool], ...]  # (name, x, y, lost)
+    legs: tuple[tuple[float, float, float, float], ...] = ()  # (x0, y0, x1, y1) current moves
+
+
+def markers_to_msg(v: MarkerView, stamp: float, frame_id: str = "map", scale: float = 1.0) -> MarkerArray:
+    out = MarkerArray()
+
+    def marker(ns: str, i: int, kind: int, x: float, y: float, size: float, rgba, text: str = "") -> Marker:
+        m = Marker()
+        m.header.stamp = time_to_stamp(stamp)
+        m.header.frame_id = frame_id
+        m.ns, m.id, m.type, m.action = ns, i, kind, Marker.ADD
+        m.pose.position.x, m.pose.position.y = x * scale, y * scale
+        m.pose.orientation.w = 1.0
+        m.scale.x = m.scale.y = m.scale.z = size * scale
+        m.color.r, m.color.g, m.color.b, m.color.a = rgba
+        m.text = text
+        return m
+
+    for i, (x, y, status) in enumerate(v.tasks):
+        out.markers.append(marker("tasks", i, Marker.CYLINDER, x, y, 0.03, STATUS_COLORS.get(status, (1, 1, 1, 1)),
+                                  status))
+    for i, (name, x, y, lost) in enumerate(v.robots):
+        rgba = (0.3, 0.3, 0.3, 0.6) if lost else (0.9, 0.9, 0.1, 1.0)
+        out.markers.append(marker("robots", i, Marker.SPHERE, x, y, 0.02, rgba, name + (" (lost)" if lost else "")))
+    legs = marker("legs", 0, Marker.LINE_LIST, 0.0, 0.0, 0.004, (1.0, 1.0, 1.0, 0.5))
+    legs.scale.y = legs.scale.z = 0.0
+    for x0, y0, x1, y1 in v.legs:
+        legs.points.append(Point(x=x0 * scale, y=y0 * scale, z=0.0))
+        legs.points.append(Point(x=x1 * scale, y=y1 * scale, z=0.0))
+    out.markers.append(legs)
+    return out
+
+
+def markers_from_msg(msg: MarkerArray, scale: float = 1.0) -> MarkerView:
+    tasks, robots, legs = [], [], []
+    for m in msg.markers:
+        x, y = m.pose.position.x / scale, m.pose.position.y / scale
+        if m.ns == "tasks":
+            tasks.append((m.id, (x, y, m.text)))
+        elif m.ns == "robots":
+            lost = m.text.endswith(" (lost)")
+            robots.append((m.id, (m.text[:-7] if lost else m.text, x, y, lost)))
+        elif m.ns == "legs":
+            p = m.points
+            legs += [(p[i].x / scale, p[i].y / scale, p[i + 1].x / scale, p[i + 1].y / scale)
+                     for i in range(0, len(p) - 1, 2)]
+    return MarkerView(tuple(t for _, t in sorted(tasks)), tuple(r for _, r in sorted(robots)), tuple(legs))

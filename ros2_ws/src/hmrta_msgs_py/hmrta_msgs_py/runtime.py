@@ -1,0 +1,76 @@
+"""Shared process plumbing for HMRTA executables: environment defaults, executor, spinning."""
+from __future__ import annotations
+
+import os
+import random
+from typing import Callable
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.task import Future
+
+DISCOVERY_VAR = "ROS_AUTOMATIC_DISCOVERY_RANGE"
+
+# nodes hosted many to a process: no parameter services, no /rosout publisher
+LEAN_NODE = {"start_parameter_services": False, "enable_rosout": False}
+
+
+def local_env(env: dict[str, str] | None = None, domain_id: int | None = None) -> dict[str, str]:
+    """A copy of ``env`` (default os.environ) with DDS discovery kept on this machine unless the
+    caller chose otherwise (``ROS_AUTOMATIC_DISCOVERY_RANGE`` unset -> LOCALHOST), and a ROS
+    domain: ``domain_id`` if given, else the caller's ``ROS_DOMAIN_ID``, else a random one in
+    100..199 so that concurrent missions on one machine never meet."""
+    out = dict(os.environ if env is None else env)
+    out.setdefault(DISCOVERY_VAR, "LOCALHOST")
+    if domain_id is not None:
+        out["ROS_DOMAIN_ID"] = str(domain_id)
+    elif not out.get("ROS_DOMAIN_ID"):
+        out["ROS_DOMAIN_ID"] = str(random.randint(100, 199))
+    return out
+
+
+def method_name(policy: str, decoding: str = "greedy") -> str:
+    """The ``policy`` / ``decoding`` node parameters -> an hmrta method name for
+    :func:`hmrta.methods.decider`: ('rl', 'sample') -> 'rl-sample'; others map to ``policy``."""
+    from hmrta.methods import MethodError
+
+    if decoding not in ("greedy", "sample"):
+        raise MethodError(f"decoding: expected greedy or sample, got {decoding!r}")
+    return "rl-sample" if policy == "rl" and decoding == "sample" else policy
+
+
+def make_executor():
+    """The events executor when this rclpy has it (much lower latency with many nodes in one
+    process), else the single-threaded executor. ``HMRTA_EXECUTOR=single`` forces the latter."""
+    if os.environ.get("HMRTA_EXECUTOR", "events") != "single":
+        try:
+            from rclpy.experimental import EventsExecutor
+
+            return EventsExecutor()
+        except ImportError:
+            pass
+    return SingleThreadedExecutor()
+
+
+def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], None] | None = None) -> None:
+    """Spin nodes on one executor until ``until`` completes, Ctrl-C / SIGTERM or external
+    shutdown; then destroy the nodes and shut rclpy down (ros2/demos style).
+
+    Spins in bounded slices: the experimental events executor busy-waits and ignores signals
+    when asked to spin without a timeout."""
+    executor = make_executor()
+    for n in nodes:
+        executor.add_node(n)
+    until = until if until is not None else Future()
+    try:
+        while rclpy.ok() and not until.done():
+            executor.spin_until_future_complete(until, timeout_sec=0.5)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if on_exit is not None:
+            on_exit()
+        for n in nodes:
+            n.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown()

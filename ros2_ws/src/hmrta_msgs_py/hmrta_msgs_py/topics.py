@@ -1,0 +1,51 @@
+"""Topic names and QoS profiles, declared once for every HMRTA node.
+
+Mission-wide topics are absolute (``/hmrta/...``) so that nodes in robot namespaces share them;
+per-robot topics are relative names resolved in the robot's namespace (``/<robot>/goal_pose``,
+``/<robot>/pose``), so a real robot is integrated by namespace or by remapping.
+"""
+from __future__ import annotations
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+# ---- mission-wide topics ------------------------------------------------------------------------
+MISSION = "/hmrta/mission"  # std_msgs/String hmrta-mission/1       board -> all (latched)
+BOARD = "/hmrta/board"  # std_msgs/String hmrta-board/1             board -> all (latched)
+CHOICE = "/hmrta/choice"  # std_msgs/String hmrta-choice/1          agents -> board
+STATUS = "/hmrta/agent_status"  # std_msgs/String hmrta-status/1    agents -> board (heartbeat)
+REJECTIONS = "/hmrta/rejections"  # std_msgs/String hmrta-rejection/1  board -> anyone
+RESULT = "/hmrta/result"  # std_msgs/String hmrta-solution/1        board -> all (latched)
+MARKERS = "/hmrta/markers"  # visualization_msgs/MarkerArray        board -> RViz
+CLOCK = "/clock"  # rosgraph_msgs/Clock                              sim_robot -> all
+
+# ---- per-robot topics (relative: resolved in the robot's namespace) -----------------------------
+GOAL = "goal_pose"  # geometry_msgs/PoseStamped  agent -> robot driver (Nav2's goal topic)
+POSE = "pose"  # geometry_msgs/PoseStamped       robot driver -> board (position + heartbeat)
+
+
+def robot_topic(robot: str, leaf: str) -> str:
+    """Absolute per-robot topic, e.g. robot_topic('robot_3', POSE) -> '/robot_3/pose'."""
+    return f"/{robot.strip('/')}/{leaf}"
+
+
+def _qos(depth: int, reliable: bool = True, latched: bool = False) -> QoSProfile:
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+# board state, mission and result: reliable + transient local, depth 1 (late joiners get the latest)
+LATCHED_QOS = _qos(1, latched=True)
+BOARD_QOS = MISSION_QOS = RESULT_QOS = LATCHED_QOS
+# choices: reliable, deeper queue (a burst of agents must not lose any)
+CHOICE_QOS = _qos(100)
+STATUS_QOS = _qos(50)
+REJECTION_QOS = _qos(100)
+MARKER_QOS = _qos(1, latched=True)
+CLOCK_QOS = _qos(1, latched=True)  # a late subscriber gets the current time at once
+GOAL_QOS = _qos(10)
+# poses are published reliably; the board subscribes best effort so that any robot driver
+# (sensor-data QoS included) can feed it; poses repeat as heartbeats, so a lost sample only delays
+POSE_PUB_QOS = _qos(10)
+POSE_SUB_QOS = _qos(10, reliable=False)
