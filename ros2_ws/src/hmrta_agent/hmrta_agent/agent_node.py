@@ -94,10 +94,16 @@ class Host:
     def _beat(self) -> None:
         if not rclpy.ok():
             return
-        robots = tuple(a.robot for a in self.agents if not a.finished and a.is_ready())
-        if robots:
+        for a in self.agents:
+            if not a.ready and a.is_ready():
+                a.act()  # what it saw while not ready (it held back: its messages would be lost)
+        sessions: dict[str, list[str]] = {}
+        for a in self.agents:
+            if a.ready and not a.finished:
+                sessions.setdefault(a.mission.session, []).append(a.robot)
+        for session, robots in sessions.items():
             self._seq += 1
-            self._status_pub.publish(status_to_msg(Status(robots, self._seq, self._host)))
+            self._status_pub.publish(status_to_msg(Status(tuple(robots), session, self._seq, self._host)))
 
     def agent_finished(self) -> None:
         if all(a.finished for a in self.agents) and not self.all_done.done():
@@ -130,7 +136,7 @@ class AgentNode(Node):
         self.leg_seq: int | None = None  # number of this robot's legs already taken from the board
         self.pending: list = []  # legs whose departure time has not come yet
         self.ready = False
-        self._early_board: String | None = None  # a board that came before the mission
+        self.board_msg: String | None = None  # the latest board
         self.seq = 0
         self._warned: set[str] = set()
         self.choice_pub = self.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
@@ -140,10 +146,12 @@ class AgentNode(Node):
 
     # ------------------------------------------------------------------------------------------
     def is_ready(self) -> bool:
-        """Reported in the heartbeat only once ready: it has the mission and the board, and both the
-        board (choices) and the robot's driver (goals) are listening, so nothing it sends is lost."""
+        """Ready (and only then reported in the heartbeat, deciding and sending goals) once it has
+        the mission and the board and both the board (choices) and the robot's driver (goals) are
+        listening, so that nothing it sends is lost."""
         if not self.ready:
-            self.ready = (self.leg_seq is not None and self.choice_pub.get_subscription_count() > 0
+            self.ready = (self.mission is not None and self.board_msg is not None
+                          and self.choice_pub.get_subscription_count() > 0
                           and self.goal_pub.get_subscription_count() > 0)
         return self.ready
 
@@ -174,16 +182,17 @@ class AgentNode(Node):
         self.answered, self.leg_seq, self.pending = -1, None, []
         self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "
                                f"{mission.instance.name}, policy {self.method}")
-        if self._early_board is not None:
-            self.on_board(self._early_board)
+        self.act()  # a board may have come first: the two latched topics arrive in either order
 
     def on_board(self, msg: String) -> None:
+        self.board_msg = msg
+        self.act()
+
+    def act(self) -> None:
+        """Follow the latest board: queue this robot's new legs, decide when it is its turn."""
         t_recv = time.perf_counter()
-        if self.mission is None:
-            self._early_board = msg  # the two latched topics may arrive in either order
-            return
-        self._early_board = None
-        if self.finished:
+        msg = self.board_msg
+        if msg is None or self.mission is None or self.finished or not self.is_ready():
             return
         try:
             board = self.host.boards.decode(msg)
@@ -220,6 +229,8 @@ class AgentNode(Node):
         """Publish the queued legs whose departure time the mission clock has reached."""
         m = self.mission
         while self.pending and self.pending[0][3] <= self.host.clock + EPS:
+            if self.finished:
+                return
             node, x, y, depart = self.pending.pop(0)
             self.goal_pub.publish(pose_to_msg((x, y), depart, m.frame_id, m.scale))
             self.get_logger().debug(f"goal node {node} at ({x:.3f}, {y:.3f}), departing t={depart:.3f}")
@@ -241,7 +252,8 @@ class AgentNode(Node):
         node = int(self.decide(state))
         self.seq += 1
         ms = (time.perf_counter() - t_recv) * 1e3
-        self.choice_pub.publish(choice_to_msg(Choice(self.robot, version, node, self.seq, round(ms, 3))))
+        self.choice_pub.publish(choice_to_msg(Choice(self.robot, self.mission.session, version, node, self.seq,
+                                                     round(ms, 3))))
         self.get_logger().debug(f"board {version}: chose node {node} ({ms:.1f} ms)")
 
     def _finish(self) -> None:

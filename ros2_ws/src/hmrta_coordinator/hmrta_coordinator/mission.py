@@ -70,7 +70,8 @@ class MissionProcesses:
     board_ros_args: list[str] = field(default_factory=list)  # e.g. remaps
     sim_params: dict[str, Any] = field(default_factory=dict)
     sim_ros_args: list[str] = field(default_factory=list)
-    external: list[str] = field(default_factory=list)  # robots driven outside (no sim, no agent started)
+    external: list[str] = field(default_factory=list)  # robots driven outside (not simulated)
+    no_agent: list[str] = field(default_factory=list)  # robots whose agent runs elsewhere
     agent_ros_args: dict[str, list[str]] = field(default_factory=dict)  # robot -> its own process with these
     board: Child | None = None
     sim: Child | None = None
@@ -88,7 +89,7 @@ class MissionProcesses:
     def agent_groups(self) -> list[tuple[list[str], list[str]]]:
         """[(robots, extra ros args)] for the agent processes."""
         own = [r for r in self.robots if r in self.agent_ros_args]
-        rest = [r for r in self.robots if r not in self.agent_ros_args and r not in self.external]
+        rest = [r for r in self.robots if r not in self.agent_ros_args and r not in self.no_agent]
         n = max(1, self.agents_per_process)
         groups = [(rest[i:i + n], []) for i in range(0, len(rest), n)]
         return groups + [([r], self.agent_ros_args[r]) for r in own]

@@ -285,6 +285,9 @@ class TaskBoard(Node):
             return self._reject("malformed", f"malformed choice: {e}")
         a = self.index.get(c.robot)
         who = f"choice of {c.robot!r} for board {c.version}"
+        if c.session != self.mission.session:
+            return self._reject("foreign_session", f"{who}: for mission run {c.session!r}, not this one", c.robot,
+                                c.version)
         if a is None:
             return self._reject("unknown_robot", f"{who}: unknown robot", c.robot, c.version)
         if a in self.lost:
@@ -315,6 +318,8 @@ class TaskBoard(Node):
             s = status_from_msg(msg)
         except DecodeError as e:
             return self._reject("malformed", f"malformed status: {e}")
+        if s.session != self.mission.session:
+            return  # agents of another mission run (e.g. before a board restart)
         now = time.monotonic()
         for r in s.robots:
             a = self.index.get(r)

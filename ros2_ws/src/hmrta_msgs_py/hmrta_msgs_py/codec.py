@@ -334,6 +334,7 @@ class BoardDecoder:
 @dataclass(frozen=True)
 class Choice:
     robot: str
+    session: str  # the board session (mission run) this answers
     version: int  # the board version this answers
     node: int  # 0 = own depot, 1 + m = task m
     seq: int = 0  # the agent's own counter (for logs)
@@ -341,14 +342,15 @@ class Choice:
 
 
 def choice_to_msg(c: Choice) -> String:
-    return _str(_dumps({"schema": CHOICE_SCHEMA, "robot": c.robot, "version": c.version, "node": c.node,
-                        "seq": c.seq, "compute_ms": c.compute_ms}))
+    return _str(_dumps({"schema": CHOICE_SCHEMA, "robot": c.robot, "session": c.session, "version": c.version,
+                        "node": c.node, "seq": c.seq, "compute_ms": c.compute_ms}))
 
 
 def choice_from_msg(msg: String) -> Choice:
     w = CHOICE_SCHEMA
     d = _obj(msg.data, w)
-    return Choice(_name(d.get("robot"), f"{w}.robot"), _get(d, "version", int, w), _get(d, "node", int, w),
+    return Choice(_name(d.get("robot"), f"{w}.robot"), _get(d, "session", str, w), _get(d, "version", int, w),
+                  _get(d, "node", int, w),
                   _get(d, "seq", int, w, optional=True, default=0),
                   _num(d, "compute_ms", w, optional=True, default=0.0))
 
@@ -359,19 +361,22 @@ def choice_from_msg(msg: String) -> Choice:
 @dataclass(frozen=True)
 class Status:
     robots: tuple[str, ...]
+    session: str  # the board session (mission run) the robots take part in
     seq: int
     host: str = ""
 
 
 def status_to_msg(s: Status) -> String:
-    return _str(_dumps({"schema": STATUS_SCHEMA, "robots": list(s.robots), "seq": s.seq, "host": s.host}))
+    return _str(_dumps({"schema": STATUS_SCHEMA, "robots": list(s.robots), "session": s.session, "seq": s.seq,
+                        "host": s.host}))
 
 
 def status_from_msg(msg: String) -> Status:
     w = STATUS_SCHEMA
     d = _obj(msg.data, w)
     robots = _get(d, "robots", list, w)
-    return Status(tuple(_name(r, f"{w}.robots[{i}]") for i, r in enumerate(robots)), _get(d, "seq", int, w),
+    return Status(tuple(_name(r, f"{w}.robots[{i}]") for i, r in enumerate(robots)), _get(d, "session", str, w),
+                  _get(d, "seq", int, w),
                   _get(d, "host", str, w, optional=True, default=""))
 
 
@@ -380,7 +385,8 @@ def status_from_msg(msg: String) -> Status:
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Rejection:
-    reason: str  # short code: malformed | unknown_robot | lost | duplicate | stale | not_released | not_your_turn | masked
+    reason: str  # malformed | foreign_session | unknown_robot | lost | duplicate | stale | not_released
+    #              | not_your_turn | masked
     detail: str
     robot: str = ""
     version: int = -1

@@ -1,0 +1,277 @@
+"""Decentralised missions over real DDS (rclpy, Fast DDS), each test in its own ROS domain.
+
+Sim-time mission == offline rollout; robot loss; hostile traffic; late join; a drop-in robot
+driven by an external fake driver on remapped topics; the console scripts."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from conftest import save_instance
+from hmrta.baselines import GREEDY_RULES, Greedy
+from hmrta.core import MissionState
+from hmrta.generators import ScenarioGenerator
+from hmrta.methods import solve
+
+rclpy = pytest.importorskip("rclpy")
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.qos import qos_profile_sensor_data  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+
+from hmrta_msgs_py import topics  # noqa: E402
+from hmrta_msgs_py import codec as C  # noqa: E402
+
+BIN = Path(sys.executable).parent
+
+
+def robots_of(inst) -> list[str]:
+    return [f"robot_{a}" for a in range(inst.n_agents)]
+
+
+def assert_same_as_offline(result: dict, inst, seed: int, method: str = "greedy") -> None:
+    ref = json.loads(json.dumps(solve(inst, method, seed).to_dict()))
+    for k in ("success", "routes", "tasks", "agents", "makespan", "awt", "redundancy"):
+        assert result[k] == ref[k], f"{k}: ROS mission differs from the offline rollout"
+
+
+class BoardWatch:
+    """Keeps the latest board (and every version seen) from a test node."""
+
+    def __init__(self, node):
+        self.msg: String | None = None
+        self.board: C.Board | None = None
+        self.versions: list[int] = []
+        self.changed_at = time.monotonic()
+        node.create_subscription(String, topics.BOARD, self._on, topics.BOARD_QOS)
+
+    def _on(self, msg: String) -> None:
+        self.msg, self.board = msg, C.board_from_msg(msg)
+        self.versions.append(self.board.version)
+        self.changed_at = time.monotonic()
+
+    def stable(self, seconds: float) -> bool:
+        return self.board is not None and time.monotonic() - self.changed_at > seconds
+
+
+def wait_board_exit(graph, procs, timeout: float) -> None:
+    graph.spin_until(lambda: procs.board.proc.poll() is not None, timeout, "the task board to finish the mission")
+    assert procs.board.proc.returncode == 0, (procs.board.log.read_text()[-3000:])
+
+
+# ---------------------------------------------------------------------------------------------
+def test_console_scripts_are_installed():
+    for name in ("agent_node", "task_board", "sim_robot", "mission", "hmrta-mission"):
+        assert (BIN / name).exists(), f"{name} is not installed next to {sys.executable}"
+    out = subprocess.run([str(BIN / "hmrta-mission"), "--help"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and "--agents-per-process" in out.stdout
+    out = subprocess.run([str(BIN / "agent_node"), "--help", "--ros-args", "-p", "seed:=1"], capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0 and "--robots" in out.stdout
+
+
+@pytest.mark.parametrize("per_process", [1, 3], ids=["process-per-agent", "3-agents-per-process"])
+def test_sim_time_mission_equals_offline_solve(tmp_path, domain, per_process):
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    path = save_instance(inst, tmp_path / "inst.yaml")
+    out = tmp_path / "mission.json"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE=os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"])
+    proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", "3", "--out", str(out), "--quiet",
+                           "--no-plot", "--check-offline", "--domain-id", str(domain),
+                           "--agents-per-process", str(per_process), "--timeout", "150"],
+                          capture_output=True, text=True, timeout=200, env=env)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "same routes and makespan: yes" in proc.stdout
+    result = json.loads(out.read_text())
+    assert_same_as_offline(result, inst, 3)
+    assert result["lost_robots"] == [] and result["undone_tasks"] == []
+    assert result["transport"] == "ros2" and result["decision_latency_ms"]["n"] > 0
+
+
+def test_robot_loss_releases_commitments_and_completes_satisfiable_tasks(tmp_path, graph, mission_procs):
+    # single-skill species of two robots each: losing one makes tasks needing 2 of its skill impossible
+    inst = ScenarioGenerator("SA-AT", 6, 3, 12, 3).instance(2, 0)
+    robots = robots_of(inst)
+    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots, seed=1, time_scale=6.0,
+                          board_params={"heartbeat_timeout": 1.5, "progress_period": 0.0})
+    watch = BoardWatch(graph.node("observer"))
+    graph.spin_until(lambda: watch.board is not None and watch.board.n_done >= 2, 90, "two tasks done")
+    # kill the agent of a robot that is on its way to a task (crash: SIGKILL)
+    b = watch.board
+    busy = [a for a, e in enumerate(b.legs) if e and e[1] and e[1][-1][0] > 0]
+    victim = robots[busy[0] if busy else 0]
+    procs.agent_of(victim).proc.kill()
+    wait_board_exit(graph, procs, 120)
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert result["lost_robots"] == [victim]
+    assert "agent heartbeat" in result["lost_reasons"][victim]
+    lost = robots.index(victim)
+    team = inst.traits[[a for a in range(inst.n_agents) if a != lost]].sum(0)
+    undone = result["undone_tasks"]
+    for m, t in enumerate(result["tasks"]):
+        satisfiable = bool((inst.requirements[m] <= team).all())
+        if m in undone:
+            assert not satisfiable and t["finish"] is None
+        else:  # completed by a coalition that satisfies it
+            c = inst.traits[t["members"]].sum(0)
+            assert (c >= inst.requirements[m]).all() and t["finish"] is not None
+    assert result["success"] == (undone == [])
+    # the robots that survived are home
+    assert all(r["return_time"] is not None for a, r in enumerate(result["agents"]) if a != lost) or undone
+
+
+def test_hostile_traffic_never_changes_the_board_and_late_joiners_get_it(tmp_path, graph, mission_procs):
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(7, 0)
+    robots = robots_of(inst)
+    seed = 2
+    d = MissionState(inst, seed=seed, rules=GREEDY_RULES).agent  # the first decider: played by this test
+    me = robots[d]
+    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots, seed=seed, no_agent=[me],
+                          board_params={"heartbeat_timeout": 0.0, "decision_timeout": 0.0, "progress_period": 0.0})
+    node = graph.node("hostile")
+    watch = BoardWatch(node)
+    missions: list[C.Mission] = []
+    rejections: list[C.Rejection] = []
+    node.create_subscription(String, topics.MISSION, lambda m: missions.append(C.mission_from_msg(m)),
+                             topics.MISSION_QOS)
+    node.create_subscription(String, topics.REJECTIONS, lambda m: rejections.append(C.rejection_from_msg(m)),
+                             topics.REJECTION_QOS)
+    choice = node.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
+    status = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
+    goal = node.create_publisher(PoseStamped, topics.robot_topic(me, topics.GOAL), topics.GOAL_QOS)
+    graph.spin_until(lambda: missions, 60, "the mission")
+    session = missions[0].session
+    node.create_timer(0.3, lambda: status.publish(C.status_to_msg(C.Status((me,), session, 0))))  # my heartbeat
+    graph.spin_until(lambda: watch.board and watch.board.phase == "decide" and watch.board.decider == d, 90,
+                     f"{me}'s turn")
+    graph.spin_until(lambda: choice.get_subscription_count() > 0 and goal.get_subscription_count() > 0, 30,
+                     "the board and the simulated robot to listen")
+    v, text = watch.board.version, watch.msg.data
+    seq0 = watch.board.legs[d][0]
+    state = MissionState.from_snapshot(inst, C.board_from_msg(watch.msg).state)
+    good = Greedy()(state)
+    masked = [n for n, ok in enumerate(state.mask()) if not ok]
+
+    def send(payload) -> None:
+        choice.publish(C.choice_to_msg(payload) if isinstance(payload, C.Choice) else C._str(payload))
+
+    hostile = ["garbage", '{"schema": "hmrta-choice/1"}',
+               json.dumps({"schema": "hmrta-choice/1", "robot": me, "session": session, "version": "x", "node": 1}),
+               C.Choice("intruder", session, v, good),
+               C.Choice(me, "another-run", v, good),
+               C.Choice(robots[(d + 1) % len(robots)], session, v, good),
+               C.Choice(me, session, v, inst.n_tasks + 5),
+               C.Choice(me, session, v, -1),
+               C.Choice(me, session, v - 1, good),
+               C.Choice(me, session, v + 3, good)]
+    expected = Counter({"malformed": 3, "unknown_robot": 1, "foreign_session": 1, "not_your_turn": 1, "masked": 2,
+                        "stale": 2})
+    if masked:
+        hostile.append(C.Choice(me, session, v, masked[0]))
+        expected["masked"] += 1
+    for h in hostile:
+        send(h)
+    graph.spin_until(lambda: len(rejections) >= len(hostile), 30, "every hostile message to be rejected")
+    assert Counter(r.reason for r in rejections) == expected
+    assert watch.board.version == v and watch.msg.data == text  # the board never changed
+    # the real choice is applied; replaying it is a duplicate and changes nothing
+    send(C.Choice(me, session, v, good))
+    graph.spin_until(lambda: watch.board.version > v, 30, "the valid choice to be applied")
+    assert watch.board.rev > C.board_from_msg(C._str(text)).rev
+    # drive my robot like an agent would: a goal for each new leg the board lists for it
+    seq, legs = watch.board.legs[d]
+    for _, x, y, depart in legs[len(legs) - (seq - seq0):]:
+        goal.publish(C.pose_to_msg((x, y), depart))
+    send(C.Choice(me, session, v, good))
+    graph.spin_until(lambda: len(rejections) > len(hostile), 30, "the duplicate to be rejected")
+    assert rejections[-1].reason == "duplicate"
+    # the mission goes on until it needs me again; then the board stays put
+    graph.spin_until(lambda: watch.stable(2.0), 90, "the board to wait for me")
+    latest = watch.board.version
+    late = graph.node("late_joiner")
+    late_watch = BoardWatch(late)
+    t0 = time.monotonic()
+    graph.spin_until(lambda: late_watch.board is not None, 10, "the late joiner's first board")
+    assert late_watch.board.version == latest and late_watch.msg.data == watch.msg.data
+    print(f"late joiner got board {latest} after {time.monotonic() - t0:.2f} s")
+    # a late-joining agent process takes over my robot and the mission completes as offline
+    procs.agents.append(procs._spawn("late_agent", "hmrta_agent.agent_node",
+                                     ["--robots", me, "--ros-args", "-p", f"seed:={seed}"]))
+    wait_board_exit(graph, procs, 120)
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert_same_as_offline(result, inst, seed)
+    assert result["rejected_messages"] == dict(expected + Counter({"duplicate": 1}))
+
+
+def test_drop_in_robot_on_remapped_topics(tmp_path, graph, mission_procs):
+    """robot_1 is not simulated: an external driver (here a fake) consumes its goals and publishes
+    its pose under its own topic names; remaps connect it, and the mission is unchanged."""
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(9, 0)
+    robots = robots_of(inst)
+    ext, seed = "robot_1", 5
+    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots, seed=seed, external=[ext],
+                          agent_ros_args={ext: ["-r", "goal_pose:=/fake1/cmd_goal"]},
+                          board_ros_args=["-r", f"/{ext}/pose:=/fake1/odom_pose"],
+                          board_params={"arrival_tolerance": 0.01, "progress_period": 0.0})
+    driver = graph.node("fake_driver", namespace="/fake1")
+    where = [tuple(inst.depots[1])]
+    goals: list[tuple[float, float]] = []
+    pose_pub = driver.create_publisher(PoseStamped, "odom_pose", qos_profile_sensor_data)
+
+    def report() -> None:
+        pose_pub.publish(C.pose_to_msg(where[0], 0.0))
+
+    def on_goal(msg: PoseStamped) -> None:
+        x, y, _ = C.pose_from_msg(msg)
+        goals.append((x, y))
+        where[0] = (x + 0.002, y - 0.002)  # "drives" there at once, stops within tolerance
+        report()
+
+    driver.create_subscription(PoseStamped, "cmd_goal", on_goal, 10)
+    driver.create_timer(0.25, report)
+    wait_board_exit(graph, procs, 150)
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert_same_as_offline(result, inst, seed)
+    depot = tuple(inst.depots[1])
+    route = [tuple(inst.task_locations[m]) for m in result["routes"][1]]
+    assert route and [g for g in goals if g != depot] == route
+    assert goals[-1] == depot
+
+
+def test_rl_policy_mission_equals_offline(tmp_path, domain):
+    """--policy rl goes through hmrta.methods.decider in every agent (one shared copy of the
+    weights per process); greedy decoding is deterministic, so the mission equals the offline
+    rollout. Uses the shipped checkpoint, or an untrained one when none is shipped yet."""
+    torch = pytest.importorskip("torch")
+    try:
+        from hmrta.rl import inference
+        from hmrta.rl.model import ModelConfig, PolicyNet
+    except ImportError as e:
+        pytest.skip(f"learned policy unavailable: {e}")
+    checkpoint = []
+    try:
+        inference.load_policy()
+    except inference.CheckpointError:
+        torch.manual_seed(0)
+        cfg = ModelConfig(ff_hidden=128)
+        ck = tmp_path / "untrained.pt"
+        torch.save({"config": {"model": cfg.to_dict(), "rules": {"max_open": 2, "safety": True}},
+                    "model": PolicyNet(cfg).state_dict()}, ck)
+        checkpoint = ["--checkpoint", str(ck)]
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    path = save_instance(inst, tmp_path / "inst.yaml")
+    out = tmp_path / "mission.json"
+    proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", "1", "--out", str(out), "--quiet",
+                           "--no-plot", "--policy", "rl", *checkpoint, "--domain-id", str(domain),
+                           "--agents-per-process", "6", "--timeout", "150"], capture_output=True, text=True, timeout=200)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    ref = json.loads(json.dumps(solve(inst, "rl", 1, **({"checkpoint": checkpoint[1]} if checkpoint else {})).to_dict()))
+    result = json.loads(out.read_text())
+    for k in ("success", "routes", "tasks", "makespan"):
+        assert result[k] == ref[k], f"{k}: ROS mission differs from the offline rollout"
