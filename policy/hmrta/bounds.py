@@ -167,3 +167,43 @@ def lower_bounds(inst: Instance) -> dict:
     out["best"] = out[name]
     out["best_name"] = name
     return out
+
+
+def bound_report(inst: Instance, solutions: list | None = None) -> dict:
+    """Cheap bounds plus, for given solutions, their makespans, the solver bounds they carry
+    (``extra['lower_bound']``, e.g. from cpsat) and each one's gap to the best bound.
+
+    Returns ``{"instance", "bounds": {name: value}, "best", "best_name", "solutions": [{"method",
+    "makespan", "lower_bound", "status", "gap"}]}``; ``gap = (makespan - best) / makespan``."""
+    lb = lower_bounds(inst)
+    best, best_name = lb["best"], lb["best_name"]
+    sols = []
+    for s in solutions or []:
+        v = s.extra.get("lower_bound")
+        if isinstance(v, (int, float)) and v > best:
+            best, best_name = float(v), f"{s.method} (solver)"
+    for s in solutions or []:
+        ok = s.success and s.makespan > 0
+        sols.append({"method": s.method, "makespan": s.makespan if s.success else None,
+                     "lower_bound": s.extra.get("lower_bound"), "status": s.extra.get("status"),
+                     "gap": (s.makespan - best) / s.makespan if ok else None})
+    return {"instance": inst.name, "bounds": {k: lb[k] for k in BOUND_DOCS}, "best": best,
+            "best_name": best_name, "solutions": sols}
+
+
+def format_report(rep: dict) -> str:
+    """Human-readable text of :func:`bound_report` (what ``hmrta bound`` prints)."""
+    lines = [f"{rep['instance']}: lower bounds on the optimal makespan"]
+    for k, v in rep["bounds"].items():
+        lines.append(f"  {k:<18} {v:10.3f}   {BOUND_DOCS[k]}")
+    for s in rep["solutions"]:
+        if s["lower_bound"] is not None:
+            lines.append(f"  {s['method'] + ' (solver)':<18} {s['lower_bound']:10.3f}   proven by the solver "
+                         f"(status {s['status']})")
+    lines.append(f"  {'best':<18} {rep['best']:10.3f}   ({rep['best_name']})")
+    for s in rep["solutions"]:
+        if s["makespan"] is None:
+            lines.append(f"  {s['method']}: failed")
+        else:
+            lines.append(f"  {s['method']}: makespan {s['makespan']:.3f}, gap to best bound {100 * s['gap']:.1f}%")
+    return "\n".join(lines)

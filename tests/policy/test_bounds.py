@@ -70,3 +70,19 @@ def test_below_heuristic_solutions(scen, row):
         b = lower_bounds(inst)["best"]
         assert 0 < b <= solve(inst, "greedy").makespan + 1e-9
         assert b <= best_list_schedule(inst, 0, 0.0).makespan + 1e-9
+
+
+def test_report_with_solutions():
+    from hmrta.bounds import bound_report, format_report
+
+    inst = ScenarioGenerator("MA-AT", 9, 3, 8, 3).instance(1, 0)
+    g = solve(inst, "greedy")
+    g.extra["lower_bound"] = 1e-3  # a weak solver bound does not replace the cheap ones
+    rep = bound_report(inst, [g])
+    assert rep["best"] == lower_bounds(inst)["best"]
+    assert rep["solutions"][0]["gap"] == pytest.approx((g.makespan - rep["best"]) / g.makespan)
+    g.extra.update(lower_bound=g.makespan - 1.0, status="feasible")
+    rep = bound_report(inst, [g])
+    assert rep["best"] == g.makespan - 1.0 and rep["best_name"] == "greedy (solver)"
+    text = format_report(rep)
+    assert "task_round_trip" in text and "gap to best bound" in text

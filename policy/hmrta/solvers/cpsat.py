@@ -24,8 +24,22 @@ Model (times scaled by ``SCALE = 1000`` and rounded *up*):
   travel) <= count x C), a per-species cumulative (task intervals extended backwards by the
   shortest possible in-travel, demand ``x[s,m]``, capacity = count), and a per-skill cumulative
   with constant demand ``q_m,k`` (BT: 1) and capacity = the team's total of that skill.
-* a complete hint (and the incumbent upper bound on C) from the better of the greedy baseline and a
-  randomised list scheduler (:mod:`hmrta.solvers.listsched`), or from the warm start.
+* forced sharing: when ``x[s,i] + x[s,j] > count_s`` some agent serves both tasks, so one precedes
+  the other by its duration + the travel between them (a disjunction on the start times).
+* a complete hint (and the incumbent upper bound on C) from the best of the warm start, the greedy
+  baseline and the heuristic phase.
+
+Phases (all within ``time_limit`` seconds of wall time):
+
+1. heuristic (``heuristic_seconds``, default 25% of the limit): a randomised list scheduler
+   (:mod:`hmrta.solvers.listsched`, <= 1 s), then simulated annealing over task orders with a
+   serial schedule decoder, one independent run per worker (forked processes), stopping early when
+   it stalls or meets the cheap lower bound;
+2. CP-SAT (``workers`` threads) on the model above, hinted with the best solution so far, for the
+   rest of the time.
+The result is the best of all of them, re-evaluated, so never worse than the warm start. Models
+with more than ``max_arcs`` species arcs (about 110 tasks with 5 species) are not built: the whole
+time goes to the heuristic, the status is ``none`` and the bound is the cheap one.
 
 Rounding: every model time is >= 1000 x the float time, so the re-evaluated makespan of the
 extracted routes is <= objective / 1000. Conversely the float optimum's routes have a model value
@@ -420,6 +434,7 @@ def _reeval(inst: Instance, sol: Solution | None, seed: int) -> Solution | None:
 
 def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_start: str | None = None,
                 workers: int = 2, heuristic_seconds: float | None = None, log: bool = False,
+                max_arcs: int = 60_000,
                 **_: Any) -> Solution:
     """Anytime CP-SAT solve; see the module docstring."""
     from ortools.sat.python import cp_model
@@ -428,9 +443,11 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     from ..methods import solve
 
     t0 = time.perf_counter()
-    if time_limit is None or time_limit <= 0:
+    time_limit = 60.0 if time_limit is None else time_limit
+    workers = 2 if workers is None else workers
+    if not isinstance(time_limit, (int, float)) or time_limit <= 0:
         raise MethodError(f"cpsat: time_limit must be positive, got {time_limit!r}")
-    if workers is None or int(workers) < 1:
+    if int(workers) < 1:
         raise MethodError(f"cpsat: workers must be >= 1, got {workers!r}")
     cheap = lower_bounds(inst)["best"]
     if inst.n_tasks == 0:
@@ -443,7 +460,11 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     warm = _warm(inst, warm_start, seed)
     warm_eval = _reeval(inst, warm, seed)
     cands = [c for c in (warm_eval, _reeval(inst, solve(inst, "greedy", seed), seed)) if c is not None]
+    n_arcs = sum((len(u) + 1) ** 2 for u in D.useful)
+    too_big = n_arcs > max_arcs  # then no model: all the time goes to the heuristic
     hs = heuristic_seconds if heuristic_seconds is not None else 0.25 * time_limit
+    if too_big:
+        hs = max(0.0, time_limit - (time.perf_counter() - t0) - 0.5)
     best0 = min(cands, key=lambda c: c.makespan) if cands else None
     ls = best_list_schedule(inst, seed, min(1.0, 0.1 * hs), incumbent=best0)
     if ls is not None:
@@ -466,6 +487,17 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
             hint_sol, hint_routes, hint_C = evaluate_routes(inst, r, "cpsat", seed), r, sch[1]
     if hint_C is None:  # no usable hint: a trivial horizon (all tasks one after another by everyone)
         hint_C = sum(D.dur) + sum(max(max(D.t_out[s]) for s in range(D.S)) for _ in range(D.M + 1)) * 2 + 10
+    if too_big:  # too large to build: the heuristic's solution, cheap bounds only
+        best = min(cands, key=lambda c: c.makespan)
+        out = evaluate_routes(inst, [list(r) for r in best.routes], "cpsat", seed)
+        out.compute_seconds = time.perf_counter() - t0
+        out.extra.update({"status": "none", "lower_bound": float(cheap), "objective": None,
+                          "note": f"model not built: {n_arcs} arcs > max_arcs={max_arcs}; heuristic solution",
+                          "time_limit": float(time_limit), "workers": int(workers),
+                          "warm_start": warm_start,
+                          "warm_start_makespan": None if warm_eval is None else float(warm_eval.makespan),
+                          "hint_makespan": float(best.makespan), "source": "heuristic"})
+        return out
     lb_C = max(0, int(math.floor(cheap * SCALE * (1 - 1e-12))))
     lb_C = min(lb_C, hint_C)
     md, Cv, start, f = _build(D, hint_C, lb_C, hint_routes)

@@ -296,49 +296,53 @@ def anneal(inst: Instance, order: list[int], seed: int = 0, seconds: float = 1.0
     return best_v, best
 
 
-def _anneal_child(queue, inst_dict, order, seed, seconds, target) -> None:  # pragma: no cover - subprocess
+def _anneal_child(conn, inst, order, seed, seconds, target) -> None:  # pragma: no cover - subprocess
     try:
-        from ..instance import instance_from_dict
-
-        inst = instance_from_dict(inst_dict)
-        queue.put(anneal(inst, order, seed, seconds, target=target))
+        conn.send(anneal(inst, order, seed, seconds, target=target))
     except BaseException as e:  # report, never hang the parent
-        queue.put(e)
+        try:
+            conn.send(repr(e))
+        except Exception:
+            pass
+    finally:
+        conn.close()
 
 
 def parallel_anneal(inst: Instance, order: list[int], seed: int, seconds: float, workers: int = 1,
                     target: float = 0.0) -> tuple[float, list[int]]:
     """``workers`` independent annealing runs (different seeds) at once: the calling process runs
-    one, ``workers - 1`` spawned processes run the others; the best order wins. Falls back to the
-    single local run when processes cannot be started or do not answer in time."""
+    one, ``workers - 1`` forked processes run the others; the best order wins. Uses the ``fork``
+    start method only (``spawn`` would re-run the caller's main script); where it is unavailable,
+    or a process fails or does not answer in time, only the local run counts."""
     import multiprocessing as mp
-    import queue as _queue
 
     procs = []
-    if workers > 1 and seconds >= 3.0:
+    if workers > 1 and seconds >= 1.0 and "fork" in mp.get_all_start_methods():
         try:
-            ctx = mp.get_context("spawn")
-            q = ctx.Queue()
-            d = inst.to_dict()
+            ctx = mp.get_context("fork")
             for w in range(1, workers):
-                # a spawned process needs ~1 s to import; give it correspondingly less time
-                p = ctx.Process(target=_anneal_child, args=(q, d, list(order), seed + 7919 * w,
-                                                            max(0.5, seconds - 1.0), target), daemon=True)
+                rx, tx = ctx.Pipe(duplex=False)
+                p = ctx.Process(target=_anneal_child, args=(tx, inst, list(order), seed + 7919 * w,
+                                                            seconds, target), daemon=True)
                 p.start()
-                procs.append(p)
+                tx.close()
+                procs.append((p, rx))
         except Exception:
+            for p, rx in procs:
+                p.terminate()
             procs = []
     best = anneal(inst, order, seed, seconds, target=target)
-    if procs:
-        deadline = time.perf_counter() + 3.0
-        for _ in procs:
-            try:
-                r = q.get(timeout=max(0.05, deadline - time.perf_counter()))
-            except _queue.Empty:
-                break
-            if isinstance(r, tuple) and r[0] < best[0]:
-                best = r
-        for p in procs:
+    deadline = time.perf_counter() + 2.0
+    for p, rx in procs:
+        try:
+            if rx.poll(max(0.01, deadline - time.perf_counter())):
+                r = rx.recv()
+                if isinstance(r, tuple) and r[0] < best[0]:
+                    best = r
+        except (EOFError, OSError):
+            pass
+        finally:
+            rx.close()
             p.join(timeout=0.5)
             if p.is_alive():
                 p.terminate()
