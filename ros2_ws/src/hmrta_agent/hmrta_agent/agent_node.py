@@ -1,7 +1,8 @@
 """agent_node: one robot's decision maker.
 
-Builds its view only from received topics: the mission (``/hmrta/mission``) and the board
-(``/hmrta/board``). When the board names this robot as the current decider it rebuilds the
+Builds its view only from received topics: the mission (``/hmrta/mission``), the board
+(``/hmrta/board``) and the clock (``/clock``); the agents hosted in one process share one
+subscription to each (decoded once) and one copy of the policy. When the board names this robot as the current decider it rebuilds the
 mission state from the board's snapshot, runs its own copy of the policy and publishes its choice
 (``/hmrta/choice``, tagged with the board version it answers). The board lists every leg the
 robot must drive (its own choices and automatic ones such as going home); when the mission clock
@@ -47,14 +48,16 @@ EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
 
 
 class Host:
-    """What the agents of one process share: the policy (one read-only copy of the weights), the
-    decoded mission and board, the mission clock and the heartbeat."""
+    """What the agents of one process share: the policy (one read-only copy of the weights), one
+    subscription each to the mission, the board and the clock (decoded once, then handed to every
+    agent), and the heartbeat."""
 
     def __init__(self) -> None:
         self.boards = BoardDecoder()
         self._deciders: dict[tuple, Any] = {}
         self._mission_text: str | None = None
-        self._mission: Mission | None = None
+        self.mission: Mission | None = None
+        self.board_msg: String | None = None  # the latest board
         self.agents: list["AgentNode"] = []
         self.all_done = Future()
         self._seq = 0
@@ -68,20 +71,49 @@ class Host:
             self._deciders[key] = decider(method, seed, **opts)
         return self._deciders[key]
 
-    def mission(self, msg: String) -> Mission:
-        if msg.data != self._mission_text:
-            self._mission = mission_from_msg(msg)
-            self._mission_text = msg.data
-        return self._mission
-
     def attach(self, node: Node, period: float) -> None:
-        """Subscribe the mission clock and start the heartbeat (one status message per period
-        lists every robot this process hosts) on one node of the process."""
+        """Subscribe the mission, the board and the clock, and start the heartbeat (one status
+        message per period lists every robot this process hosts), on one node of the process."""
+        self._node = node
+        node.create_subscription(String, topics.MISSION, self._on_mission, topics.MISSION_QOS)
+        node.create_subscription(String, topics.BOARD, self._on_board, topics.BOARD_QOS)
         node.create_subscription(Clock, topics.CLOCK, self._on_clock, topics.CLOCK_QOS)
         self._status_pub = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
         self._host = f"{socket.gethostname()}:{os.getpid()}"
         node.create_timer(period, self._beat)
         self._beat()
+
+    def _on_mission(self, msg: String) -> None:
+        if msg.data == self._mission_text:
+            return
+        try:
+            self.mission = mission_from_msg(msg)
+        except DecodeError as e:
+            self._node.get_logger().error(f"ignoring malformed mission: {e}")
+            return
+        self._mission_text = msg.data
+        for a in self.agents:
+            a.join(self.mission)
+
+    def _on_board(self, msg: String) -> None:
+        self.board_msg = msg
+        self.dispatch()
+
+    def dispatch(self) -> None:
+        """Hand the latest board (decoded once) to every agent of the process."""
+        t_recv = time.perf_counter()
+        if self.board_msg is None or self.mission is None:
+            return  # the two latched topics arrive in either order: act once both are here
+        try:
+            board = self.boards.decode(self.board_msg)
+        except DecodeError as e:
+            self._node.get_logger().error(f"ignoring malformed board: {e}", throttle_duration_sec=10.0)
+            return
+        if board.session != self.mission.session:
+            return
+        first = [a for a in self.agents if a.index == board.decider] if board.decider is not None else []
+        for a in first + [a for a in self.agents if a not in first]:  # the decider first: latency
+            a.act(board, t_recv)
 
     def _on_clock(self, msg: Clock) -> None:
         t = clock_from_msg(msg)
@@ -94,9 +126,8 @@ class Host:
     def _beat(self) -> None:
         if not rclpy.ok():
             return
-        for a in self.agents:
-            if not a.ready and a.is_ready():
-                a.act()  # what it saw while not ready (it held back: its messages would be lost)
+        if any(not a.ready and a.is_ready() for a in self.agents):
+            self.dispatch()  # what they saw while not ready (they held back: their messages would be lost)
         sessions: dict[str, list[str]] = {}
         for a in self.agents:
             if a.ready and not a.finished:
@@ -136,13 +167,10 @@ class AgentNode(Node):
         self.leg_seq: int | None = None  # number of this robot's legs already taken from the board
         self.pending: list = []  # legs whose departure time has not come yet
         self.ready = False
-        self.board_msg: String | None = None  # the latest board
         self.seq = 0
         self._warned: set[str] = set()
         self.choice_pub = self.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
         self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
-        self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
-        self.create_subscription(String, topics.BOARD, self.on_board, topics.BOARD_QOS)
 
     # ------------------------------------------------------------------------------------------
     def is_ready(self) -> bool:
@@ -150,7 +178,7 @@ class AgentNode(Node):
         the mission and the board and both the board (choices) and the robot's driver (goals) are
         listening, so that nothing it sends is lost."""
         if not self.ready:
-            self.ready = (self.mission is not None and self.board_msg is not None
+            self.ready = (self.mission is not None and self.host.board_msg is not None
                           and self.choice_pub.get_subscription_count() > 0
                           and self.goal_pub.get_subscription_count() > 0)
         return self.ready
@@ -160,14 +188,8 @@ class AgentNode(Node):
             self._warned.add(key)
             self.get_logger().warning(text)
 
-    def on_mission(self, msg: String) -> None:
-        try:
-            mission = self.host.mission(msg)
-        except DecodeError as e:
-            self.get_logger().error(f"ignoring malformed mission: {e}")
-            return
-        if self.mission is not None and mission.session == self.mission.session:
-            return
+    def join(self, mission: Mission) -> None:
+        """Take part in a (new) mission: find this robot in it."""
         idx = mission.index(self.robot) if self.index_param < 0 else self.index_param
         if idx is None or not 0 <= idx < mission.instance.n_agents or mission.robots[idx] != self.robot:
             self.get_logger().error(f"robot {self.robot!r} (index {self.index_param}) is not in mission "
@@ -182,24 +204,10 @@ class AgentNode(Node):
         self.answered, self.leg_seq, self.pending = -1, None, []
         self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "
                                f"{mission.instance.name}, policy {self.method}")
-        self.act()  # a board may have come first: the two latched topics arrive in either order
 
-    def on_board(self, msg: String) -> None:
-        self.board_msg = msg
-        self.act()
-
-    def act(self) -> None:
-        """Follow the latest board: queue this robot's new legs, decide when it is its turn."""
-        t_recv = time.perf_counter()
-        msg = self.board_msg
-        if msg is None or self.mission is None or self.finished or not self.is_ready():
-            return
-        try:
-            board = self.host.boards.decode(msg)
-        except DecodeError as e:
-            self._warn_once("board", f"ignoring malformed board: {e}")
-            return
-        if board.session != self.mission.session:
+    def act(self, board, t_recv: float) -> None:
+        """Follow the board: queue this robot's new legs, decide when it is its turn."""
+        if self.mission is None or self.finished or not self.is_ready() or board.session != self.mission.session:
             return
         a = self.index
         if a in board.lost:
@@ -212,7 +220,7 @@ class AgentNode(Node):
             return self._finish()
         if board.phase == "decide" and board.decider == a and board.version != self.answered:
             self.answered = board.version
-            self._decide(msg, board.version, t_recv)
+            self._decide(board.version, t_recv)
 
     def _take_legs(self, seq: int, legs: tuple) -> None:
         """Queue this robot's legs that are new since the last board (all of them in order)."""
@@ -235,9 +243,9 @@ class AgentNode(Node):
             self.goal_pub.publish(pose_to_msg((x, y), depart, m.frame_id, m.scale))
             self.get_logger().debug(f"goal node {node} at ({x:.3f}, {y:.3f}), departing t={depart:.3f}")
 
-    def _decide(self, msg: String, version: int, t_recv: float) -> None:
+    def _decide(self, version: int, t_recv: float) -> None:
         try:
-            snap = self.host.boards.state(msg)
+            snap = self.host.boards.state(self.host.board_msg)
             state = MissionState.from_snapshot(self.mission.instance, snap)
         except (DecodeError, KeyError, TypeError, ValueError) as e:
             self.get_logger().error(f"cannot rebuild the mission state from board {version}: {e}")
