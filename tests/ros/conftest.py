@@ -14,6 +14,14 @@ import pytest
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 rclpy = pytest.importorskip("rclpy")
+try:
+    import hmrta_agent  # noqa: F401
+    import hmrta_coordinator  # noqa: F401
+    import hmrta_msgs_py  # noqa: F401
+except ImportError as e:
+    raise ImportError(
+        "tests/ros need the ROS 2 packages in the venv: .venv/bin/pip install --no-deps --no-build-isolation "
+        "-e ros2_ws/src/hmrta_msgs_py -e ros2_ws/src/hmrta_agent -e ros2_ws/src/hmrta_coordinator") from e
 
 _USED: set[int] = set()
 _RNG = random.Random(os.getpid() ^ time.time_ns())

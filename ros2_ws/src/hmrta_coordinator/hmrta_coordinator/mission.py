@@ -164,17 +164,24 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
 
     rclpy.init(args=[])
     node = rclpy.create_node("mission_monitor", **LEAN_NODE)
-    bar = tqdm(total=n_tasks, desc="mission", unit="task", disable=quiet, file=sys.stderr,
+    tty = sys.stderr.isatty()
+    bar = tqdm(total=n_tasks, desc="mission", unit="task", disable=quiet or not tty, file=sys.stderr,
                bar_format="{desc}: {n_fmt}/{total_fmt} tasks |{bar}| {elapsed} {postfix}")
+    told = [-1]  # without a terminal: one line per quarter of the tasks
 
     def on_board(msg: String) -> None:
         try:
             b = board_from_msg(msg, legs=False, state=False)
         except DecodeError:
             return
-        bar.n = b.n_done + b.n_cancelled
-        bar.set_postfix_str(f"t={b.clock:.1f} {b.phase}" + (f" lost={len(b.lost)}" if b.lost else ""), refresh=False)
+        n = b.n_done + b.n_cancelled
+        info = f"t={b.clock:.1f} {b.phase}" + (f" lost={len(b.lost)}" if b.lost else "")
+        bar.n = n
+        bar.set_postfix_str(info, refresh=False)
         bar.refresh()
+        if not tty and not quiet and 4 * n // max(n_tasks, 1) > told[0]:
+            told[0] = 4 * n // max(n_tasks, 1)
+            print(f"mission: {n}/{n_tasks} tasks, {info}", file=sys.stderr, flush=True)
 
     node.create_subscription(String, topics.BOARD, on_board, topics.BOARD_QOS)
     deadline = time.monotonic() + timeout

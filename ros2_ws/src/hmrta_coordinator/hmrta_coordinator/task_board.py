@@ -146,7 +146,7 @@ class TaskBoard(Node):
         self._state_json = ""
         self._marker_key = None
         self._last_progress = 0.0
-        self._published_at = time.monotonic()
+        self._published_at = self._clock_at = time.monotonic()
 
         self.pub_mission = self.create_publisher(String, topics.MISSION, topics.MISSION_QOS)
         self.pub_board = self.create_publisher(String, topics.BOARD, topics.BOARD_QOS)
@@ -194,10 +194,11 @@ class TaskBoard(Node):
         st = self.state
         b = Board(self.mission.session, self.version, self.rev, phase, decider_, float(st.clock), float(horizon),
                   int(st.n_done), int(st.n_cancelled), st.M, tuple(sorted(self.lost)), self._legs)
-        self.pub_board.publish(board_to_msg(b, self._state_json))
-        self._published_at = time.monotonic()
+        msg = board_to_msg(b, self._state_json)
         if phase == "decide":
-            self.released_at = time.perf_counter()
+            self.released_at = time.perf_counter()  # latency: board update -> choice received
+        self.pub_board.publish(msg)
+        self._published_at = time.monotonic()
 
     def _reject(self, reason: str, detail: str, robot: str = "", version: int = -1) -> None:
         self.rejected[reason] += 1
@@ -346,6 +347,7 @@ class TaskBoard(Node):
         t = clock_from_msg(msg)
         if t > self.clock:
             self.clock = t
+            self._clock_at = time.monotonic()
             self._refresh()
 
     def _maybe_start(self) -> None:
@@ -381,7 +383,7 @@ class TaskBoard(Node):
         if (self.decision_timeout > 0 and self.phase == "decide"
                 and time.perf_counter() - self.released_at > self.decision_timeout):
             self._lose(self.state.agent, f"no decision within {self.decision_timeout:g} s")
-        if self.phase in ("wait", "closing") and now - self._published_at > 5.0:
+        if self.phase in ("wait", "closing") and now - max(self._published_at, self._clock_at) > 5.0:
             self.get_logger().warning(f"mission clock held: {self._waiting_for()}", throttle_duration_sec=10.0)
         if self.progress_period > 0 and now - self._last_progress >= self.progress_period:
             self._last_progress = now
@@ -440,6 +442,7 @@ class TaskBoard(Node):
             "agent_compute_ms": {"median": _r(statistics.median(self.agent_ms) if self.agent_ms else None),
                                  "p99": _r(percentile(self.agent_ms, 99))},
             "rejected_messages": dict(self.rejected),
+            "board_versions": self.version,
         })
         if self.lost and alive:
             sol.extra["home_time"] = max(float(st.arrive[a]) for a in alive)
