@@ -520,7 +520,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
         model_sol = evaluate_routes(inst, routes, "cpsat", seed)
         bound_int = solver.BestObjectiveBound()
     else:
-        bound_int = lb_C if code != cp_model.INFEASIBLE else hint_C
+        bound_int = lb_C  # no solution in time: claim nothing beyond the cheap bound
     solver_lb = (bound_int - slack) / SCALE
     pool = [c for c in (model_sol, hint_sol, warm_eval) if c is not None] + cands
     best = min(pool, key=lambda c: c.makespan)
@@ -532,6 +532,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     out.extra.update({
         "status": status,
         "lower_bound": float(lb),
+        "gap": float((out.makespan - lb) / out.makespan) if out.makespan > 0 else 0.0,
         "objective": objective,
         "model_bound": bound_int / SCALE,
         "time_scale": SCALE,
