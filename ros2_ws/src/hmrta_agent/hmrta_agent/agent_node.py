@@ -2,13 +2,15 @@
 
 Builds its view only from received topics: the mission (``/hmrta/mission``), the board
 (``/hmrta/board``) and the clock (``/clock``); the agents hosted in one process share one
-subscription to each (decoded once) and one copy of the policy. When the board names this robot as the current decider it rebuilds the
-mission state from the board's snapshot, runs its own copy of the policy and publishes its choice
-(``/hmrta/choice``, tagged with the board version it answers). The board lists every leg the
-robot must drive (its own choices and automatic ones such as going home); when the mission clock
-(``/clock``) reaches a leg's departure time the agent publishes it as a ``geometry_msgs/PoseStamped``
-goal on ``goal_pose`` (stamp = departure time), which a Nav2 navigator or ``sim_robot`` consumes
-unchanged. A heartbeat on ``/hmrta/agent_status`` tells the board it is alive.
+subscription to each (decoded once) and one copy of the policy. When the board names this robot
+as the current decider, its agent rebuilds the mission state from the board's snapshot, runs its
+own copy of the policy and publishes its choice (``/hmrta/choice``, tagged with the board session
+and version it answers). The board lists every leg the robot must drive (its own choices and
+automatic ones such as going home); when the mission clock reaches a leg's departure time the
+agent publishes it as a ``geometry_msgs/PoseStamped`` goal on ``goal_pose`` (stamp = departure
+time), which a Nav2 navigator or ``sim_robot`` consumes unchanged. A heartbeat on
+``/hmrta/agent_status`` tells the board it is alive (sent only once the board and the robot's
+driver listen, so that nothing the agent sends is lost).
 
 One robot per process::
 

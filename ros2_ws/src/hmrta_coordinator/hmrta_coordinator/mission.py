@@ -32,6 +32,16 @@ def default_instance() -> Path:
     return Path(hmrta.__file__).resolve().parent / "data" / "example.yaml"
 
 
+def _die_with_parent() -> None:
+    """In the child: get SIGTERM when the launcher dies, however it dies (Linux)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def ros_params(params: dict[str, Any]) -> list[str]:
     """{'seed': 1, 'instance': 'a b.yaml'} -> ['-p', 'seed:=1', '-p', 'instance:="a b.yaml"'] (YAML values)."""
     out: list[str] = []
@@ -83,7 +93,7 @@ class MissionProcesses:
         fh = open(log, "w")
         cmd = [sys.executable, "-u", "-m", module, *args]
         proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=self.env,
-                                start_new_session=True)
+                                start_new_session=True, preexec_fn=_die_with_parent if sys.platform == "linux" else None)
         return Child(name, cmd, proc, log, fh)
 
     def agent_groups(self) -> list[tuple[list[str], list[str]]]:
