@@ -57,7 +57,7 @@ def _resolve_instances(paths: list[str]) -> list[Path]:
 
 def _solve_opts(args) -> dict:
     opts = {}
-    for k in ("checkpoint", "time_limit", "warm_start", "samples"):
+    for k in ("checkpoint", "time_limit", "warm_start", "samples", "workers"):
         v = getattr(args, k, None)
         if v is not None:
             opts[k] = v
@@ -248,31 +248,42 @@ def cmd_train(args) -> int:
 
 
 def cmd_bound(args) -> int:
-    from .bounds import lower_bounds
+    from .bounds import bound_report, format_report
+    from .solution import Solution
 
     inst = _load(args.instance)
-    b = lower_bounds(inst, solver_seconds=args.solver_seconds) if args.solver_seconds else lower_bounds(inst)
-    if args.json:
-        print(json.dumps(b, indent=1))
-    else:
-        for k, v in b.items():
-            print(f"{k:>24}: {v:.4f}" if isinstance(v, (int, float)) else f"{k:>24}: {v}")
+    sols = [_read_solution(p) for p in args.solutions]
+    if args.time_limit:
+        from .methods import solve
+
+        sols.append(solve(inst, "cpsat", seed=0, time_limit=args.time_limit))
+    rep = bound_report(inst, sols)
+    print(json.dumps(rep, indent=1) if args.json else format_report(rep))
     return 0
+
+
+def _read_solution(path: str):
+    from .solution import Solution
+
+    try:
+        return Solution.from_dict(json.loads(Path(path).read_text()))
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such file") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise UserError(f"{path}: not an hmrta-solution/1 file ({type(e).__name__}: {e})") from None
 
 
 def cmd_render(args) -> int:
     from .render import render
-    from .solution import Solution
 
     inst = _load(args.instance)
+    sol = _read_solution(args.solution)
     try:
-        sol = Solution.from_dict(json.loads(Path(args.solution).read_text()))
-    except FileNotFoundError:
-        raise UserError(f"{args.solution}: no such file") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise UserError(f"{args.solution}: not an hmrta-solution/1 file ({e})") from None
-    render(inst, sol, args.out, gif=args.gif)
-    print(f"wrote {args.out}")
+        written = render(inst, sol, args.out, gif=args.gif, frames=args.frames, fps=args.fps)
+    except ValueError as e:
+        raise UserError(f"{args.solution}: {e}") from None
+    for w in written if isinstance(written, (list, tuple)) else [args.out]:
+        print(f"wrote {w}")
     return 0
 
 
@@ -312,6 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--checkpoint", default=None, help="policy checkpoint (default: the shipped one)")
     s.add_argument("--time-limit", type=float, default=None, help="cpsat: seconds per instance (default 60)")
     s.add_argument("--warm-start", choices=["greedy", "rl"], default=None, help="cpsat: warm start")
+    s.add_argument("--workers", type=int, default=None, help="cpsat: parallel workers (default 2)")
     s.add_argument("--out", default=None, help="solution file (one instance) or folder (DIR/<stem>.json)")
     s.add_argument("--json", action="store_true", help="print the solution JSON instead of a summary")
     s.add_argument("--schedule", action="store_true", help="also print the per-task schedule and routes")
@@ -375,17 +387,21 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.set_defaults(fn=cmd_train)
 
-    lb = sub.add_parser("bound", help="lower bounds on the makespan of an instance", formatter_class=F)
+    lb = sub.add_parser("bound", help="lower bounds on the makespan (and the gap of given solutions)",
+                        formatter_class=F)
     lb.add_argument("instance", help="instance file")
-    lb.add_argument("--solver-seconds", type=float, default=None, help="also run CP-SAT this long for its bound")
+    lb.add_argument("solutions", nargs="*", metavar="SOLUTION", help="solution JSON files to report gaps for")
+    lb.add_argument("--time-limit", type=float, default=None, help="also run CP-SAT this long; its bound counts")
     lb.add_argument("--json", action="store_true", help="print JSON")
     lb.set_defaults(fn=cmd_bound)
 
     r = sub.add_parser("render", help="draw the routes map and a Gantt chart of a solution", formatter_class=F)
     r.add_argument("instance", help="instance file")
     r.add_argument("solution", help="hmrta-solution/1 JSON")
-    r.add_argument("--out", required=True, help="output image (.png) or, with --gif, animation (.gif)")
-    r.add_argument("--gif", action="store_true", help="write an animation instead of a still")
+    r.add_argument("--out", required=True, help="output image (.png); an --out ending in .gif writes only the animation")
+    r.add_argument("--gif", action="store_true", help="also write an animated GIF beside the PNG")
+    r.add_argument("--frames", type=int, default=80, help="GIF frames")
+    r.add_argument("--fps", type=int, default=10, help="GIF frames per second")
     r.set_defaults(fn=cmd_render)
 
     d = sub.add_parser("demo", help="solve the built-in example mission and print its schedule", formatter_class=F)
