@@ -4,6 +4,7 @@ Sim-time mission == offline rollout; robot loss; hostile traffic; late join; a d
 driven by an external fake driver on remapped topics; the console scripts."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -19,6 +20,7 @@ from hmrta.baselines import GREEDY_RULES, Greedy
 from hmrta.core import MissionState
 from hmrta.generators import ScenarioGenerator
 from hmrta.methods import solve
+from hmrta.sim import simulate
 
 rclpy = pytest.importorskip("rclpy")
 from geometry_msgs.msg import PoseStamped  # noqa: E402
@@ -36,8 +38,8 @@ def robots_of(inst) -> list[str]:
     return [f"robot_{a}" for a in range(inst.n_agents)]
 
 
-def assert_same_as_offline(result: dict, inst, seed: int, method: str = "greedy") -> None:
-    ref = json.loads(json.dumps(solve(inst, method, seed).to_dict()))
+def assert_same_as_offline(result: dict, inst, seed: int, method: str = "greedy", ref=None) -> None:
+    ref = json.loads(json.dumps((ref or solve(inst, method, seed)).to_dict()))
     for k in ("success", "routes", "tasks", "agents", "makespan", "awt", "redundancy"):
         assert result[k] == ref[k], f"{k}: ROS mission differs from the offline rollout"
 
@@ -230,14 +232,17 @@ def test_hostile_traffic_never_changes_the_board_and_late_joiners_get_it(tmp_pat
 
 def test_drop_in_robot_on_remapped_topics(tmp_path, graph, mission_procs):
     """robot_1 is not simulated: an external driver (here a fake) consumes its goals and publishes
-    its pose under its own topic names; remaps connect it, and the mission is unchanged."""
-    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(9, 0)
+    its pose under its own topic names; remaps connect it. With real-time departures (no
+    back-dating, as real robots need) the mission equals the offline rollout under those rules."""
+    inst = ScenarioGenerator("SA-AT", 9, 3, 12, 3).instance(1, 0)  # postponements happen here
     robots = robots_of(inst)
     ext, seed = "robot_1", 5
     procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots, seed=seed, external=[ext],
+                          agents_per_process=4,
                           agent_ros_args={ext: ["-r", "goal_pose:=/fake1/cmd_goal"]},
                           board_ros_args=["-r", f"/{ext}/pose:=/fake1/odom_pose"],
-                          board_params={"arrival_tolerance": 0.01, "progress_period": 0.0})
+                          board_params={"arrival_tolerance": 0.01, "progress_period": 0.0,
+                                        "real_time_departures": True})
     driver = graph.node("fake_driver", namespace="/fake1")
     where = [tuple(inst.depots[1])]
     goals: list[tuple[float, float]] = []
@@ -260,7 +265,9 @@ def test_drop_in_robot_on_remapped_topics(tmp_path, graph, mission_procs):
     wait_board_exit(graph, procs, 150)
     assert views and len(views[-1].tasks) == inst.n_tasks and len(views[-1].robots) == inst.n_agents
     result = json.loads((tmp_path / "result.json").read_text())
-    assert_same_as_offline(result, inst, seed)
+    assert_same_as_offline(result, inst, seed,
+                           ref=simulate(inst, Greedy(), seed, dataclasses.replace(GREEDY_RULES, backdate=False)))
+    assert result["makespan"] != solve(inst, "greedy", seed).makespan  # back-dating would have changed it
     depot = tuple(inst.depots[1])
     route = [tuple(inst.task_locations[m]) for m in result["routes"][1]]
     assert route and [g for g in goals if g != depot] == route

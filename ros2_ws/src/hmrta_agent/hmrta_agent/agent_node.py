@@ -256,7 +256,8 @@ class AgentNode(Node):
             self.get_logger().error(f"board {version} names agent {self.index} but its state's decider is "
                                     f"{state.agent}: not answering")
             return
-        if snap.get("rules") != self.rules.to_dict():
+        mine = {**self.rules.to_dict(), "backdate": snap.get("rules", {}).get("backdate")}  # the board's call
+        if snap.get("rules") != mine:
             self._warn_once("rules", f"{self.robot}: policy {self.method} expects rules {self.rules.to_dict()} "
                                      f"but the mission runs {snap.get('rules')}")
         node = int(self.decide(state))

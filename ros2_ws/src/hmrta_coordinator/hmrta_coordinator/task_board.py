@@ -22,6 +22,7 @@ result JSON (``hmrta-solution/1``, ``output`` parameter and ``/hmrta/result``) l
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import statistics
 import sys
@@ -105,6 +106,8 @@ class TaskBoard(Node):
         self.exit_on_done = P("exit_on_done", True).value
         marker_period = P("marker_period", 0.5).value
         self.progress_period = P("progress_period", 5.0).value
+        # real robots cannot leave in the past: no back-dated departures for postponed robots
+        real_time = P("real_time_departures", False).value
 
         if not path:
             raise ValueError("task_board: set the mission file: -p instance:=PATH")
@@ -112,6 +115,8 @@ class TaskBoard(Node):
         self.method = method_name(policy, decoding)
         opts = {"checkpoint": checkpoint} if checkpoint else {}
         _, rules = decider(self.method, self.seed, **opts)
+        if real_time:
+            rules = dataclasses.replace(rules, backdate=False)
         A = inst.n_agents
         names = names or [f"robot_{a}" for a in range(A)]
         if len(names) != A or len(set(names)) != A:

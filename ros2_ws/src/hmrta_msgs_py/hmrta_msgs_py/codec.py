@@ -231,7 +231,7 @@ def board_to_msg(b: Board, state_json: str | None = None) -> String:
 
 
 def state_to_json(state: dict[str, Any]) -> str:
-    """The snapshot line (exact floats; NaN stands for unset task times, as in the core's snapshots)."""
+    """The snapshot line (exact floats: JSON keeps Python's shortest round-trip repr)."""
     return json.dumps(state, separators=(",", ":"))
 
 
