@@ -188,6 +188,7 @@ class Trainer:
     def export(self, path: Path, summary: dict | None = None) -> None:
         """Small inference checkpoint: weights + resolved config + code version + summary."""
         d = {"config": self.cfg, "code_version": code_version(), "iteration": self.iteration,
+             "pretrain_done": self.pretrain_done, "decisions": self.decisions,
              "episodes": self.episodes, "best_val": self.best_val, "greedy_val": self.greedy_val,
              "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()}}
         if summary:
