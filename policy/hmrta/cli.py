@@ -184,6 +184,8 @@ def cmd_bench(args) -> int:
             rows[0].generator()
         except ValueError as e:
             raise UserError(str(e)) from None
+    if args.suite and not args.out_dir:
+        args.out_dir = f"docs/results/{args.suite}"  # the suite's tables live in docs/results/
     out_dir = Path(args.out_dir) if args.out_dir else None
     summary = bench.run_bench(rows, methods, args.count, args.seed, out_dir, _solve_opts(args),
                               progress=not args.no_progress, with_bounds=args.bounds,
@@ -368,7 +370,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--checkpoint", default=None, help="policy checkpoint for rl methods")
     b.add_argument("--time-limit", type=float, default=None, help="cpsat seconds per instance")
     b.add_argument("--bounds", action="store_true", help="also report each method's gap to the best lower bound")
-    b.add_argument("--out-dir", default=None, help="write results.md/results.json and a resumable cache here")
+    b.add_argument("--out-dir", default=None,
+                   help="write results.md/results.json and a resumable cache here (--suite default: docs/results/<suite>)")
     b.add_argument("--json", default=None, help="save the tables as JSON to this file")
     b.add_argument("--markdown", default=None, help="save the Markdown tables to this file")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
