@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core import DONE, IN_PROGRESS, OPEN, TASK, MissionState
+from ..core import DONE, IN_PROGRESS, LOST, OPEN, TASK, MissionState
 
 K_MAX = 5
 TASK_FEATURES = 2 * K_MAX + 5
@@ -88,6 +88,7 @@ def _observe_full(state: MissionState, a: int) -> tuple[np.ndarray, np.ndarray, 
 
     af = np.zeros((state.A, AGENT_FEATURES), dtype=np.float32)
     af[:, :K] = state.cap
+    af[state.mode == LOST, :K] = 0.0  # a lost robot contributes nothing any more
     on_task = state.mode == TASK  # [A]
     tgt = np.where(on_task, state.target, 0)  # [A]
     tstat = np.where(on_task, state.status[tgt], -1)  # [A]

@@ -100,6 +100,17 @@ def test_observation_window_on_large_missions(model):
     assert b.success and single.routes == b.routes and single.makespan == b.makespan
 
 
+def test_lost_robot_has_no_skills_in_the_observation():
+    from hmrta.rl.features import observe
+
+    inst = _insts()[1]
+    st = MissionState(inst, seed=1, rules=RULES)
+    lost = (st.agent + 1) % inst.n_agents
+    st.drop_agent(lost)
+    tf, af, mask, nodes, row = observe(st)
+    assert (af[lost, :5] == 0).all() and af[row, :5].any()
+
+
 def test_greedy_rollouts_are_deterministic(model):
     inst = _insts()[1]
     a = [MissionState(inst, seed=1, rules=RULES) for _ in range(2)]
