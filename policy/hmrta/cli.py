@@ -251,7 +251,6 @@ def cmd_train(args) -> int:
 
 def cmd_bound(args) -> int:
     from .bounds import bound_report, format_report
-    from .solution import Solution
 
     inst = _load(args.instance)
     sols = [_read_solution(p) for p in args.solutions]
@@ -305,6 +304,20 @@ def cmd_demo(args) -> int:
 
 
 # ---------------------------------------------------------------------------------------------
+def _row_args(p: argparse.ArgumentParser, required: bool) -> None:
+    """--scenario --agents --species --tasks --skills (one scenario row)."""
+    from .generators import SCENARIOS
+
+    pre = "" if required else "single row: "
+    p.add_argument("--scenario", required=required, choices=SCENARIOS, default=None,
+                   help=pre + "trait kind (SA single-skill / MA multi-skill) x requirement kind (AT additive / BT binary)")
+    p.add_argument("--agents", type=int, required=required, default=None,
+                   help=pre + "number of agents (a multiple of --species)")
+    p.add_argument("--species", type=int, required=required, default=None, help=pre + "number of species")
+    p.add_argument("--tasks", type=int, required=required, default=None, help=pre + "number of tasks")
+    p.add_argument("--skills", type=int, required=required, default=None, help=pre + "number of skills K")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="hmrta",
@@ -338,12 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(fn=cmd_evaluate)
 
     g = sub.add_parser("generate", help="write a seeded set of scenario instances", formatter_class=F)
-    g.add_argument("--scenario", required=True, choices=["SA-BT", "SA-AT", "MA-AT", "MA-BT"],
-                   help="trait kind (SA single-skill / MA multi-skill) x requirement kind (AT additive / BT binary)")
-    g.add_argument("--agents", type=int, required=True, help="number of agents (a multiple of --species)")
-    g.add_argument("--species", type=int, required=True, help="number of species")
-    g.add_argument("--tasks", type=int, required=True, help="number of tasks")
-    g.add_argument("--skills", type=int, required=True, help="number of skills K")
+    _row_args(g, required=True)
     g.add_argument("--count", type=int, default=50, help="instances to write")
     g.add_argument("--seed", type=int, default=0, help="set seed (instance i uses rng([seed, i]))")
     g.add_argument("--out", required=True, help="output folder (DIR/<name>_<index>.yaml)")
@@ -359,11 +367,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--suite", choices=["paper"], default=None, help="every paper row (Tables I-IV)")
     b.add_argument("--tables", default=None, help="with --suite: comma list of SA-BT,SA-AT,MA-AT,MA-AT-large")
     b.add_argument("--max-tasks", type=int, default=None, help="with --suite: skip rows with more tasks")
-    b.add_argument("--scenario", choices=["SA-BT", "SA-AT", "MA-AT", "MA-BT"], default=None, help="single row: scenario")
-    b.add_argument("--agents", type=int, default=None, help="single row: agents")
-    b.add_argument("--species", type=int, default=None, help="single row: species")
-    b.add_argument("--tasks", type=int, default=None, help="single row: tasks")
-    b.add_argument("--skills", type=int, default=None, help="single row: skills")
+    _row_args(b, required=False)
     b.add_argument("--count", type=int, default=50, help="instances per row")
     b.add_argument("--seed", type=int, default=1000, help="test-set seed (never used in training/validation)")
     b.add_argument("--methods", default="greedy", help="comma list, e.g. greedy,rl,rl-s10,cpsat")

@@ -128,9 +128,11 @@ class MissionState:
 
     def positions(self) -> np.ndarray:  # [A, 2]
         span = self.arrive - self.depart  # [A]
-        f = np.clip((self.clock - self.depart) / np.where(span > 0, span, 1.0), 0.0, 1.0)  # [A]
-        f = np.where(span > 0, f, 1.0)
-        return self.from_pos + (self.to_pos - self.from_pos) * f[:, None]
+        f = (self.clock - self.depart) / np.where(span > 0, span, 1.0)  # [A]
+        moving = (span > 0) & (f > 0) & (f < 1)  # [A] strictly inside the leg (as in position())
+        mid = self.from_pos + (self.to_pos - self.from_pos) * f[:, None]  # [A, 2]
+        ended = (self.clock >= self.arrive) | (span <= 0)  # [A]
+        return np.where(moving[:, None], mid, np.where(ended[:, None], self.to_pos, self.from_pos))
 
     def mask(self) -> np.ndarray:
         """Admissible nodes for the current decider: bool [1 + M], index 0 = depot."""
@@ -222,7 +224,7 @@ class MissionState:
                 return  # stays parked (or keeps going home)
             self._leg(a, here, inst.depots[a], t_dep)
             self.mode[a], self.target[a] = HOME, -1
-            if self.n_done + self.n_cancelled + self._n_in_progress() < self.M:
+            if not self._all_claimed():
                 self.depot_stops[a] += 1
             return
         m = node - 1
@@ -250,7 +252,7 @@ class MissionState:
                 self.status[m] = OPEN
                 self.n_open += 1
             self.pool -= self.cap[a]
-        if self.n_open == 0 and not (self.status == EMPTY).any():
+        if self._nothing_to_join():
             for b in np.flatnonzero(self.mode == WAIT):  # nothing left to join: waiting agents go home
                 self.commit(int(b), 0)
 
@@ -260,8 +262,13 @@ class MissionState:
         self.depart[a] = t_dep
         self.arrive[a] = t_dep + math.hypot(to[0] - frm[0], to[1] - frm[1]) / self.inst.velocity
 
-    def _n_in_progress(self) -> int:
-        return int((self.status == IN_PROGRESS).sum())
+    def _nothing_to_join(self) -> bool:
+        """No task is empty or open: every task is in progress, done or cancelled."""
+        return self.n_open == 0 and not (self.status == EMPTY).any()
+
+    def _all_claimed(self) -> bool:
+        """Every task is done, cancelled or in progress (nothing will need a parked agent)."""
+        return self.n_done + self.n_cancelled + int((self.status == IN_PROGRESS).sum()) == self.M
 
     def complete(self, m: int) -> list[int]:
         """One completion: task m finishes; its members become free there. Returns the members."""
@@ -283,7 +290,7 @@ class MissionState:
             while self.queue:
                 a = self.queue.pop()
                 mode = self.mode[a]
-                if self.n_open == 0 and (self.status == EMPTY).sum() == 0:
+                if self._nothing_to_join():
                     # nothing left to join: go home for good
                     if mode in (FREE, WAIT):
                         self.commit(a, 0)
@@ -335,7 +342,7 @@ class MissionState:
         waiting = [a for a in range(self.A) if self.mode[a] == WAIT]
         waiting.sort(key=lambda a: (self.free_since[a], a))
         parked = [a for a in range(self.A) if self.mode[a] == HOME]
-        if self.n_done + self.n_cancelled + self._n_in_progress() == self.M:
+        if self._all_claimed():
             parked = []  # nothing left to offer them
         order = freed + waiting + parked
         self.queue = order[::-1]
@@ -411,7 +418,7 @@ class MissionState:
         if not self.done:
             waiting = [b for b in range(self.A) if self.mode[b] == WAIT and b not in self.queue]
             parked = [b for b in range(self.A) if self.mode[b] == HOME and b not in self.queue]
-            if self.n_done + self.n_cancelled + self._n_in_progress() == self.M:
+            if self._all_claimed():
                 parked = []
             order = [b for b in sorted(set(freed)) if b not in self.queue] + waiting + parked
             self.queue = order[::-1] + self.queue  # after the deciders already queued
@@ -511,7 +518,6 @@ class MissionState:
         self.cap = np.array(inst.traits if self.additive else inst.traits > 0, dtype=np.float64)
         self.req = np.array(inst.requirements if self.additive else inst.requirements > 0, dtype=np.float64)
         for k in cls._ARRAYS:
-            ref = getattr(self, k, None)
             arr = np.array([math.nan if x is None else x for x in d[k]]) if k in ("start", "finish") else np.array(d[k])
             if k in ("status", "mode", "target", "depot_stops"):
                 arr = arr.astype(np.int64)
@@ -522,7 +528,6 @@ class MissionState:
             elif k in ("from_pos", "to_pos"):
                 arr = arr.reshape(self.A, 2)
             setattr(self, k, arr)
-            del ref
         for k in cls._SCALARS:
             setattr(self, k, d[k])
         self.members = [list(m) for m in d["members"]]

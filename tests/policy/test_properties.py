@@ -85,9 +85,8 @@ def _policy(spec):
     return RandomPolicy(pseed, depot_weight=0.5), rules
 
 
-@SETTINGS
-@given(inst=generated(), spec=policies, seed=st.integers(0, 1000))
-def test_generated_instances(inst, spec, seed, traced_run, check_rollout):
+def _run_and_check(inst, spec, seed, traced_run, check_rollout):
+    """Roll out, check every invariant (check_rollout), and label the example for statistics."""
     pol, rules = _policy(spec)
     state, trace = traced_run(inst, pol, seed, rules)
     sol = solution_from_state(state, spec[0], seed, 0.0)
@@ -95,18 +94,18 @@ def test_generated_instances(inst, spec, seed, traced_run, check_rollout):
     event(f"{spec[0]} backdate={rules.backdate}: evaluate {'==' if ev.makespan == sol.makespan else '<'} simulate")
     event(f"tasks {'0' if inst.n_tasks == 0 else '1-4' if inst.n_tasks < 5 else '5+'}")
     event(f"depot stops: {'depot_stops' in sol.extra}")
+
+
+@SETTINGS
+@given(inst=generated(), spec=policies, seed=st.integers(0, 1000))
+def test_generated_instances(inst, spec, seed, traced_run, check_rollout):
+    _run_and_check(inst, spec, seed, traced_run, check_rollout)
 
 
 @SETTINGS
 @given(inst=arbitrary(), spec=policies, seed=st.integers(0, 1000))
 def test_arbitrary_instances(inst, spec, seed, traced_run, check_rollout):
-    pol, rules = _policy(spec)
-    state, trace = traced_run(inst, pol, seed, rules)
-    sol = solution_from_state(state, spec[0], seed, 0.0)
-    ev = check_rollout(inst, state, trace, sol)
-    event(f"{spec[0]} backdate={rules.backdate}: evaluate {'==' if ev.makespan == sol.makespan else '<'} simulate")
-    event(f"tasks {'0' if inst.n_tasks == 0 else '1-4' if inst.n_tasks < 5 else '5+'}")
-    event(f"depot stops: {'depot_stops' in sol.extra}")
+    _run_and_check(inst, spec, seed, traced_run, check_rollout)
 
 
 @settings(max_examples=40, derandomize=True, deadline=None, database=None)

@@ -42,11 +42,12 @@ def observe(state: MissionState, a: int | None = None, max_tasks: int = MAX_TASK
     ``nodes`` maps task rows to state nodes (row 0 = depot = node 0).
     """
     a = state.agent if a is None else a
-    tf, af, mask = _observe_full(state, a)
+    pos = state.positions()  # [A, 2]
+    tf, af, mask = _observe_full(state, a, pos)
     M, A = state.M, state.A
     if M <= max_tasks and A <= max_agents:
         return tf, af, mask, np.arange(M + 1), a
-    here = state.position(a)
+    here = pos[a]  # [2]
     if M > max_tasks:
         d = np.hypot(*(state.inst.task_locations - here).T)  # [M]
         key = np.where(mask[1:], d, d + 1e6)  # admissible first, then by distance
@@ -57,7 +58,7 @@ def observe(state: MissionState, a: int | None = None, max_tasks: int = MAX_TASK
     else:
         nodes = np.arange(M + 1)
     if A > max_agents:
-        d = np.hypot(*(state.positions() - here).T)  # [A]
+        d = np.hypot(*(pos - here).T)  # [A]
         d[a] = -1.0  # the decider itself always
         keep = np.sort(np.argsort(d, kind="stable")[:max_agents])  # [N]
         af = af[keep]
@@ -65,13 +66,12 @@ def observe(state: MissionState, a: int | None = None, max_tasks: int = MAX_TASK
     return tf, af, mask, nodes, a
 
 
-def _observe_full(state: MissionState, a: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(task_feat [1+M, 2K+5], agent_feat [A, K+6], action mask [1+M]) for decider a."""
+def _observe_full(state: MissionState, a: int, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(task_feat [1+M, 2K+5], agent_feat [A, K+6], action mask [1+M]) for decider a; pos [A, 2]."""
     inst, K, M = state.inst, state.K, state.M
     if K > K_MAX:
         raise ValueError(f"the policy handles at most {K_MAX} skills, instance has {K}")
     t = state.clock
-    pos = state.positions()  # [A, 2]
     me = pos[a]  # [2]
     v = inst.velocity
     tf = np.zeros((M + 1, TASK_FEATURES), dtype=np.float32)

@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..core import MissionState
+from ..core import DONE, MissionState
+from ..solution import redundancy
 from .features import batch_observations
 
 
@@ -59,9 +60,6 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
 
 def returns(states: list[MissionState], t_max: float) -> np.ndarray:
     """Episode returns R = -T - W (T = T_max on failure)."""
-    from ..solution import redundancy
-    from ..core import DONE
-
     out = np.empty(len(states))  # [E]
     for i, s in enumerate(states):
         T = s.makespan if s.success else t_max
