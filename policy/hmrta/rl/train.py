@@ -6,6 +6,13 @@ advanced together under ``torch.inference_mode``; then a single re-scoring forwa
 in chunks) over the recorded decisions gives the log-probabilities of the actions taken.
 advantage = own return - mean of the instance's beta returns; loss = -mean(advantage * log p).
 
+Optional self-imitation (``train.sil``, project choice): the best of each instance's beta rollouts
+(by return) is also imitated with a cross-entropy term of weight ``coef`` in the same re-scoring
+pass, and its decisions enter a small replay buffer (the last ``buffer`` iterations) on which
+``steps`` extra cross-entropy minibatch steps are taken per iteration. This distils the
+best-of-beta sample into the argmax policy (Oh et al. 2018, self-imitation learning) and is what
+moves RL(g.) towards RL(s.N) on a CPU budget.
+
 Optional behaviour-cloning warm start (``pretrain``): cross-entropy on the greedy baseline's
 choices, so that REINFORCE starts from a greedy-level policy (project choice, recorded in the
 checkpoint config).
@@ -54,11 +61,14 @@ DEFAULTS: dict[str, Any] = {
         "grad_clip": 1.0,
         "t_max": 1000.0,
         "rescore_chunk": 2048,
+        "rescore_fraction": 1.0,  # fraction of decisions re-scored for the gradient (unbiased, 1/frac weights)
         "temperature": 1.0,  # collection samples softmax(logits / T); the gradient is for that policy
         "entropy_coef": 0.0,  # entropy bonus (of the tempered policy) in the loss
         "amp": True,  # bfloat16 autocast for collection and re-scoring (CPU); evaluation is float32
         "distribution": {"tasks": [15, 50], "species": [3, 5], "per_species": [3, 5], "skills": 5},
         "curriculum": [],  # [{until: ITER, tasks: [lo, hi]}, ...] narrows the task range early on
+        # self-imitation of the best of the beta rollouts (coef 0 and steps 0: plain REINFORCE)
+        "sil": {"coef": 0.0, "steps": 0, "batch": 512, "buffer": 16},
     },
     "pretrain": {"iterations": 0, "instances_per_iter": 16, "lr": 1.0e-3, "epochs": 2, "batch": 512},
     "validation": {"every": 25, "seed": 990001, "rows": [[9, 3, 20, 3, 16], [25, 5, 50, 5, 16]]},
@@ -141,6 +151,7 @@ class Trainer:
         self.greedy_val: float | None = None
         self.val_set = validation_set(cfg)
         self.train_rules = self.eval_rules = rules_from(cfg)
+        self.sil_buffer: list[dict[str, torch.Tensor]] = []  # best-rollout decisions, not checkpointed
 
     # ---- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -283,27 +294,44 @@ class Trainer:
         acts = torch.cat(traj.actions)  # [D]
         eps = torch.cat(traj.episode)  # [D]
         D = len(acts)
+        sil = t["sil"]
+        best_ep = torch.as_tensor(Rm.argmax(1) + beta * np.arange(len(insts)))  # [I] best rollout per instance
+        is_best = torch.isin(eps, best_ep)  # [D]
+        n_best = max(int(is_best.sum()), 1)
+        # re-score a random fraction of the decisions (the best rollouts' always), weighted by the
+        # inverse inclusion probability: an unbiased REINFORCE gradient at a fraction of the cost
+        frac = float(t["rescore_fraction"])
+        keep = is_best | torch.as_tensor(self.np_rng.random(D) < frac)  # [D]
+        weight = torch.where(is_best, 1.0, 1.0 / frac)[keep]  # [D']
+        sub = {k: v[keep] for k, v in allobs.items()}
+        sub_acts, sub_eps, sub_best = acts[keep], eps[keep], is_best[keep]  # [D']
         ent_sum, loss_sum = 0.0, 0.0
-        for lo in range(0, D, t["rescore_chunk"]):
+        for lo in range(0, len(sub_acts), t["rescore_chunk"]):
             sl = slice(lo, lo + t["rescore_chunk"])
-            batch = {k: v[sl].to(self.device) for k, v in allobs.items()}
+            batch = {k: v[sl].to(self.device) for k, v in sub.items()}
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=t["amp"]):
                 logits = self.model(**batch).float()  # [c, T]
             logp_all = torch.log_softmax(logits / t["temperature"], dim=-1)  # [c, T]
-            a = acts[sl].to(self.device)
+            a = sub_acts[sl].to(self.device)
             logp = logp_all.gather(1, a[:, None])[:, 0]  # [c]
             safe = logp_all.masked_fill(~batch["action_mask"], 0.0)  # [c, T] (no 0 * -inf in the gradient)
             ent = -(safe.exp() * safe).masked_fill(~batch["action_mask"], 0.0).sum(-1)  # [c]
-            loss = (-(adv_t[eps[sl].to(self.device)] * logp).sum() - t["entropy_coef"] * ent.sum()) / n_ep
+            wt = weight[sl].to(self.device)  # [c]
+            loss = (-(wt * adv_t[sub_eps[sl].to(self.device)] * logp).sum()
+                    - t["entropy_coef"] * (wt * ent).sum()) / n_ep
+            if sil["coef"]:
+                b = sub_best[sl].to(self.device)  # [c]
+                ce = torch.nn.functional.cross_entropy(logits[b], a[b], reduction="sum")
+                loss = loss + sil["coef"] * ce / n_best
             loss.backward()
-            ent_sum += float(ent.detach().sum())
+            ent_sum += float((wt * ent).detach().sum())
             loss_sum += float(loss.detach())
-        gnorm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), t["grad_clip"])
-        if torch.isfinite(gnorm):
-            self.opt.step()
-        else:  # never let one bad batch poison the weights
-            self.log(f"iteration {self.iteration + 1}: non-finite gradient, update skipped")
-            self.opt.zero_grad(set_to_none=True)
+        self._clipped_step(t["grad_clip"])
+        sil_loss = math.nan
+        if sil["steps"]:
+            self.sil_buffer.append({k: v[is_best] for k, v in {**allobs, "target": acts}.items()})
+            del self.sil_buffer[:-sil["buffer"]]
+            sil_loss = self._sil_steps(sil["steps"], sil["batch"], t["grad_clip"], t["amp"])
         dt = time.perf_counter() - t0
         self.iteration += 1
         self.episodes += n_ep
@@ -313,10 +341,36 @@ class Trainer:
         return {
             "iteration": self.iteration, "episodes": self.episodes, "reward": float(R.mean()),
             "makespan": float(mk.mean()) if len(mk) else math.nan, "success": float(ok.mean()),
-            "entropy": ent_sum / max(D, 1), "loss": loss_sum, "lr": self._lr(),
+            "entropy": ent_sum / max(D, 1), "loss": loss_sum, "lr": self._lr(), "sil_loss": sil_loss,
+            "best_makespan": float(np.mean([states[i].makespan for i in best_ep.tolist()])),
             "decisions_per_s": D / max(t_collect, 1e-9), "episodes_per_s": n_ep / dt,
             "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, "seconds": dt,
         }
+
+    def _clipped_step(self, clip: float) -> None:
+        gnorm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip)
+        if torch.isfinite(gnorm):
+            self.opt.step()
+        else:  # never let one bad batch poison the weights
+            self.log(f"iteration {self.iteration + 1}: non-finite gradient, update skipped")
+        self.opt.zero_grad(set_to_none=True)
+
+    def _sil_steps(self, steps: int, batch_size: int, clip: float, amp: bool) -> float:
+        """Cross-entropy minibatch steps on the replayed best-rollout decisions."""
+        losses = []
+        for _ in range(steps):
+            entry = self.sil_buffer[int(self.np_rng.integers(len(self.sil_buffer)))]
+            n = len(entry["target"])
+            idx = torch.as_tensor(self.np_rng.permutation(n)[:batch_size])
+            batch = {k: v[idx].to(self.device) for k, v in entry.items()}
+            target = batch.pop("target")
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=amp):
+                logits = self.model(**batch).float()  # [b, T]
+            loss = torch.nn.functional.cross_entropy(logits, target)
+            loss.backward()
+            self._clipped_step(clip)
+            losses.append(float(loss.detach()))
+        return float(np.mean(losses))
 
     # ---- validation ----------------------------------------------------------------------------
     def validate(self) -> dict:
@@ -339,7 +393,7 @@ class Trainer:
         p, t = cfg["pretrain"], cfg["train"]
         log_path = self.run_dir / "log.csv"
         fields = ["phase", "iteration", "episodes", "reward", "makespan", "success", "entropy", "loss", "lr",
-                  "decisions_per_s", "episodes_per_s", "tasks", "agents", "seconds", "bc_loss",
+                  "decisions_per_s", "episodes_per_s", "sil_loss", "best_makespan", "tasks", "agents", "seconds", "bc_loss",
                   "val_makespan", "val_success", "greedy_makespan", "wall"]
         new = not log_path.exists()
         f = open(log_path, "a", newline="")
