@@ -28,6 +28,7 @@ The environment owns feasibility. Besides the SPEC's ability mask it applies (se
 """
 from __future__ import annotations
 
+import copy
 import heapq
 import math
 import random
@@ -489,6 +490,11 @@ class MissionState:
                "arrive", "free_since", "wait_total", "depot_stops", "pool")
     _SCALARS = ("n_open", "n_done", "n_cancelled", "clock", "_seq", "_stall", "_commits", "_stall_commits", "decisions", "done",
                 "success", "failure", "agent", "seed")
+
+    def clone(self) -> "MissionState":
+        """Independent copy of the running state (the instance and rules are shared, read-only):
+        lookahead and branching without replaying the mission from the start."""
+        return copy.deepcopy(self, memo={id(self.inst): self.inst, id(self.rules): self.rules})
 
     def snapshot(self) -> dict[str, Any]:
         """A JSON-serialisable copy of the full state (exact floats; restore with from_snapshot)."""

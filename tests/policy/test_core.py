@@ -353,3 +353,28 @@ def test_snapshot_is_strict_json_and_restores_exactly():
         s.step(n)
         r.step(n)
     assert r.routes == s.routes and r.makespan == s.makespan
+
+
+def test_clone_branches_independently():
+    inst = ScenarioGenerator("MA-AT", 15, 5, 20, 5).instance(seed=1, index=3)
+    full = run(inst, Greedy(), 7, GREEDY_RULES)
+    state = MissionState(inst, seed=7, rules=GREEDY_RULES)
+    pol = Greedy()
+    for _ in range(full.decisions // 2):
+        state.step(pol(state))
+    before = json.dumps(state.snapshot())
+    twin = state.clone()
+    assert twin.inst is state.inst and twin.rules is state.rules
+    other = twin.clone()  # a branch that takes another admissible action
+    alt = [int(n) for n in np.flatnonzero(other.mask()) if n != pol(other)]
+    if alt:
+        other.step(alt[0])
+    while not twin.done:
+        twin.step(pol(twin))
+    while not other.done:
+        other.step(pol(other))
+    assert json.dumps(state.snapshot()) == before  # branching leaves the original untouched
+    while not state.done:
+        state.step(pol(state))
+    assert solution_from_state(twin, "x", 7, 0.0).to_dict() == solution_from_state(full, "x", 7, 0.0).to_dict()
+    assert solution_from_state(state, "x", 7, 0.0).to_dict() == solution_from_state(full, "x", 7, 0.0).to_dict()

@@ -4,6 +4,7 @@ so a batched rollout and ``hmrta.sim.run`` give identical schedules for identica
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import torch
@@ -28,12 +29,15 @@ class Trajectories:
 
 def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
             generator: torch.Generator | None = None, record: bool = False,
-            max_batch: int = 4096, amp: bool = False, temperature: float = 1.0) -> Trajectories | None:
+            max_batch: int = 4096, amp: bool = False, temperature: float = 1.0,
+            before_step: Callable[[list[int], dict, list, torch.Tensor], None] | None = None) -> Trajectories | None:
     """Advance every state to the end. Greedy (argmax) or sampled decoding.
 
     ``temperature``: sampling from softmax(logits / temperature) (training exploration).
     ``amp``: bfloat16 autocast on CPU (training collection only; inference stays float32 so that
-    results are exactly reproducible)."""
+    results are exactly reproducible).
+    ``before_step(idx, obs, nodes, act)``: called with each decision batch before the states step
+    (e.g. to branch copies of some states)."""
     traj = Trajectories() if record else None
     active = [i for i, s in enumerate(states) if not s.done]
     with torch.inference_mode():
@@ -52,6 +56,8 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
                     traj.obs.append(obs)
                     traj.actions.append(act.clone())
                     traj.episode.append(torch.tensor(idx, dtype=torch.long))
+                if before_step is not None:
+                    before_step(idx, obs, nodes, act)
                 for i, n, nm in zip(idx, act.tolist(), nodes):
                     states[i].step(int(nm[n]))
             active = [i for i in active if not states[i].done]

@@ -13,6 +13,13 @@ pass, and its decisions enter a small replay buffer (the last ``buffer`` iterati
 best-of-beta sample into the argmax policy (Oh et al. 2018, self-imitation learning) and is what
 moves RL(g.) towards RL(s.N) on a CPU budget.
 
+Optional rollout distillation (``distill``, project choice, run after the warm start): policy
+improvement by one-step lookahead. From random decisions of the current policy's argmax rollouts,
+every admissible action is tried and the mission completed by the same policy; the action with
+the lowest cost T + W (ties: the policy's own choice) becomes a cross-entropy target, replayed
+from a buffer of recent rounds. Each round imitates the rollout algorithm of the current policy,
+which is never worse than the policy itself (Bertsekas' cost-improvement property).
+
 Optional behaviour-cloning warm start (``pretrain``): cross-entropy on the greedy baseline's
 choices, so that REINFORCE starts from a greedy-level policy (project choice, recorded in the
 checkpoint config).
@@ -70,6 +77,8 @@ DEFAULTS: dict[str, Any] = {
         # self-imitation of the best of the beta rollouts (coef 0 and steps 0: plain REINFORCE)
         "sil": {"coef": 0.0, "steps": 0, "batch": 512, "buffer": 16},
     },
+    "distill": {"iterations": 0, "instances_per_iter": 8, "snapshot_prob": 0.1, "steps": 4, "batch": 512,
+                "buffer": 16, "lr": 1.0e-4},
     "pretrain": {"iterations": 0, "instances_per_iter": 16, "lr": 1.0e-3, "epochs": 2, "batch": 512},
     "validation": {"every": 25, "seed": 990001, "rows": [[9, 3, 20, 3, 16], [25, 5, 50, 5, 16]]},
     "checkpoint": {"every": 10},
@@ -145,6 +154,7 @@ class Trainer:
         self.torch_gen = torch.Generator().manual_seed(seed)
         self.iteration = 0
         self.pretrain_done = 0
+        self.distill_done = 0
         self.episodes = 0
         self.decisions = 0
         self.best_val = math.inf
@@ -152,6 +162,7 @@ class Trainer:
         self.val_set = validation_set(cfg)
         self.train_rules = self.eval_rules = rules_from(cfg)
         self.sil_buffer: list[dict[str, torch.Tensor]] = []  # best-rollout decisions, not checkpointed
+        self.distill_buffer: list[dict[str, torch.Tensor]] = []  # lookahead targets, not checkpointed
 
     # ---- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -162,6 +173,7 @@ class Trainer:
             "optimizer": self.opt.state_dict(),
             "iteration": self.iteration,
             "pretrain_done": self.pretrain_done,
+            "distill_done": self.distill_done,
             "episodes": self.episodes,
             "decisions": self.decisions,
             "best_val": self.best_val,
@@ -186,6 +198,7 @@ class Trainer:
             self.opt.load_state_dict(ck["optimizer"])
         self.iteration = ck.get("iteration", 0)
         self.pretrain_done = ck.get("pretrain_done", 0)
+        self.distill_done = ck.get("distill_done", 0)
         self.episodes = ck.get("episodes", 0)
         self.decisions = ck.get("decisions", 0)
         self.best_val = ck.get("best_val", math.inf)
@@ -199,7 +212,7 @@ class Trainer:
     def export(self, path: Path, summary: dict | None = None) -> None:
         """Small inference checkpoint: weights + resolved config + code version + summary."""
         d = {"config": self.cfg, "code_version": code_version(), "iteration": self.iteration,
-             "pretrain_done": self.pretrain_done, "decisions": self.decisions,
+             "pretrain_done": self.pretrain_done, "distill_done": self.distill_done, "decisions": self.decisions,
              "episodes": self.episodes, "best_val": self.best_val, "greedy_val": self.greedy_val,
              "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()}}
         if summary:
@@ -267,6 +280,70 @@ class Trainer:
         self.pretrain_done += 1
         return {"bc_loss": float(np.mean(losses)), "decisions": n}
 
+    # ---- rollout distillation (one-step lookahead policy improvement) ---------------------------
+    def distill_step(self) -> dict:
+        d, t = self.cfg["distill"], self.cfg["train"]
+        amp = t["amp"] and self.device.type == "cpu"
+        insts = self._instances(d["instances_per_iter"])
+        states = [MissionState(inst, seed=int(self.np_rng.integers(2**31)), rules=self.train_rules)
+                  for inst in insts]
+        t0 = time.perf_counter()
+        self.model.eval()
+        rows: list[dict[str, torch.Tensor]] = []  # observation of each branched decision
+        base: list[int] = []  # the policy's own action row there
+        branches: list[MissionState] = []
+        owner: list[int] = []  # branched decision of each branch
+        first: list[int] = []  # action row tried first by each branch
+
+        def branch(idx, obs, nodes, act):  # snapshot some decisions with more than one admissible action
+            n_adm = obs["action_mask"].sum(1)  # [b]
+            for j, i in enumerate(idx):
+                if n_adm[j] > 1 and self.np_rng.random() < d["snapshot_prob"]:
+                    rows.append({k: v[j] for k, v in obs.items()})
+                    base.append(int(act[j]))
+                    for r in torch.nonzero(obs["action_mask"][j])[:, 0].tolist():
+                        c = states[i].clone()
+                        c.step(int(nodes[j][r]))
+                        branches.append(c)
+                        owner.append(len(rows) - 1)
+                        first.append(r)
+
+        rollout(self.model, states, sample=False, amp=amp, before_step=branch)
+        rollout(self.model, branches, sample=False, amp=amp)
+        cost = -returns(branches, t["t_max"])  # [Bn]
+        owner_a, first_a = np.array(owner), np.array(first)
+        target, gain, changed = [], [], 0
+        for k in range(len(rows)):
+            sel = owner_a == k
+            c, r = cost[sel], first_a[sel]  # [n_adm]
+            c_base = float(c[r == base[k]][0])
+            if c.min() < c_base - 1e-6:
+                target.append(int(r[np.argmin(c)]))
+                changed += 1
+            else:
+                target.append(base[k])
+            gain.append((c_base - c.min()) / c_base)
+        t_collect = time.perf_counter() - t0
+        loss = math.nan
+        if rows:
+            entry = {k: torch.stack([r_[k] for r_ in rows]) for k in rows[0]}
+            entry["target"] = torch.tensor(target, dtype=torch.long)
+            self.distill_buffer.append(entry)
+            del self.distill_buffer[:-d["buffer"]]
+            for g in self.opt.param_groups:
+                g["lr"] = d["lr"]
+            loss = self._replay_steps(self.distill_buffer, d["steps"], d["batch"], t["grad_clip"], t["amp"])
+        self.distill_done += 1
+        n_dec = sum(s.decisions for s in states) + sum(s.decisions for s in branches)
+        self.decisions += n_dec
+        self.episodes += len(states) + len(branches)
+        return {"iteration": self.distill_done, "makespan": float(np.mean([s.makespan for s in states])),
+                "success": float(np.mean([s.success for s in states])), "loss": loss,
+                "lookahead_gain": float(np.mean(gain)) if gain else math.nan,
+                "changed": changed / max(len(rows), 1), "labels": len(rows),
+                "decisions_per_s": n_dec / max(t_collect, 1e-9), "tasks": insts[0].n_tasks,
+                "agents": insts[0].n_agents, "seconds": time.perf_counter() - t0}
+
     # ---- REINFORCE -----------------------------------------------------------------------------
     def train_step(self) -> dict:
         t = self.cfg["train"]
@@ -331,7 +408,7 @@ class Trainer:
         if sil["steps"]:
             self.sil_buffer.append({k: v[is_best] for k, v in {**allobs, "target": acts}.items()})
             del self.sil_buffer[:-sil["buffer"]]
-            sil_loss = self._sil_steps(sil["steps"], sil["batch"], t["grad_clip"], t["amp"])
+            sil_loss = self._replay_steps(self.sil_buffer, sil["steps"], sil["batch"], t["grad_clip"], t["amp"])
         dt = time.perf_counter() - t0
         self.iteration += 1
         self.episodes += n_ep
@@ -355,11 +432,13 @@ class Trainer:
             self.log(f"iteration {self.iteration + 1}: non-finite gradient, update skipped")
         self.opt.zero_grad(set_to_none=True)
 
-    def _sil_steps(self, steps: int, batch_size: int, clip: float, amp: bool) -> float:
-        """Cross-entropy minibatch steps on the replayed best-rollout decisions."""
+    def _replay_steps(self, buffer: list[dict[str, torch.Tensor]], steps: int, batch_size: int, clip: float,
+                      amp: bool) -> float:
+        """Cross-entropy minibatch steps on replayed (observation, target action) rows."""
+        self.model.train()
         losses = []
         for _ in range(steps):
-            entry = self.sil_buffer[int(self.np_rng.integers(len(self.sil_buffer)))]
+            entry = buffer[int(self.np_rng.integers(len(buffer)))]
             n = len(entry["target"])
             idx = torch.as_tensor(self.np_rng.permutation(n)[:batch_size])
             batch = {k: v[idx].to(self.device) for k, v in entry.items()}
@@ -385,6 +464,21 @@ class Trainer:
         return {"val_makespan": float(mk.mean()), "val_success": float(np.mean([s.success for s in states])),
                 "greedy_makespan": self.greedy_val}
 
+    def _periodic(self, it: int, phase: str, w, f, start: float) -> None:
+        """Validation (keeping best.pt) and last.pt checkpoints every few iterations of a phase."""
+        cfg = self.cfg
+        if it % cfg["validation"]["every"] == 0:
+            v = self.validate()
+            w.writerow({**v, "phase": "val", "iteration": it, "wall": time.time() - start})
+            f.flush()
+            self.log(f"{phase} iteration {it}: validation makespan {v['val_makespan']:.3f} "
+                     f"(greedy {v['greedy_makespan']:.3f}, best {min(self.best_val, v['val_makespan']):.3f})")
+            if v["val_makespan"] < self.best_val:
+                self.best_val = v["val_makespan"]
+                self.save(self.run_dir / "best.pt")
+        if it % cfg["checkpoint"]["every"] == 0:
+            self.save(self.run_dir / "last.pt")
+
     # ---- loop --------------------------------------------------------------------------------
     def run(self, progress: bool = True) -> dict:
         from tqdm import tqdm
@@ -393,7 +487,8 @@ class Trainer:
         p, t = cfg["pretrain"], cfg["train"]
         log_path = self.run_dir / "log.csv"
         fields = ["phase", "iteration", "episodes", "reward", "makespan", "success", "entropy", "loss", "lr",
-                  "decisions_per_s", "episodes_per_s", "sil_loss", "best_makespan", "tasks", "agents", "seconds", "bc_loss",
+                  "decisions_per_s", "episodes_per_s", "sil_loss", "best_makespan", "lookahead_gain", "changed",
+                  "labels", "tasks", "agents", "seconds", "bc_loss",
                   "val_makespan", "val_success", "greedy_makespan", "wall"]
         new = not log_path.exists()
         f = open(log_path, "a", newline="")
@@ -421,6 +516,19 @@ class Trainer:
                 self.best_val = v["val_makespan"]
                 w.writerow({**v, "phase": "val", "iteration": 0, "wall": time.time() - start})
                 self.save(best)
+            dc = cfg["distill"]
+            bar = tqdm(total=dc["iterations"], initial=self.distill_done, desc="lookahead distillation",
+                       disable=not progress or self.distill_done >= dc["iterations"])
+            while self.distill_done < dc["iterations"] and time.time() < deadline:
+                row = self.distill_step()
+                row.update(phase="distill", wall=time.time() - start)
+                w.writerow(row)
+                f.flush()
+                bar.update(1)
+                bar.set_postfix(mk=f"{row['makespan']:.1f}", gain=f"{row['lookahead_gain']:.3f}",
+                                loss=f"{row['loss']:.3f}", best=f"{self.best_val:.2f}")
+                self._periodic(self.distill_done, "distill", w, f, start)
+            bar.close()
             bar = tqdm(total=t["iterations"], initial=self.iteration, desc="REINFORCE", disable=not progress)
             while self.iteration < t["iterations"] and time.time() < deadline:
                 row = self.train_step()
@@ -430,17 +538,7 @@ class Trainer:
                 bar.update(1)
                 bar.set_postfix(mk=f"{row['makespan']:.1f}", ent=f"{row['entropy']:.2f}",
                                 dps=f"{row['decisions_per_s']:.0f}", best=f"{self.best_val:.2f}")
-                if self.iteration % cfg["validation"]["every"] == 0:
-                    v = self.validate()
-                    w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
-                    f.flush()
-                    self.log(f"iteration {self.iteration}: validation makespan {v['val_makespan']:.3f} "
-                             f"(greedy {v['greedy_makespan']:.3f}, best {min(self.best_val, v['val_makespan']):.3f})")
-                    if v["val_makespan"] < self.best_val:
-                        self.best_val = v["val_makespan"]
-                        self.save(best)
-                if self.iteration % cfg["checkpoint"]["every"] == 0:
-                    self.save(last)
+                self._periodic(self.iteration, "rl", w, f, start)
             bar.close()
         finally:
             self.save(last)
