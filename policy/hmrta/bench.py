@@ -6,6 +6,7 @@ run resumes where it stopped; tables are written as Markdown and JSON.
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import math
 from dataclasses import dataclass
@@ -76,6 +77,19 @@ def summarise(results: list[dict]) -> dict:
     }
 
 
+def method_variant(method: str, solve_opts: dict[str, Any]) -> str:
+    """What a cached result depends on besides (row, method, instance, seed): the solve options and,
+    for the learned policy, the checkpoint's content. A retrained checkpoint or another time limit
+    therefore never reuses stale cached results."""
+    parts: dict[str, Any] = {"opts": {k: solve_opts[k] for k in sorted(solve_opts)}}
+    if method.startswith("rl"):
+        from .rl.inference import checkpoint_path
+
+        path = checkpoint_path(solve_opts.get("checkpoint"))
+        parts["checkpoint"] = hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.exists() else None
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
 def run_bench(rows: list[Row], methods: list[str], count: int, seed: int, out_dir: Path | None,
               solve_opts: dict[str, Any], progress: bool = True, with_bounds: bool = False,
               log: Callable[[str], None] = print) -> dict:
@@ -91,7 +105,7 @@ def run_bench(rows: list[Row], methods: list[str], count: int, seed: int, out_di
                 r = json.loads(line)
             except json.JSONDecodeError:
                 continue  # a line cut short by an interruption
-            cache[(r["row"], r["method"], r["index"], r["seed"])] = r
+            cache[(r["row"], r["method"], r["index"], r["seed"], r.get("variant"))] = r
         log(f"resuming: {len(cache)} results cached in {cache_path}")
     if out_dir:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -99,6 +113,7 @@ def run_bench(rows: list[Row], methods: list[str], count: int, seed: int, out_di
     bar = tqdm(total=total, desc="bench", disable=not progress, unit="solve")
     fh = open(cache_path, "a") if cache_path else None
     summary: dict[str, Any] = {"seed": seed, "count": count, "methods": methods, "rows": []}
+    variants = {m: method_variant(m, solve_opts) for m in methods}
     try:
         for row in rows:
             insts = row.generator().generate(count, seed)
@@ -111,10 +126,11 @@ def run_bench(rows: list[Row], methods: list[str], count: int, seed: int, out_di
             for method in methods:
                 res = []
                 for i, inst in enumerate(insts):
-                    key = (row.key, method, i, seed)
+                    key = (row.key, method, i, seed, variants[method])
                     if key not in cache:
                         sol = M.solve(inst, method, seed=0, **solve_opts)
-                        r = {"row": row.key, "method": method, "index": i, "seed": seed, "success": sol.success,
+                        r = {"row": row.key, "method": method, "index": i, "seed": seed,
+                             "variant": variants[method], "success": sol.success,
                              "makespan": sol.makespan, "awt": sol.awt, "redundancy": sol.redundancy,
                              "compute_seconds": sol.compute_seconds}
                         lb = sol.extra.get("lower_bound")
