@@ -78,7 +78,9 @@ DEFAULTS: dict[str, Any] = {
         "sil": {"coef": 0.0, "steps": 0, "batch": 512, "buffer": 16},
     },
     "distill": {"iterations": 0, "instances_per_iter": 8, "snapshot_prob": 0.1, "steps": 4, "batch": 512,
-                "buffer": 16, "lr": 1.0e-4},
+                "buffer": 16, "lr": 1.0e-4,
+                "tau": 0.0,  # 0: hard target (best action); > 0: soft target softmax(-(cost - best) / tau)
+                "tasks": None},  # task range of the distillation instances (None: the training distribution)
     "pretrain": {"iterations": 0, "instances_per_iter": 16, "lr": 1.0e-3, "epochs": 2, "batch": 512},
     "validation": {"every": 25, "seed": 990001, "rows": [[9, 3, 20, 3, 16], [25, 5, 50, 5, 16]]},
     "checkpoint": {"every": 10},
@@ -284,7 +286,7 @@ class Trainer:
     def distill_step(self) -> dict:
         d, t = self.cfg["distill"], self.cfg["train"]
         amp = t["amp"] and self.device.type == "cpu"
-        insts = self._instances(d["instances_per_iter"])
+        insts = self._instances(d["instances_per_iter"], tuple(d["tasks"]) if d["tasks"] else None)
         states = [MissionState(inst, seed=int(self.np_rng.integers(2**31)), rules=self.train_rules)
                   for inst in insts]
         t0 = time.perf_counter()
@@ -313,21 +315,25 @@ class Trainer:
         cost = -returns(branches, t["t_max"])  # [Bn]
         owner_a, first_a = np.array(owner), np.array(first)
         target, gain, changed = [], [], 0
+        T = len(rows[0]["action_mask"]) if rows else 0
         for k in range(len(rows)):
             sel = owner_a == k
             c, r = cost[sel], first_a[sel]  # [n_adm]
             c_base = float(c[r == base[k]][0])
-            if c.min() < c_base - 1e-6:
-                target.append(int(r[np.argmin(c)]))
-                changed += 1
+            best_r = int(r[np.argmin(c)]) if c.min() < c_base - 1e-6 else base[k]  # ties: the policy's own
+            changed += best_r != base[k]
+            q = torch.zeros(T)  # [T] target distribution over action rows
+            if d["tau"] > 0:
+                q[torch.as_tensor(r)] = torch.softmax(torch.as_tensor(-(c - c.min()) / d["tau"]), 0).float()
             else:
-                target.append(base[k])
+                q[best_r] = 1.0
+            target.append(q)
             gain.append((c_base - c.min()) / c_base)
         t_collect = time.perf_counter() - t0
         loss = math.nan
         if rows:
             entry = {k: torch.stack([r_[k] for r_ in rows]) for k in rows[0]}
-            entry["target"] = torch.tensor(target, dtype=torch.long)
+            entry["target"] = torch.stack(target)  # [n, T] probabilities
             self.distill_buffer.append(entry)
             del self.distill_buffer[:-d["buffer"]]
             for g in self.opt.param_groups:
@@ -445,7 +451,11 @@ class Trainer:
             target = batch.pop("target")
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=amp):
                 logits = self.model(**batch).float()  # [b, T]
-            loss = torch.nn.functional.cross_entropy(logits, target)
+            if target.dtype == torch.long:  # target actions
+                loss = torch.nn.functional.cross_entropy(logits, target)
+            else:  # target distributions over the admissible actions (zero elsewhere)
+                logp = torch.log_softmax(logits, -1).masked_fill(~batch["action_mask"], 0.0)  # [b, T]
+                loss = -(target * logp).sum(-1).mean()
             loss.backward()
             self._clipped_step(clip)
             losses.append(float(loss.detach()))
