@@ -97,6 +97,17 @@ def deep_update(base: dict, new: dict) -> dict:
     return out
 
 
+def _check_keys(raw: dict, ref: dict, path: Path, where: str) -> None:
+    """Reject misspelt keys in every section (a silently ignored option is a wrong experiment)."""
+    for k, v in raw.items():
+        if k not in ref:
+            raise ValueError(f"{path}: unknown key {where + k!r} (expected one of {sorted(ref)})")
+        if isinstance(ref[k], dict):
+            if not isinstance(v, dict):
+                raise ValueError(f"{path}: {where + k}: expected a mapping, got {type(v).__name__}")
+            _check_keys(v, ref[k], path, f"{where}{k}.")
+
+
 def load_config(path: str | Path) -> dict:
     p = Path(path)
     try:
@@ -107,9 +118,7 @@ def load_config(path: str | Path) -> dict:
         raise ValueError(f"{p}: invalid YAML ({e})") from None
     if not isinstance(raw, dict):
         raise ValueError(f"{p}: expected a mapping")
-    unknown = sorted(set(raw) - set(DEFAULTS))
-    if unknown:
-        raise ValueError(f"{p}: unknown key {unknown[0]!r} (expected one of {sorted(DEFAULTS)})")
+    _check_keys(raw, DEFAULTS, p, "")
     if raw.get("version", CONFIG_VERSION) != CONFIG_VERSION:
         raise ValueError(f"{p}: version: expected {CONFIG_VERSION}, got {raw['version']!r}")
     return deep_update(DEFAULTS, raw)

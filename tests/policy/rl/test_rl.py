@@ -243,3 +243,31 @@ def test_shipped_checkpoint_solves():
 
     for sol in (g, s):
         assert evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
+
+
+@pytest.mark.parametrize("text,message", [
+    ("version: 1\ntrain: {rollout: 3}\n", "unknown key 'train.rollout'"),
+    ("version: 1\ndistill: {tau: 0.5, taus: 1}\n", "unknown key 'distill.taus'"),
+    ("version: 1\nvalidaton: {every: 3}\n", "unknown key 'validaton'"),
+    ("version: 1\ntrain: 3\n", "train: expected a mapping"),
+    ("version: 2\n", "version: expected 1"),
+    ("[1, 2]\n", "expected a mapping"),
+])
+def test_config_errors_name_the_key(tmp_path, text, message):
+    from hmrta.rl.train import load_config
+
+    f = tmp_path / "c.yaml"
+    f.write_text(text)
+    with pytest.raises(ValueError, match=message.replace(".", r"\.")):
+        load_config(f)
+
+
+def test_shipped_configs_load():
+    from pathlib import Path
+
+    from hmrta.rl.train import load_config
+
+    configs = sorted((Path(__file__).resolve().parents[3] / "policy" / "configs").glob("*.yaml"))
+    assert configs
+    for c in configs:
+        load_config(c)
