@@ -327,7 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     F = argparse.ArgumentDefaultsHelpFormatter
     methods_help = ("method: greedy | random | rl (learned policy, greedy decoding) | rl-sample / rl-sN "
-                    "(N sampled rollouts, best kept) | cpsat (CP-SAT solver)")
+                    "(N sampled rollouts, best kept) | rl-lookahead (one-step lookahead over the policy's greedy "
+                    "continuations at every decision: slower, better) | cpsat (CP-SAT solver)")
 
     s = sub.add_parser("solve", help="solve instances and write hmrta-solution/1 JSON", formatter_class=F)
     s.add_argument("instances", nargs="+", metavar="INSTANCE",

@@ -1,7 +1,8 @@
 """Named solution methods: one place that maps a method name to a solver.
 
 ``solve(inst, method, seed, **options) -> Solution``. Built in: ``greedy``, ``random``; the learned
-policy adds ``rl`` (greedy decoding) and ``rl-sN`` / ``rl-sample`` (N sampled rollouts, best kept);
+policy adds ``rl`` (greedy decoding), ``rl-sN`` / ``rl-sample`` (N sampled rollouts, best kept) and
+``rl-lookahead`` (one-step lookahead over the policy's own greedy continuations);
 the CP-SAT solver adds ``cpsat``. Each solver module registers itself with :func:`register`.
 """
 from __future__ import annotations
@@ -16,7 +17,8 @@ from .solution import Solution
 Solver = Callable[..., Solution]
 _REGISTRY: dict[str, Solver] = {}
 # modules imported lazily the first time one of their methods is asked for
-_LAZY = {"rl": "hmrta.rl.inference", "rl-sample": "hmrta.rl.inference", "cpsat": "hmrta.solvers.cpsat"}
+_LAZY = {"rl": "hmrta.rl.inference", "rl-sample": "hmrta.rl.inference", "rl-lookahead": "hmrta.rl.inference",
+         "cpsat": "hmrta.solvers.cpsat"}
 
 
 class MethodError(ValueError):

@@ -245,6 +245,29 @@ def test_shipped_checkpoint_solves():
         assert evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
 
 
+def test_lookahead_is_never_worse_than_its_policy(model):
+    from hmrta.rl.inference import lookahead_step
+    from hmrta.rl.rollout import returns
+
+    for inst in _insts():
+        base = MissionState(inst, seed=3, rules=RULES)
+        rollout(model, [base], sample=False)
+        la = MissionState(inst, seed=3, rules=RULES)
+        while not la.done:
+            lookahead_step(model, [la])
+        assert la.success
+        assert -returns([la], 1000.0)[0] <= -returns([base], 1000.0)[0] + 1e-6  # cost T + W
+
+
+def test_shipped_checkpoint_lookahead_method():
+    from hmrta.methods import solve
+
+    inst = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(4242, 1)
+    la = solve(inst, "rl-lookahead", seed=0)
+    assert la.success and la.method == "rl-lookahead"
+    assert la.makespan + la.redundancy <= solve(inst, "rl", seed=0).makespan + solve(inst, "rl", seed=0).redundancy + 1e-6
+
+
 @pytest.mark.parametrize("text,message", [
     ("version: 1\ntrain: {rollout: 3}\n", "unknown key 'train.rollout'"),
     ("version: 1\ndistill: {tau: 0.5, taus: 1}\n", "unknown key 'distill.taus'"),
