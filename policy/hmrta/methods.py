@@ -77,7 +77,8 @@ def decider(method: str, seed: int = 0, **options: Any):
     ``decide(state) -> node`` and ``rules`` are the state-machine rules it must run under.
 
     ``greedy`` -> the greedy baseline; ``rl`` / ``rl-sample`` -> the learned policy (greedy or
-    sampled decoding; options: ``checkpoint``, ``seed``)."""
+    sampled decoding; options: ``checkpoint``, ``seed``); ``rl-lookahead`` -> one-step lookahead
+    over the learned policy (option: ``checkpoint``)."""
     base, implied = parse(method)
     if base == "greedy":
         from .baselines import GREEDY_RULES, Greedy
@@ -87,4 +88,8 @@ def decider(method: str, seed: int = 0, **options: Any):
         from .rl.inference import rl_decider
 
         return rl_decider(sample=base == "rl-sample", seed=seed, **options)
-    raise MethodError(f"method {method!r} has no per-decision form (expected greedy, rl or rl-sample)")
+    if base == "rl-lookahead":
+        from .rl.inference import lookahead_decider
+
+        return lookahead_decider(**options)
+    raise MethodError(f"method {method!r} has no per-decision form (expected greedy, rl, rl-sample or rl-lookahead)")

@@ -274,7 +274,8 @@ def test_drop_in_robot_on_remapped_topics(tmp_path, graph, mission_procs):
     assert goals[-1] == depot
 
 
-def test_rl_policy_mission_equals_offline(tmp_path, domain):
+@pytest.mark.parametrize("policy", ["rl", "rl-lookahead"])
+def test_rl_policy_mission_equals_offline(tmp_path, domain, policy):
     """--policy rl goes through hmrta.methods.decider in every agent (one shared copy of the
     weights per process); greedy decoding is deterministic, so the mission equals the offline
     rollout. Uses the shipped checkpoint, or an untrained one when none is shipped yet."""
@@ -298,10 +299,10 @@ def test_rl_policy_mission_equals_offline(tmp_path, domain):
     path = save_instance(inst, tmp_path / "inst.yaml")
     out = tmp_path / "mission.json"
     proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", "1", "--out", str(out), "--quiet",
-                           "--no-plot", "--policy", "rl", *checkpoint, "--domain-id", str(domain),
+                           "--no-plot", "--policy", policy, *checkpoint, "--domain-id", str(domain),
                            "--agents-per-process", "6", "--timeout", "150"], capture_output=True, text=True, timeout=200)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    ref = json.loads(json.dumps(solve(inst, "rl", 1, **({"checkpoint": checkpoint[1]} if checkpoint else {})).to_dict()))
+    ref = json.loads(json.dumps(solve(inst, policy, 1, **({"checkpoint": checkpoint[1]} if checkpoint else {})).to_dict()))
     result = json.loads(out.read_text())
     for k in ("success", "routes", "tasks", "makespan"):
         assert result[k] == ref[k], f"{k}: ROS mission differs from the offline rollout"

@@ -113,11 +113,12 @@ def solve_rl_sample(inst: Instance, seed: int = 0, samples: int = 10, checkpoint
     return sol
 
 
-def lookahead_step(model: torch.nn.Module, states: list[MissionState], t_max: float = 1000.0) -> None:
-    """One decision of every state by one-step lookahead (the rollout algorithm): each admissible
-    action is tried, the mission completed by the policy's greedy decoding (all branches of all
-    states as one batch), and the action with the lowest final cost T + W is taken; ties go to the
-    policy's own choice. Never worse than the policy alone (Bertsekas' cost improvement)."""
+def lookahead_choices(model: torch.nn.Module, states: list[MissionState], t_max: float = 1000.0) -> list[int]:
+    """The next node of every state by one-step lookahead (the rollout algorithm): each admissible
+    action is tried on a clone, the mission completed by the policy's greedy decoding (all branches
+    of all states as one batch), and the action with the lowest final cost T + W is chosen; ties go
+    to the policy's own choice. Never worse than the policy alone (Bertsekas' cost improvement).
+    The states themselves are not changed."""
     from .rollout import returns
 
     obs, nodes = batch_observations(states)
@@ -139,8 +140,13 @@ def lookahead_step(model: torch.nn.Module, states: list[MissionState], t_max: fl
             c -= 1e-6  # ties: the policy's own choice
         if c < best[j][0]:
             best[j] = (c, n)
-    for j, s in enumerate(states):
-        s.step(best[j][1])
+    return [best[j][1] for j in range(len(states))]
+
+
+def lookahead_step(model: torch.nn.Module, states: list[MissionState], t_max: float = 1000.0) -> None:
+    """Advance every state by one lookahead decision."""
+    for s, n in zip(states, lookahead_choices(model, states, t_max)):
+        s.step(n)
 
 
 def solve_rl_lookahead(inst: Instance, seed: int = 0, checkpoint: str | None = None, **_: Any) -> Solution:
@@ -175,6 +181,23 @@ class RLDecider:
 def rl_decider(sample: bool = False, seed: int = 0, checkpoint: str | None = None, **_: Any):
     pol = load_policy(checkpoint)
     return RLDecider(pol, sample, seed), pol.rules
+
+
+class LookaheadDecider:
+    """Per-decision form of ``rl-lookahead`` for live agents (branches clones, never the state)."""
+
+    name = "rl-lookahead"
+
+    def __init__(self, pol: LoadedPolicy):
+        self.pol = pol
+
+    def __call__(self, state: MissionState) -> int:
+        return lookahead_choices(self.pol.model, [state])[0]
+
+
+def lookahead_decider(checkpoint: str | None = None, **_: Any):
+    pol = load_policy(checkpoint)
+    return LookaheadDecider(pol), pol.rules
 
 
 methods.register("rl", solve_rl)

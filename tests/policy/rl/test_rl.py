@@ -259,13 +259,17 @@ def test_lookahead_is_never_worse_than_its_policy(model):
         assert -returns([la], 1000.0)[0] <= -returns([base], 1000.0)[0] + 1e-6  # cost T + W
 
 
-def test_shipped_checkpoint_lookahead_method():
-    from hmrta.methods import solve
+def test_shipped_checkpoint_lookahead_method_and_decider():
+    from hmrta.methods import decider, solve
 
     inst = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(4242, 1)
     la = solve(inst, "rl-lookahead", seed=0)
+    rl = solve(inst, "rl", seed=0)
     assert la.success and la.method == "rl-lookahead"
-    assert la.makespan + la.redundancy <= solve(inst, "rl", seed=0).makespan + solve(inst, "rl", seed=0).redundancy + 1e-6
+    assert la.makespan + la.redundancy <= rl.makespan + rl.redundancy + 1e-6
+    decide, rules = decider("rl-lookahead")  # the live agents' per-decision form: same schedule
+    live = run(inst, decide, 0, rules)
+    assert live.routes == la.routes and live.makespan == la.makespan
 
 
 @pytest.mark.parametrize("text,message", [

@@ -243,8 +243,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="instance YAML (or CTAS-D config.json); default: the built-in example mission")
     p.add_argument("--seed", type=int, default=0, help="episode seed (decision order, sampling)")
     p.add_argument("--out", default="out/mission.json", help="solution JSON to write")
-    p.add_argument("--policy", default="greedy", choices=("greedy", "rl", "rl-sample"),
-                   help="decision policy every agent runs (rl: learned policy, greedy decoding)")
+    p.add_argument("--policy", default="greedy", choices=("greedy", "rl", "rl-sample", "rl-lookahead"),
+                   help="decision policy every agent runs (rl: learned policy, greedy decoding; rl-lookahead: "
+                        "one-step lookahead over it, slower per decision)")
     p.add_argument("--checkpoint", default="", help="policy checkpoint for rl (default: the shipped one)")
     p.add_argument("--agents-per-process", type=int, default=1, metavar="N",
                    help="robots hosted per agent process (lean nodes on one executor)")
@@ -283,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")})
     robots = [f"robot_{a}" for a in range(inst.n_agents)]
     decoding = "sample" if args.policy == "rl-sample" else "greedy"
-    policy = "rl" if args.policy.startswith("rl") else args.policy
+    policy = "rl" if args.policy in ("rl", "rl-sample") else args.policy
     procs = MissionProcesses(path, robots, out, log_dir, env, seed=args.seed, policy=policy, decoding=decoding,
                              checkpoint=args.checkpoint, agents_per_process=args.agents_per_process,
                              time_scale=args.time_scale,
