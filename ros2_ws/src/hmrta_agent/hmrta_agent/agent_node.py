@@ -280,6 +280,14 @@ def robots_arg(text: str) -> list[str]:
     return names
 
 
+def _set_torch_threads(n: int) -> None:
+    try:
+        import torch
+    except ImportError:  # greedy-only install
+        return
+    torch.set_num_threads(n)
+
+
 def main(args: list[str] | None = None) -> None:
     argv = sys.argv if args is None else args
     p = argparse.ArgumentParser(prog="agent_node", description=__doc__.split("\n\n")[0])
@@ -287,7 +295,13 @@ def main(args: list[str] | None = None) -> None:
                    help="host several robots in this process (node /<robot>/agent each); default: one "
                         "robot named by -p robot:=NAME or by the namespace")
     p.add_argument("--heartbeat-period", type=float, default=0.5, help="seconds between status messages")
+    p.add_argument("--torch-threads", type=int, default=1,
+                   help="intra-op threads of the learned policy (decisions are small batches: one thread is "
+                        "fastest, and several agent processes on one machine must not oversubscribe its cores)")
     cli = p.parse_args(remove_ros_args(argv)[1:])
+    if cli.torch_threads < 1:
+        p.error("--torch-threads: expected a positive integer")
+    _set_torch_threads(cli.torch_threads)
     rclpy.init(args=argv)
     host = Host()
     try:
