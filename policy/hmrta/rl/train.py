@@ -31,12 +31,13 @@ from __future__ import annotations
 
 import copy
 import csv
+import functools
 import math
 import random
 import subprocess
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -483,6 +484,23 @@ class Trainer:
         return {"val_makespan": float(mk.mean()), "val_success": float(np.mean([s.success for s in states])),
                 "greedy_makespan": self.greedy_val}
 
+    def _run_phase(self, desc: str, phase: str, total: int, counter: Callable[[], int], step: Callable[[], dict],
+                   postfix: Callable[[dict], dict], *, w, f, start: float, deadline: float, progress: bool) -> None:
+        """Run one training phase up to ``total`` iterations (or the deadline): CSV row, progress bar,
+        validation and checkpoints after each iteration."""
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, initial=counter(), desc=desc, disable=not progress or counter() >= total)
+        while counter() < total and time.time() < deadline:
+            row = step()
+            row.update(phase=phase, wall=time.time() - start)
+            w.writerow(row)
+            f.flush()
+            bar.update(1)
+            bar.set_postfix(**postfix(row))
+            self._periodic(counter(), phase, w, f, start)
+        bar.close()
+
     def _periodic(self, it: int, phase: str, w, f, start: float) -> None:
         """Validation (keeping best.pt) and last.pt checkpoints every few iterations of a phase."""
         cfg = self.cfg
@@ -535,30 +553,13 @@ class Trainer:
                 self.best_val = v["val_makespan"]
                 w.writerow({**v, "phase": "val", "iteration": 0, "wall": time.time() - start})
                 self.save(best)
-            dc = cfg["distill"]
-            bar = tqdm(total=dc["iterations"], initial=self.distill_done, desc="lookahead distillation",
-                       disable=not progress or self.distill_done >= dc["iterations"])
-            while self.distill_done < dc["iterations"] and time.time() < deadline:
-                row = self.distill_step()
-                row.update(phase="distill", wall=time.time() - start)
-                w.writerow(row)
-                f.flush()
-                bar.update(1)
-                bar.set_postfix(mk=f"{row['makespan']:.1f}", gain=f"{row['lookahead_gain']:.3f}",
-                                loss=f"{row['loss']:.3f}", best=f"{self.best_val:.2f}")
-                self._periodic(self.distill_done, "distill", w, f, start)
-            bar.close()
-            bar = tqdm(total=t["iterations"], initial=self.iteration, desc="REINFORCE", disable=not progress)
-            while self.iteration < t["iterations"] and time.time() < deadline:
-                row = self.train_step()
-                row.update(phase="rl", wall=time.time() - start)
-                w.writerow(row)
-                f.flush()
-                bar.update(1)
-                bar.set_postfix(mk=f"{row['makespan']:.1f}", ent=f"{row['entropy']:.2f}",
-                                dps=f"{row['decisions_per_s']:.0f}", best=f"{self.best_val:.2f}")
-                self._periodic(self.iteration, "rl", w, f, start)
-            bar.close()
+            phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
+            phase("lookahead distillation", "distill", cfg["distill"]["iterations"], lambda: self.distill_done,
+                  self.distill_step, lambda r: {"mk": f"{r['makespan']:.1f}", "gain": f"{r['lookahead_gain']:.3f}",
+                                                "loss": f"{r['loss']:.3f}", "best": f"{self.best_val:.2f}"})
+            phase("REINFORCE", "rl", t["iterations"], lambda: self.iteration, self.train_step,
+                  lambda r: {"mk": f"{r['makespan']:.1f}", "ent": f"{r['entropy']:.2f}",
+                             "dps": f"{r['decisions_per_s']:.0f}", "best": f"{self.best_val:.2f}"})
         finally:
             self.save(last)
             f.close()
