@@ -126,7 +126,10 @@ def lookahead_choices(model: torch.nn.Module, states: list[MissionState], t_max:
         own = model(**obs).argmax(-1).tolist()  # [b] the policy's choice
     branches, owner, node_of = [], [], []
     for j, s in enumerate(states):
-        for r in torch.nonzero(obs["action_mask"][j])[:, 0].tolist():
+        rows = torch.nonzero(obs["action_mask"][j])[:, 0].tolist()
+        if len(rows) == 1:  # nothing to compare: the only admissible action is the policy's own
+            continue
+        for r in rows:
             c = s.clone()
             c.step(int(nodes[j][r]))
             branches.append(c)
