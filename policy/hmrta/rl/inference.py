@@ -24,7 +24,7 @@ from ..instance import Instance
 from ..solution import Solution, solution_from_state
 from .features import batch_observations
 from .model import ModelConfig, PolicyNet
-from .rollout import rollout
+from .rollout import action_costs, best_action, rollout
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "default.pt"
 _CACHE: dict[str, "LoadedPolicy"] = {}
@@ -119,31 +119,16 @@ def lookahead_choices(model: torch.nn.Module, states: list[MissionState], t_max:
     of all states as one batch), and the action with the lowest final cost T + W is chosen; ties go
     to the policy's own choice. Never worse than the policy alone (Bertsekas' cost improvement).
     The states themselves are not changed."""
-    from .rollout import returns
-
     obs, nodes = batch_observations(states)
     with torch.inference_mode():
-        own = model(**obs).argmax(-1).tolist()  # [b] the policy's choice
-    branches, owner, node_of = [], [], []
-    for j, s in enumerate(states):
-        rows = torch.nonzero(obs["action_mask"][j])[:, 0].tolist()
-        if len(rows) == 1:  # nothing to compare: the only admissible action is the policy's own
-            continue
-        for r in rows:
-            c = s.clone()
-            c.step(int(nodes[j][r]))
-            branches.append(c)
-            owner.append(j)
-            node_of.append(int(nodes[j][r]))
-    rollout(model, branches, sample=False)
-    cost = -returns(branches, t_max)  # [branches]
-    best: dict[int, tuple[float, int]] = {j: (math.inf, int(nodes[j][own[j]])) for j in range(len(states))}
-    for j, n, c in zip(owner, node_of, cost):
-        if n == int(nodes[j][own[j]]):
-            c -= 1e-6  # ties: the policy's own choice
-        if c < best[j][0]:
-            best[j] = (c, n)
-    return [best[j][1] for j in range(len(states))]
+        own = model(**obs).argmax(-1).tolist()  # [b] the policy's choice (action rows)
+    mask = obs["action_mask"].numpy()  # [b, T]
+    multi = [j for j in range(len(states)) if mask[j].sum() > 1]  # nothing to compare elsewhere
+    costs, _ = action_costs(model, [(states[j], nodes[j], mask[j]) for j in multi], t_max)
+    choice = list(own)
+    for j, c in zip(multi, costs):
+        choice[j] = best_action(c, own[j])
+    return [int(nodes[j][choice[j]]) for j in range(len(states))]
 
 
 def lookahead_step(model: torch.nn.Module, states: list[MissionState], t_max: float = 1000.0) -> None:

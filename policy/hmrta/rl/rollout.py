@@ -72,3 +72,29 @@ def returns(states: list[MissionState], t_max: float) -> np.ndarray:
         W = redundancy(s.inst, s.members, [bool(x == DONE) for x in s.status])
         out[i] = -T - W
     return out
+
+
+def action_costs(model: torch.nn.Module, decisions: list[tuple[MissionState, np.ndarray, np.ndarray]],
+                 t_max: float, amp: bool = False) -> tuple[list[np.ndarray], list[MissionState]]:
+    """One-step lookahead costs. ``decisions``: (state, nodes [T], action mask [T]) each. Every
+    admissible action is tried on a clone and the mission finished by the model's greedy decoding
+    (all branches of all decisions as one batch). Returns the costs T + W per action row [T] (inf
+    where inadmissible) and the finished branches; the states themselves are not changed."""
+    branches, owner, rows = [], [], []
+    for k, (state, nodes, mask) in enumerate(decisions):
+        for r in np.flatnonzero(mask):
+            c = state.clone()
+            c.step(int(nodes[r]))
+            branches.append(c)
+            owner.append(k)
+            rows.append(r)
+    rollout(model, branches, sample=False, amp=amp)
+    out = [np.full(len(mask), np.inf) for _, _, mask in decisions]
+    for k, r, c in zip(owner, rows, -returns(branches, t_max)):
+        out[k][r] = c
+    return out, branches
+
+
+def best_action(costs: np.ndarray, own: int) -> int:
+    """The cheapest action row of ``action_costs``; ties (within 1e-6) go to the policy's own choice."""
+    return own if costs.min() >= costs[own] - 1e-6 else int(np.argmin(costs))

@@ -49,7 +49,7 @@ from ..generators import ScenarioGenerator, TrainingGenerator
 from ..instance import atomic_write_text
 from .features import collate, observe
 from .model import ModelConfig, PolicyNet
-from .rollout import returns, rollout
+from .rollout import action_costs, best_action, returns, rollout
 
 CONFIG_VERSION = 1
 DEFAULTS: dict[str, Any] = {
@@ -303,9 +303,7 @@ class Trainer:
         self.model.eval()
         rows: list[dict[str, torch.Tensor]] = []  # observation of each branched decision
         base: list[int] = []  # the policy's own action row there
-        branches: list[MissionState] = []
-        owner: list[int] = []  # branched decision of each branch
-        first: list[int] = []  # action row tried first by each branch
+        decisions: list[tuple[MissionState, np.ndarray, np.ndarray]] = []  # (state copy, nodes, mask)
 
         def branch(idx, obs, nodes, act):  # snapshot some decisions with more than one admissible action
             n_adm = obs["action_mask"].sum(1)  # [b]
@@ -313,32 +311,21 @@ class Trainer:
                 if n_adm[j] > 1 and self.np_rng.random() < d["snapshot_prob"]:
                     rows.append({k: v[j] for k, v in obs.items()})
                     base.append(int(act[j]))
-                    for r in torch.nonzero(obs["action_mask"][j])[:, 0].tolist():
-                        c = states[i].clone()
-                        c.step(int(nodes[j][r]))
-                        branches.append(c)
-                        owner.append(len(rows) - 1)
-                        first.append(r)
+                    decisions.append((states[i].clone(), nodes[j], obs["action_mask"][j].numpy()))
 
         rollout(self.model, states, sample=False, amp=amp, before_step=branch)
-        rollout(self.model, branches, sample=False, amp=amp)
-        cost = -returns(branches, t["t_max"])  # [Bn]
-        owner_a, first_a = np.array(owner), np.array(first)
+        costs, branches = action_costs(self.model, decisions, t["t_max"], amp=amp)  # [T] per branched decision
         target, gain, changed = [], [], 0
-        T = len(rows[0]["action_mask"]) if rows else 0
-        for k in range(len(rows)):
-            sel = owner_a == k
-            c, r = cost[sel], first_a[sel]  # [n_adm]
-            c_base = float(c[r == base[k]][0])
-            best_r = int(r[np.argmin(c)]) if c.min() < c_base - 1e-6 else base[k]  # ties: the policy's own
-            changed += best_r != base[k]
-            q = torch.zeros(T)  # [T] target distribution over action rows
-            if d["tau"] > 0:
-                q[torch.as_tensor(r)] = torch.softmax(torch.as_tensor(-(c - c.min()) / d["tau"]), 0).float()
+        for c, own in zip(costs, base):
+            best_r = best_action(c, own)
+            changed += best_r != own
+            if d["tau"] > 0:  # [T] target distribution over action rows (0 where inadmissible)
+                q = torch.softmax(torch.as_tensor(-(c - c.min()) / d["tau"]), 0).float()
             else:
+                q = torch.zeros(len(c))
                 q[best_r] = 1.0
             target.append(q)
-            gain.append((c_base - c.min()) / c_base)
+            gain.append((c[own] - c.min()) / c[own])
         t_collect = time.perf_counter() - t0
         loss = math.nan
         if rows:
