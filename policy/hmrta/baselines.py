@@ -13,7 +13,7 @@ import random
 
 import numpy as np
 
-from .core import MissionState, Rules
+from .core import IN_PROGRESS, LOST, OPEN, TASK, MissionState, Rules
 
 # max_open=2 was the best of {1, 2, 3, 5, none} on seed-1 sets of six paper rows (README, "Greedy").
 GREEDY_RULES = Rules(max_open=2, safety=True)
@@ -28,6 +28,62 @@ class Greedy:
         d = np.hypot(*(state.inst.task_locations - here).T)  # [M]
         d = np.where(mask, d, np.inf)
         return 1 + int(np.argmin(d))
+
+
+class CoalitionGreedy:
+    """Coalition-aware greedy (project addition, not in the paper): the decider takes the
+    admissible task whose coalition can *start* earliest, ties to the nearest.
+
+    Start estimate for task j if agent a joins now: the latest of a's arrival, the arrivals of the
+    members already committed, and - while a requirement remains after a - the arrivals of the other
+    agents that would cover it, taken in order of their earliest possible arrival at j. An agent's
+    earliest arrival is (when it is next free) + travel: an agent on an in-progress task is free at
+    that task's finish, at its location; an agent committed to an open task is not counted (it is
+    held there); free, parked and postponed agents are free now, where they are. A task whose
+    requirement the counted agents cannot cover gets an infinite estimate. It uses only what the
+    task board knows (commitments, arrivals, finish times), so it runs decentralised like greedy.
+    """
+
+    name = "greedy-coalition"
+
+    def __call__(self, state: MissionState) -> int:
+        mask = state.mask()[1:]  # [M]
+        cand = np.flatnonzero(mask)  # [C]
+        if len(cand) == 0:
+            return 0
+        s, a, t = state, state.agent, state.clock
+        v = s.inst.velocity
+        loc = s.inst.task_locations[cand]  # [C, 2]
+        pos = s.positions()  # [A, 2]
+        free_at = np.full(s.A, t)  # [A]
+        usable = s.mode != LOST  # [A]
+        usable[a] = False
+        on_task = (s.mode == TASK) & (s.target >= 0)  # [A]
+        tgt = np.where(on_task, s.target, 0)  # [A]
+        running = on_task & (s.status[tgt] == IN_PROGRESS)  # [A]
+        free_at[running] = s.finish[tgt[running]]
+        pos[running] = s.inst.task_locations[tgt[running]]
+        usable &= ~(on_task & (s.status[tgt] == OPEN))
+        mine = t + np.hypot(*(loc - pos[a]).T) / v  # [C] a's arrival (a is free now)
+        start = mine.copy()  # [C]
+        for c, j in enumerate(cand):
+            if s.members[j]:
+                start[c] = max(start[c], s.arrive[s.members[j]].max())
+        rem = np.maximum(s.rem[cand] - s.cap[a], 0.0)  # [C, K] left after a joins
+        need = (rem > 1e-9).any(1)  # [C]
+        if need.any():
+            others = np.flatnonzero(usable)  # [B]
+            arr = free_at[others, None] + np.hypot(pos[others, None, 0] - loc[None, :, 0],
+                                                   pos[others, None, 1] - loc[None, :, 1]) / v  # [B, C]
+            order = np.argsort(arr, axis=0, kind="stable")  # [B, C]
+            cum = np.cumsum(s.cap[others][order], axis=0)  # [B, C, K] capability of the first n arrivals
+            covered = (cum >= rem[None] - 1e-9).all(2)  # [B, C]
+            first = np.argmax(covered, axis=0)  # [C] the arrival that completes the coalition
+            ok = covered.any(0) if len(others) else np.zeros(len(cand), bool)  # [C]
+            last = np.take_along_axis(np.sort(arr, axis=0), first[None], 0)[0] if len(others) else start  # [C]
+            start = np.where(need, np.where(ok, np.maximum(start, last), np.inf), start)
+        key = np.lexsort((mine, start))  # earliest start, then nearest, then lowest id
+        return 1 + int(cand[key[0]])
 
 
 class RandomPolicy:

@@ -60,6 +60,13 @@ def _greedy(inst: Instance, seed: int = 0, **_: Any) -> Solution:
     return simulate(inst, Greedy(), seed, GREEDY_RULES, "greedy")
 
 
+def _greedy_coalition(inst: Instance, seed: int = 0, **_: Any) -> Solution:
+    from .baselines import GREEDY_RULES, CoalitionGreedy
+    from .sim import simulate
+
+    return simulate(inst, CoalitionGreedy(), seed, GREEDY_RULES, "greedy-coalition")
+
+
 def _random(inst: Instance, seed: int = 0, **_: Any) -> Solution:
     from .baselines import RandomPolicy
     from .core import Rules
@@ -69,6 +76,7 @@ def _random(inst: Instance, seed: int = 0, **_: Any) -> Solution:
 
 
 register("greedy", _greedy)
+register("greedy-coalition", _greedy_coalition)
 register("random", _random)
 
 
@@ -84,6 +92,10 @@ def decider(method: str, seed: int = 0, **options: Any):
         from .baselines import GREEDY_RULES, Greedy
 
         return Greedy(), GREEDY_RULES
+    if base == "greedy-coalition":
+        from .baselines import GREEDY_RULES, CoalitionGreedy
+
+        return CoalitionGreedy(), GREEDY_RULES
     if base in ("rl", "rl-sample"):
         from .rl.inference import rl_decider
 
