@@ -74,12 +74,13 @@ def returns(states: list[MissionState], t_max: float) -> np.ndarray:
     return out
 
 
-def action_costs(model: torch.nn.Module, decisions: list[tuple[MissionState, np.ndarray, np.ndarray]],
+def action_costs(model: torch.nn.Module | None, decisions: list[tuple[MissionState, np.ndarray, np.ndarray]],
                  t_max: float, amp: bool = False) -> tuple[list[np.ndarray], list[MissionState]]:
     """One-step lookahead costs. ``decisions``: (state, nodes [T], action mask [T]) each. Every
     admissible action is tried on a clone and the mission finished by the model's greedy decoding
-    (all branches of all decisions as one batch). Returns the costs T + W per action row [T] (inf
-    where inadmissible) and the finished branches; the states themselves are not changed."""
+    (all branches of all decisions as one batch), or by the greedy baseline when ``model`` is None.
+    Returns the costs T + W per action row [T] (inf where inadmissible) and the finished branches;
+    the states themselves are not changed."""
     branches, owner, rows = [], [], []
     for k, (state, nodes, mask) in enumerate(decisions):
         for r in np.flatnonzero(mask):
@@ -88,7 +89,15 @@ def action_costs(model: torch.nn.Module, decisions: list[tuple[MissionState, np.
             branches.append(c)
             owner.append(k)
             rows.append(r)
-    rollout(model, branches, sample=False, amp=amp)
+    if model is None:
+        from ..baselines import Greedy
+
+        greedy = Greedy()
+        for c in branches:
+            while not c.done:
+                c.step(greedy(c))
+    else:
+        rollout(model, branches, sample=False, amp=amp)
     out = [np.full(len(mask), np.inf) for _, _, mask in decisions]
     for k, r, c in zip(owner, rows, -returns(branches, t_max)):
         out[k][r] = c

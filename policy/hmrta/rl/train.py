@@ -43,7 +43,7 @@ import numpy as np
 import torch
 import yaml
 
-from ..baselines import Greedy
+from ..baselines import CoalitionGreedy, Greedy
 from ..core import MissionState, Rules
 from ..generators import ScenarioGenerator, TrainingGenerator
 from ..instance import atomic_write_text
@@ -52,6 +52,7 @@ from .model import ModelConfig, PolicyNet
 from .rollout import action_costs, best_action, returns, rollout
 
 CONFIG_VERSION = 1
+TEACHERS = {"greedy": Greedy, "greedy-coalition": CoalitionGreedy}  # behaviour-cloning teachers
 DEFAULTS: dict[str, Any] = {
     "version": CONFIG_VERSION,
     "name": "default",
@@ -81,8 +82,11 @@ DEFAULTS: dict[str, Any] = {
     "distill": {"iterations": 0, "instances_per_iter": 8, "snapshot_prob": 0.1, "steps": 4, "batch": 512,
                 "buffer": 16, "lr": 1.0e-4,
                 "tau": 0.0,  # 0: hard target (best action); > 0: soft target softmax(-(cost - best) / tau)
-                "tasks": None},  # task range of the distillation instances (None: the training distribution)
-    "pretrain": {"iterations": 0, "instances_per_iter": 16, "lr": 1.0e-3, "epochs": 2, "batch": 512},
+                "tasks": None,  # task range of the distillation instances (None: the training distribution)
+                "teacher": "policy"},  # branches finished by: policy (own argmax) | greedy (the greedy baseline)
+    "pretrain": {"iterations": 0, "instances_per_iter": 16, "lr": 1.0e-3, "epochs": 2, "batch": 512,
+                 "teacher": "greedy",  # greedy | greedy-coalition (the baseline whose choices are cloned)
+                 "dagger": 0.0},  # share of instances whose visited states come from the policy's argmax rollout
     "validation": {"every": 25, "seed": 990001, "rows": [[9, 3, 20, 3, 16], [25, 5, 50, 5, 16]]},
     "checkpoint": {"every": 10},
 }
@@ -122,7 +126,15 @@ def load_config(path: str | Path) -> dict:
     _check_keys(raw, DEFAULTS, p, "")
     if raw.get("version", CONFIG_VERSION) != CONFIG_VERSION:
         raise ValueError(f"{p}: version: expected {CONFIG_VERSION}, got {raw['version']!r}")
-    return deep_update(DEFAULTS, raw)
+    cfg = deep_update(DEFAULTS, raw)
+    if cfg["pretrain"]["teacher"] not in TEACHERS:
+        raise ValueError(f"{p}: pretrain.teacher: expected one of {', '.join(TEACHERS)}, "
+                         f"got {cfg['pretrain']['teacher']!r}")
+    if not 0.0 <= float(cfg["pretrain"]["dagger"]) <= 1.0:
+        raise ValueError(f"{p}: pretrain.dagger: expected a share in [0, 1], got {cfg['pretrain']['dagger']!r}")
+    if cfg["distill"]["teacher"] not in ("policy", "greedy"):
+        raise ValueError(f"{p}: distill.teacher: expected 'policy' or 'greedy', got {cfg['distill']['teacher']!r}")
+    return cfg
 
 
 def code_version() -> str:
@@ -260,16 +272,30 @@ class Trainer:
         p = self.cfg["pretrain"]
         insts = self._instances(p["instances_per_iter"])
         obs, deciders, acts = [], [], []
-        greedy = Greedy()
-        for inst in insts:
-            st = MissionState(inst, seed=int(self.np_rng.integers(2**31)), rules=self.train_rules)
-            while not st.done:
-                tf, af, mask, nodes, row = observe(st)
-                n = greedy(st)
+        teacher = TEACHERS[p["teacher"]]()
+
+        def label(st: MissionState) -> int:  # record the teacher's choice at st; returns it
+            tf, af, mask, nodes, row = observe(st)
+            n = teacher(st)
+            hit = np.flatnonzero(nodes == n)
+            if len(hit):  # (outside the observation window only on missions beyond the training scale)
                 obs.append((tf, af, mask))
                 deciders.append(row)
-                acts.append(int(np.flatnonzero(nodes == n)[0]))
-                st.step(n)
+                acts.append(int(hit[0]))
+            return n
+
+        on_policy = []
+        for inst in insts:
+            st = MissionState(inst, seed=int(self.np_rng.integers(2**31)), rules=self.train_rules)
+            if self.np_rng.random() < p["dagger"]:
+                on_policy.append(st)  # DAgger: the policy drives, the teacher labels
+                continue
+            while not st.done:
+                st.step(label(st))
+        if on_policy:
+            self.model.eval()
+            rollout(self.model, on_policy, sample=False,
+                    before_step=lambda idx, o, nodes, act: [label(on_policy[i]) for i in idx])
         for g in self.opt.param_groups:
             g["lr"] = p["lr"]
         self.model.train()
@@ -290,7 +316,8 @@ class Trainer:
                 self.opt.step()
                 losses.append(loss.item())
         self.pretrain_done += 1
-        return {"bc_loss": float(np.mean(losses)), "decisions": n}
+        return {"iteration": self.pretrain_done, "bc_loss": float(np.mean(losses)), "labels": n,
+                "tasks": insts[0].n_tasks, "agents": insts[0].n_agents}
 
     # ---- rollout distillation (one-step lookahead policy improvement) ---------------------------
     def distill_step(self) -> dict:
@@ -314,7 +341,8 @@ class Trainer:
                     decisions.append((states[i].clone(), nodes[j], obs["action_mask"][j].numpy()))
 
         rollout(self.model, states, sample=False, amp=amp, before_step=branch)
-        costs, branches = action_costs(self.model, decisions, t["t_max"], amp=amp)  # [T] per branched decision
+        finisher = None if d["teacher"] == "greedy" else self.model
+        costs, branches = action_costs(finisher, decisions, t["t_max"], amp=amp)  # [T] per branched decision
         target, gain, changed = [], [], 0
         for c, own in zip(costs, base):
             best_r = best_action(c, own)
@@ -505,8 +533,6 @@ class Trainer:
 
     # ---- loop --------------------------------------------------------------------------------
     def run(self, progress: bool = True) -> dict:
-        from tqdm import tqdm
-
         cfg = self.cfg
         p, t = cfg["pretrain"], cfg["train"]
         log_path = self.run_dir / "log.csv"
@@ -523,24 +549,14 @@ class Trainer:
         deadline = start + 60 * t["max_minutes"] if t.get("max_minutes") else math.inf
         last, best = self.run_dir / "last.pt", self.run_dir / "best.pt"
         try:
-            bar = tqdm(total=p["iterations"], initial=self.pretrain_done, desc="pretrain (BC)",
-                       disable=not progress or self.pretrain_done >= p["iterations"])
-            while self.pretrain_done < p["iterations"] and time.time() < deadline:
-                row = self.pretrain_step()
-                row.update(phase="bc", iteration=self.pretrain_done, wall=time.time() - start)
-                w.writerow(row)
-                f.flush()
-                bar.update(1)
-                bar.set_postfix(loss=f"{row['bc_loss']:.3f}")
-                if self.pretrain_done % cfg["checkpoint"]["every"] == 0 or self.pretrain_done == p["iterations"]:
-                    self.save(last)
-            bar.close()
+            phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
+            phase(f"pretrain (BC of {p['teacher']})", "bc", p["iterations"], lambda: self.pretrain_done,
+                  self.pretrain_step, lambda r: {"loss": f"{r['bc_loss']:.3f}", "best": f"{self.best_val:.2f}"})
             if self.iteration == 0 and self.best_val == math.inf:
                 v = self.validate()
                 self.best_val = v["val_makespan"]
                 w.writerow({**v, "phase": "val", "iteration": 0, "wall": time.time() - start})
                 self.save(best)
-            phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
             phase("lookahead distillation", "distill", cfg["distill"]["iterations"], lambda: self.distill_done,
                   self.distill_step, lambda r: {"mk": f"{r['makespan']:.1f}", "gain": f"{r['lookahead_gain']:.3f}",
                                                 "loss": f"{r['loss']:.3f}", "best": f"{self.best_val:.2f}"})
