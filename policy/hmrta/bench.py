@@ -21,7 +21,8 @@ from .generators import PAPER_ROWS, ScenarioGenerator, row_name
 from .instance import atomic_write_text
 
 PAPER_NAME = {"greedy": "Greedy", "rl": "RL(g.)", "rl-s10": "RL(s.10)", "cpsat": "CTAS-D"}  # paper counterpart
-DISPLAY_NAME = {"greedy": "Greedy", "rl": "RL(g.)", "rl-s10": "RL(s.10)", "rl-lookahead": "RL-lookahead",
+DISPLAY_NAME = {"greedy": "Greedy", "greedy-coalition": "Greedy-coalition", "rl": "RL(g.)", "rl-s10": "RL(s.10)",
+                "rl-lookahead": "RL-lookahead",
                 "cpsat": "CP-SAT (vs paper CTAS-D)"}
 TABLE_TITLES = {"SA-BT": "Table I: SA-BT", "SA-AT": "Table II: SA-AT", "MA-AT": "Table III: MA-AT",
                 "MA-AT-large": "Table IV: MA-AT, large"}

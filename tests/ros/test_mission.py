@@ -306,3 +306,20 @@ def test_rl_policy_mission_equals_offline(tmp_path, domain, policy):
     result = json.loads(out.read_text())
     for k in ("success", "routes", "tasks", "makespan"):
         assert result[k] == ref[k], f"{k}: ROS mission differs from the offline rollout"
+
+
+def test_coalition_greedy_mission_equals_offline(tmp_path, domain):
+    """--policy greedy-coalition: every agent runs the coalition-aware greedy through
+    hmrta.methods.decider on the board's state; the live mission equals the offline simulation."""
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 1)
+    path = save_instance(inst, tmp_path / "inst.yaml")
+    out = tmp_path / "mission.json"
+    proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", "2", "--out", str(out), "--quiet",
+                           "--no-plot", "--policy", "greedy-coalition", "--domain-id", str(domain),
+                           "--agents-per-process", "6", "--timeout", "150"], capture_output=True, text=True, timeout=200)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    ref = json.loads(json.dumps(solve(inst, "greedy-coalition", 2).to_dict()))
+    result = json.loads(out.read_text())
+    assert ref["routes"] != json.loads(json.dumps(solve(inst, "greedy", 2).to_dict()))["routes"]  # a different policy
+    for k in ("success", "routes", "tasks", "makespan"):
+        assert result[k] == ref[k], f"{k}: ROS mission differs from the offline rollout"

@@ -243,9 +243,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="instance YAML (or CTAS-D config.json); default: the built-in example mission")
     p.add_argument("--seed", type=int, default=0, help="episode seed (decision order, sampling)")
     p.add_argument("--out", default="out/mission.json", help="solution JSON to write")
-    p.add_argument("--policy", default="greedy", choices=("greedy", "rl", "rl-sample", "rl-lookahead"),
-                   help="decision policy every agent runs (rl: learned policy, greedy decoding; rl-lookahead: "
-                        "one-step lookahead over it, slower per decision)")
+    p.add_argument("--policy", default="greedy", choices=("greedy", "greedy-coalition", "rl", "rl-sample", "rl-lookahead"),
+                   help="decision policy every agent runs (greedy-coalition: the task whose coalition can start "
+                        "first; rl: learned policy, greedy decoding; rl-lookahead: one-step lookahead over it, "
+                        "slower per decision)")
     p.add_argument("--checkpoint", default="", help="policy checkpoint for rl (default: the shipped one)")
     p.add_argument("--agents-per-process", type=int, default=1, metavar="N",
                    help="robots hosted per agent process (lean nodes on one executor)")
