@@ -74,13 +74,15 @@ def returns(states: list[MissionState], t_max: float) -> np.ndarray:
     return out
 
 
-def action_costs(model: torch.nn.Module | None, decisions: list[tuple[MissionState, np.ndarray, np.ndarray]],
+def action_costs(model: torch.nn.Module | Callable[[MissionState], int],
+                 decisions: list[tuple[MissionState, np.ndarray, np.ndarray]],
                  t_max: float, amp: bool = False) -> tuple[list[np.ndarray], list[MissionState]]:
     """One-step lookahead costs. ``decisions``: (state, nodes [T], action mask [T]) each. Every
     admissible action is tried on a clone and the mission finished by the model's greedy decoding
-    (all branches of all decisions as one batch), or by the greedy baseline when ``model`` is None.
-    Returns the costs T + W per action row [T] (inf where inadmissible) and the finished branches;
-    the states themselves are not changed."""
+    (all branches of all decisions as one batch), or by ``model`` itself when it is a plain
+    per-decision policy (``state -> node``, e.g. a baseline). Returns the costs T + W per action
+    row [T] (inf where inadmissible) and the finished branches; the states themselves are not
+    changed."""
     branches, owner, rows = [], [], []
     for k, (state, nodes, mask) in enumerate(decisions):
         for r in np.flatnonzero(mask):
@@ -89,15 +91,12 @@ def action_costs(model: torch.nn.Module | None, decisions: list[tuple[MissionSta
             branches.append(c)
             owner.append(k)
             rows.append(r)
-    if model is None:
-        from ..baselines import Greedy
-
-        greedy = Greedy()
+    if isinstance(model, torch.nn.Module):
+        rollout(model, branches, sample=False, amp=amp)
+    else:
         for c in branches:
             while not c.done:
-                c.step(greedy(c))
-    else:
-        rollout(model, branches, sample=False, amp=amp)
+                c.step(model(c))
     out = [np.full(len(mask), np.inf) for _, _, mask in decisions]
     for k, r, c in zip(owner, rows, -returns(branches, t_max)):
         out[k][r] = c

@@ -18,11 +18,16 @@ improvement by one-step lookahead. From random decisions of the current policy's
 every admissible action is tried and the mission completed by the same policy; the action with
 the lowest cost T + W (ties: the policy's own choice) becomes a cross-entropy target, replayed
 from a buffer of recent rounds. Each round imitates the rollout algorithm of the current policy,
-which is never worse than the policy itself (Bertsekas' cost-improvement property).
+which is never worse than the policy itself (Bertsekas' cost-improvement property). With
+``distill.teacher`` set to a baseline (``greedy``, ``greedy-coalition``) the branches are finished
+by that baseline instead: much cheaper labels, the rollout algorithm over the baseline.
 
-Optional behaviour-cloning warm start (``pretrain``): cross-entropy on the greedy baseline's
-choices, so that REINFORCE starts from a greedy-level policy (project choice, recorded in the
-checkpoint config).
+Optional behaviour-cloning warm start (``pretrain``): cross-entropy on a baseline's choices
+(``pretrain.teacher``: ``greedy`` or the coalition-aware ``greedy-coalition``), so that REINFORCE
+starts from a baseline-level policy (project choice, recorded in the checkpoint config). With
+``pretrain.dagger`` > 0 that share of the instances is driven by the policy's own argmax and
+labelled by the teacher (DAgger, Ross et al. 2011), so the policy also learns to recover from its
+own mistakes.
 
 Checkpoints hold model, optimiser, learning-rate schedule, RNG states, counters, the resolved
 config and the code version; ``--resume`` continues exactly.
@@ -83,7 +88,7 @@ DEFAULTS: dict[str, Any] = {
                 "buffer": 16, "lr": 1.0e-4,
                 "tau": 0.0,  # 0: hard target (best action); > 0: soft target softmax(-(cost - best) / tau)
                 "tasks": None,  # task range of the distillation instances (None: the training distribution)
-                "teacher": "policy"},  # branches finished by: policy (own argmax) | greedy (the greedy baseline)
+                "teacher": "policy"},  # branches finished by: policy (own argmax) | greedy | greedy-coalition
     "pretrain": {"iterations": 0, "instances_per_iter": 16, "lr": 1.0e-3, "epochs": 2, "batch": 512,
                  "teacher": "greedy",  # greedy | greedy-coalition (the baseline whose choices are cloned)
                  "dagger": 0.0},  # share of instances whose visited states come from the policy's argmax rollout
@@ -132,8 +137,9 @@ def load_config(path: str | Path) -> dict:
                          f"got {cfg['pretrain']['teacher']!r}")
     if not 0.0 <= float(cfg["pretrain"]["dagger"]) <= 1.0:
         raise ValueError(f"{p}: pretrain.dagger: expected a share in [0, 1], got {cfg['pretrain']['dagger']!r}")
-    if cfg["distill"]["teacher"] not in ("policy", "greedy"):
-        raise ValueError(f"{p}: distill.teacher: expected 'policy' or 'greedy', got {cfg['distill']['teacher']!r}")
+    if cfg["distill"]["teacher"] not in ("policy", *TEACHERS):
+        raise ValueError(f"{p}: distill.teacher: expected one of policy, {', '.join(TEACHERS)}, "
+                         f"got {cfg['distill']['teacher']!r}")
     return cfg
 
 
@@ -341,7 +347,7 @@ class Trainer:
                     decisions.append((states[i].clone(), nodes[j], obs["action_mask"][j].numpy()))
 
         rollout(self.model, states, sample=False, amp=amp, before_step=branch)
-        finisher = None if d["teacher"] == "greedy" else self.model
+        finisher = self.model if d["teacher"] == "policy" else TEACHERS[d["teacher"]]()
         costs, branches = action_costs(finisher, decisions, t["t_max"], amp=amp)  # [T] per branched decision
         target, gain, changed = [], [], 0
         for c, own in zip(costs, base):

@@ -167,11 +167,11 @@ def test_self_imitation_with_partial_rescoring_improves(tmp_path):
     assert rows[-1]["sil_loss"] < rows[0]["sil_loss"]
 
 
-@pytest.mark.parametrize("tau", [0.0, 0.5])
-def test_lookahead_distillation_targets_are_never_worse_and_learned(tmp_path, tau):
+@pytest.mark.parametrize("tau,teacher", [(0.0, "policy"), (0.5, "policy"), (0.5, "greedy-coalition")])
+def test_lookahead_distillation_targets_are_never_worse_and_learned(tmp_path, tau, teacher):
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
     cfg = _tiny_cfg(distill={"instances_per_iter": 2, "snapshot_prob": 0.5, "steps": 4, "batch": 64,
-                             "buffer": 2, "lr": 3e-3, "tau": tau})
+                             "buffer": 2, "lr": 3e-3, "tau": tau, "teacher": teacher})
     tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
 
     def argmax_makespan():  # mean over fixed decision-order seeds
@@ -312,7 +312,7 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\nvalidaton: {every: 3}\n", "unknown key 'validaton'"),
     ("version: 1\npretrain: {teacher: oracle}\n", "pretrain.teacher: expected one of greedy, greedy-coalition"),
     ("version: 1\npretrain: {dagger: 2}\n", "pretrain.dagger: expected a share in [0, 1]"),
-    ("version: 1\ndistill: {teacher: cpsat}\n", "distill.teacher: expected 'policy' or 'greedy'"),
+    ("version: 1\ndistill: {teacher: cpsat}\n", "distill.teacher: expected one of policy, greedy, greedy-coalition"),
     ("version: 1\ntrain: 3\n", "train: expected a mapping"),
     ("version: 2\n", "version: expected 1"),
     ("[1, 2]\n", "expected a mapping"),
