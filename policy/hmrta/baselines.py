@@ -47,10 +47,19 @@ class CoalitionGreedy:
     name = "greedy-coalition"
 
     def __call__(self, state: MissionState) -> int:
+        cand, start, mine = self.estimates(state)
+        if len(cand) == 0:
+            return 0
+        key = np.lexsort((mine, start))  # earliest start, then nearest, then lowest id
+        return 1 + int(cand[key[0]])
+
+    def estimates(self, state: MissionState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(admissible tasks [C], estimated coalition start if the decider joins [C], the decider's
+        own arrival [C]) for the current decider."""
         mask = state.mask()[1:]  # [M]
         cand = np.flatnonzero(mask)  # [C]
         if len(cand) == 0:
-            return 0
+            return cand, np.zeros(0), np.zeros(0)
         s, a, t = state, state.agent, state.clock
         v = s.inst.velocity
         loc = s.inst.task_locations[cand]  # [C, 2]
@@ -82,8 +91,7 @@ class CoalitionGreedy:
             ok = covered.any(0) if len(others) else np.zeros(len(cand), bool)  # [C]
             last = np.take_along_axis(np.sort(arr, axis=0), first[None], 0)[0] if len(others) else start  # [C]
             start = np.where(need, np.where(ok, np.maximum(start, last), np.inf), start)
-        key = np.lexsort((mine, start))  # earliest start, then nearest, then lowest id
-        return 1 + int(cand[key[0]])
+        return cand, start, mine
 
 
 class RandomPolicy:

@@ -91,7 +91,8 @@ DEFAULTS: dict[str, Any] = {
                 "teacher": "policy"},  # branches finished by: policy (own argmax) | greedy | greedy-coalition
     "pretrain": {"iterations": 0, "instances_per_iter": 16, "lr": 1.0e-3, "epochs": 2, "batch": 512,
                  "teacher": "greedy",  # greedy | greedy-coalition (the baseline whose choices are cloned)
-                 "dagger": 0.0},  # share of instances whose visited states come from the policy's argmax rollout
+                 "dagger": 0.0,  # share of instances whose visited states come from the policy's argmax rollout
+                 "tau": 0.0},  # > 0 (greedy-coalition): soft targets from its start estimates (see _soft_target)
     "validation": {"every": 25, "seed": 990001, "rows": [[9, 3, 20, 3, 16], [25, 5, 50, 5, 16]]},
     "checkpoint": {"every": 10},
 }
@@ -137,6 +138,9 @@ def load_config(path: str | Path) -> dict:
                          f"got {cfg['pretrain']['teacher']!r}")
     if not 0.0 <= float(cfg["pretrain"]["dagger"]) <= 1.0:
         raise ValueError(f"{p}: pretrain.dagger: expected a share in [0, 1], got {cfg['pretrain']['dagger']!r}")
+    if cfg["pretrain"]["tau"] > 0 and not hasattr(TEACHERS[cfg["pretrain"]["teacher"]], "estimates"):
+        raise ValueError(f"{p}: pretrain.tau: soft targets need a teacher with start estimates "
+                         f"(greedy-coalition), not {cfg['pretrain']['teacher']!r}")
     if cfg["distill"]["teacher"] not in ("policy", *TEACHERS):
         raise ValueError(f"{p}: distill.teacher: expected one of policy, {', '.join(TEACHERS)}, "
                          f"got {cfg['distill']['teacher']!r}")
@@ -277,8 +281,9 @@ class Trainer:
     def pretrain_step(self) -> dict:
         p = self.cfg["pretrain"]
         insts = self._instances(p["instances_per_iter"])
-        obs, deciders, acts = [], [], []
+        obs, deciders, acts, soft = [], [], [], []
         teacher = TEACHERS[p["teacher"]]()
+        tau = p["tau"]
 
         def label(st: MissionState) -> int:  # record the teacher's choice at st; returns it
             tf, af, mask, nodes, row = observe(st)
@@ -288,6 +293,8 @@ class Trainer:
                 obs.append((tf, af, mask))
                 deciders.append(row)
                 acts.append(int(hit[0]))
+                if tau > 0:
+                    soft.append(self._soft_target(teacher, st, nodes, int(hit[0]), tau))
             return n
 
         on_policy = []
@@ -313,9 +320,16 @@ class Trainer:
                 idx = perm[lo:lo + p["batch"]]
                 batch = {k: v.to(self.device) for k, v in collate([obs[i] for i in idx],
                                                                   [deciders[i] for i in idx]).items()}
-                logits = self.model(**batch)
-                target = torch.tensor([acts[i] for i in idx], device=self.device)
-                loss = torch.nn.functional.cross_entropy(logits, target)
+                logits = self.model(**batch)  # [b, T]
+                if tau > 0:  # [b, T] target distributions, zero-padded to the batch's rows
+                    q = torch.zeros_like(logits)
+                    for r, i in enumerate(idx):
+                        q[r, :len(soft[i])] = torch.from_numpy(soft[i])
+                    logp = torch.log_softmax(logits, -1).masked_fill(~batch["action_mask"], 0.0)  # [b, T]
+                    loss = -(q * logp).sum(-1).mean()
+                else:
+                    target = torch.tensor([acts[i] for i in idx], device=self.device)
+                    loss = torch.nn.functional.cross_entropy(logits, target)
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg["train"]["grad_clip"])
@@ -324,6 +338,23 @@ class Trainer:
         self.pretrain_done += 1
         return {"iteration": self.pretrain_done, "bc_loss": float(np.mean(losses)), "labels": n,
                 "tasks": insts[0].n_tasks, "agents": insts[0].n_agents}
+
+    @staticmethod
+    def _soft_target(teacher, st: MissionState, nodes: np.ndarray, row: int, tau: float) -> np.ndarray:
+        """[1+W] half on the teacher's choice, half spread by its coalition-start estimates:
+        softmax(-(start - earliest) / tau) over the admissible tasks in the observation."""
+        q = np.zeros(len(nodes), dtype=np.float32)
+        q[row] = 0.5
+        cand, start, _ = teacher.estimates(st)
+        pos = {int(n): r for r, n in enumerate(nodes)}
+        rows = np.array([pos.get(1 + int(j), -1) for j in cand])  # [C] observation row of each candidate
+        ok = (rows >= 0) & np.isfinite(start)
+        if not ok.any():
+            q[row] = 1.0
+            return q
+        w = np.exp(-(start[ok] - start[ok].min()) / tau)  # [C']
+        q[rows[ok]] += 0.5 * w / w.sum()
+        return q
 
     # ---- rollout distillation (one-step lookahead policy improvement) ---------------------------
     def distill_step(self) -> dict:

@@ -195,8 +195,8 @@ def test_lookahead_distillation_targets_are_never_worse_and_learned(tmp_path, ta
     assert t2.distill_done == 25
 
 
-@pytest.mark.parametrize("dagger", [0.0, 1.0])
-def test_behaviour_cloning_learns_the_coalition_teacher(tmp_path, dagger):
+@pytest.mark.parametrize("dagger,tau", [(0.0, 0.0), (1.0, 0.0), (0.5, 0.5)])
+def test_behaviour_cloning_learns_the_coalition_teacher(tmp_path, dagger, tau):
     """BC of greedy-coalition, on the teacher's own trajectories or (DAgger) the policy's: the
     argmax policy agrees with the teacher more often afterwards."""
     from hmrta.baselines import CoalitionGreedy
@@ -204,7 +204,7 @@ def test_behaviour_cloning_learns_the_coalition_teacher(tmp_path, dagger):
 
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
     cfg = _tiny_cfg(pretrain={"iterations": 12, "instances_per_iter": 2, "lr": 3e-3, "epochs": 2, "batch": 64,
-                              "teacher": "greedy-coalition", "dagger": dagger})
+                              "teacher": "greedy-coalition", "dagger": dagger, "tau": tau})
     tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
     teacher = CoalitionGreedy()
 
@@ -312,6 +312,7 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\nvalidaton: {every: 3}\n", "unknown key 'validaton'"),
     ("version: 1\npretrain: {teacher: oracle}\n", "pretrain.teacher: expected one of greedy, greedy-coalition"),
     ("version: 1\npretrain: {dagger: 2}\n", "pretrain.dagger: expected a share in [0, 1]"),
+    ("version: 1\npretrain: {tau: 1}\n", "pretrain.tau: soft targets need a teacher with start estimates"),
     ("version: 1\ndistill: {teacher: cpsat}\n", "distill.teacher: expected one of policy, greedy, greedy-coalition"),
     ("version: 1\ntrain: 3\n", "train: expected a mapping"),
     ("version: 2\n", "version: expected 1"),
@@ -335,3 +336,26 @@ def test_shipped_configs_load():
     assert configs
     for c in configs:
         load_config(c)
+
+
+def test_soft_bc_targets_follow_the_teachers_estimates():
+    from hmrta.baselines import CoalitionGreedy
+    from hmrta.rl.features import observe
+
+    inst = ScenarioGenerator("MA-AT", 9, 3, 20, 3).instance(7, 0)
+    st = MissionState(inst, seed=0, rules=RULES)
+    teacher = CoalitionGreedy()
+    checked = 0
+    while not st.done:
+        tf, af, mask, nodes, row = observe(st)
+        n = teacher(st)
+        r = int(np.flatnonzero(nodes == n)[0])
+        q = Trainer._soft_target(teacher, st, nodes, r, 0.5)
+        assert abs(q.sum() - 1) < 1e-5 and (q[~mask] == 0).all() and q.argmax() == r
+        cand, start, _ = teacher.estimates(st)
+        if mask.sum() > 1 and np.isfinite(start).sum() > 1:  # later estimates weigh less
+            later = [int(np.flatnonzero(nodes == 1 + j)[0]) for j, s_ in zip(cand, start) if s_ > start.min() + 1]
+            assert all(q[k] < q[r] for k in later)
+            checked += 1
+        st.step(n)
+    assert checked > 5
