@@ -326,7 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"hmrta {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     F = argparse.ArgumentDefaultsHelpFormatter
-    methods_help = ("method: greedy | random | rl (learned policy, greedy decoding) | rl-sample / rl-sN "
+    methods_help = ("method: greedy (nearest task) | greedy-coalition (task whose coalition can start first) | "
+                    "random | rl (learned policy, greedy decoding) | rl-sample / rl-sN "
                     "(N sampled rollouts, best kept) | rl-lookahead (one-step lookahead over the policy's greedy "
                     "continuations at every decision: slower, better) | cpsat (CP-SAT solver)")
 
@@ -371,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     _row_args(b, required=False)
     b.add_argument("--count", type=int, default=50, help="instances per row")
     b.add_argument("--seed", type=int, default=1000, help="test-set seed (never used in training/validation)")
-    b.add_argument("--methods", default="greedy", help="comma list, e.g. greedy,rl,rl-s10,cpsat")
+    b.add_argument("--methods", default="greedy", help="comma list, e.g. greedy,greedy-coalition,rl,rl-s10,cpsat")
     b.add_argument("--checkpoint", default=None, help="policy checkpoint for rl methods")
     b.add_argument("--time-limit", type=float, default=None, help="cpsat seconds per instance")
     b.add_argument("--bounds", action="store_true", help="also report each method's gap to the best lower bound")

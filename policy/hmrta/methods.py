@@ -1,6 +1,7 @@
 """Named solution methods: one place that maps a method name to a solver.
 
-``solve(inst, method, seed, **options) -> Solution``. Built in: ``greedy``, ``random``; the learned
+``solve(inst, method, seed, **options) -> Solution``. Built in: ``greedy``, ``greedy-coalition``,
+``random``; the learned
 policy adds ``rl`` (greedy decoding), ``rl-sN`` / ``rl-sample`` (N sampled rollouts, best kept) and
 ``rl-lookahead`` (one-step lookahead over the policy's own greedy continuations);
 the CP-SAT solver adds ``cpsat``. Each solver module registers itself with :func:`register`.
@@ -84,7 +85,7 @@ def decider(method: str, seed: int = 0, **options: Any):
     """A per-decision policy for live use (ROS agents): returns ``(decide, rules)`` where
     ``decide(state) -> node`` and ``rules`` are the state-machine rules it must run under.
 
-    ``greedy`` -> the greedy baseline; ``rl`` / ``rl-sample`` -> the learned policy (greedy or
+    ``greedy`` / ``greedy-coalition`` -> the baselines; ``rl`` / ``rl-sample`` -> the learned policy (greedy or
     sampled decoding; options: ``checkpoint``, ``seed``); ``rl-lookahead`` -> one-step lookahead
     over the learned policy (option: ``checkpoint``)."""
     base, implied = parse(method)
@@ -104,4 +105,4 @@ def decider(method: str, seed: int = 0, **options: Any):
         from .rl.inference import lookahead_decider
 
         return lookahead_decider(**options)
-    raise MethodError(f"method {method!r} has no per-decision form (expected greedy, rl, rl-sample or rl-lookahead)")
+    raise MethodError(f"method {method!r} has no per-decision form (expected greedy, greedy-coalition, rl, rl-sample or rl-lookahead)")
