@@ -80,17 +80,18 @@ class CoalitionGreedy:
                 start[c] = max(start[c], s.arrive[s.members[j]].max())
         rem = np.maximum(s.rem[cand] - s.cap[a], 0.0)  # [C, K] left after a joins
         need = (rem > 1e-9).any(1)  # [C]
-        if need.any():
-            others = np.flatnonzero(usable)  # [B]
+        others = np.flatnonzero(usable)  # [B]
+        if need.any() and len(others) == 0:
+            start = np.where(need, np.inf, start)  # nobody left to complete those coalitions
+        elif need.any():
             arr = free_at[others, None] + np.hypot(pos[others, None, 0] - loc[None, :, 0],
                                                    pos[others, None, 1] - loc[None, :, 1]) / v  # [B, C]
             order = np.argsort(arr, axis=0, kind="stable")  # [B, C]
             cum = np.cumsum(s.cap[others][order], axis=0)  # [B, C, K] capability of the first n arrivals
             covered = (cum >= rem[None] - 1e-9).all(2)  # [B, C]
             first = np.argmax(covered, axis=0)  # [C] the arrival that completes the coalition
-            ok = covered.any(0) if len(others) else np.zeros(len(cand), bool)  # [C]
-            last = np.take_along_axis(np.sort(arr, axis=0), first[None], 0)[0] if len(others) else start  # [C]
-            start = np.where(need, np.where(ok, np.maximum(start, last), np.inf), start)
+            last = np.take_along_axis(arr, order, 0)[first, np.arange(len(cand))]  # [C] its arrival time
+            start = np.where(need, np.where(covered.any(0), np.maximum(start, last), np.inf), start)
         return cand, start, mine
 
 

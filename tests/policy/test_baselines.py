@@ -185,3 +185,19 @@ def test_coalition_greedy_method_and_decider():
     live = run(inst, decide, 2, rules)
     assert sol.success and sol.method == "greedy-coalition"
     assert live.routes == sol.routes and live.makespan == sol.makespan
+
+
+def test_coalition_greedy_with_no_partner_left():
+    """Every other robot lost: tasks that need a partner get an infinite estimate, no crash."""
+    inst = ScenarioGenerator("MA-AT", 9, 3, 20, 3).instance(seed=8, index=1)
+    state = MissionState(inst, seed=0, rules=GREEDY_RULES)
+    a = state.agent
+    for b in range(state.A):
+        if b != a:
+            state.drop_agent(b)
+    if state.done or state.agent != a:
+        pytest.skip("the mission ended when the others were dropped")
+    cand, start, mine = CoalitionGreedy().estimates(state)
+    solo = ~(np.maximum(state.rem[cand] - state.cap[a], 0) > 1e-9).any(1)
+    assert np.isinf(start[~solo]).all() and np.isfinite(start[solo]).all()
+    assert CoalitionGreedy()(state) == _reference_coalition_choice(state)
