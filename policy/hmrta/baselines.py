@@ -95,6 +95,11 @@ class CoalitionGreedy:
         return cand, start, mine
 
 
+# the deterministic baselines by method name (solvers, live deciders and training teachers), all
+# run under GREEDY_RULES
+BASELINES = {"greedy": Greedy, "greedy-coalition": CoalitionGreedy}
+
+
 class RandomPolicy:
     """Uniform over admissible nodes (depot included when allowed); seeded, for tests."""
 

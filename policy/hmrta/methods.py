@@ -8,6 +8,7 @@ the CP-SAT solver adds ``cpsat``. Each solver module registers itself with :func
 """
 from __future__ import annotations
 
+import functools
 import importlib
 import re
 from typing import Any, Callable
@@ -54,18 +55,11 @@ def solve(inst: Instance, method: str, seed: int = 0, **options: Any) -> Solutio
     return sol
 
 
-def _greedy(inst: Instance, seed: int = 0, **_: Any) -> Solution:
-    from .baselines import GREEDY_RULES, Greedy
+def _baseline(name: str, inst: Instance, seed: int = 0, **_: Any) -> Solution:
+    from .baselines import BASELINES, GREEDY_RULES
     from .sim import simulate
 
-    return simulate(inst, Greedy(), seed, GREEDY_RULES, "greedy")
-
-
-def _greedy_coalition(inst: Instance, seed: int = 0, **_: Any) -> Solution:
-    from .baselines import GREEDY_RULES, CoalitionGreedy
-    from .sim import simulate
-
-    return simulate(inst, CoalitionGreedy(), seed, GREEDY_RULES, "greedy-coalition")
+    return simulate(inst, BASELINES[name](), seed, GREEDY_RULES, name)
 
 
 def _random(inst: Instance, seed: int = 0, **_: Any) -> Solution:
@@ -76,8 +70,8 @@ def _random(inst: Instance, seed: int = 0, **_: Any) -> Solution:
     return simulate(inst, RandomPolicy(seed), seed, Rules(), "random")
 
 
-register("greedy", _greedy)
-register("greedy-coalition", _greedy_coalition)
+for _name in ("greedy", "greedy-coalition"):  # = baselines.BASELINES (not imported here: keep start-up lean)
+    register(_name, functools.partial(_baseline, _name))
 register("random", _random)
 
 
@@ -89,14 +83,10 @@ def decider(method: str, seed: int = 0, **options: Any):
     sampled decoding; options: ``checkpoint``, ``seed``); ``rl-lookahead`` -> one-step lookahead
     over the learned policy (option: ``checkpoint``)."""
     base, implied = parse(method)
-    if base == "greedy":
-        from .baselines import GREEDY_RULES, Greedy
+    if base in ("greedy", "greedy-coalition"):
+        from .baselines import BASELINES, GREEDY_RULES
 
-        return Greedy(), GREEDY_RULES
-    if base == "greedy-coalition":
-        from .baselines import GREEDY_RULES, CoalitionGreedy
-
-        return CoalitionGreedy(), GREEDY_RULES
+        return BASELINES[base](), GREEDY_RULES
     if base in ("rl", "rl-sample"):
         from .rl.inference import rl_decider
 

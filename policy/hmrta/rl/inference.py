@@ -9,7 +9,6 @@ agents in one process use one copy of the weights).
 """
 from __future__ import annotations
 
-import math
 import os
 import threading
 import time

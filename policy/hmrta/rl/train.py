@@ -48,7 +48,7 @@ import numpy as np
 import torch
 import yaml
 
-from ..baselines import CoalitionGreedy, Greedy
+from ..baselines import BASELINES
 from ..core import MissionState, Rules
 from ..generators import ScenarioGenerator, TrainingGenerator
 from ..instance import atomic_write_text
@@ -57,7 +57,7 @@ from .model import ModelConfig, PolicyNet
 from .rollout import action_costs, best_action, returns, rollout
 
 CONFIG_VERSION = 1
-TEACHERS = {"greedy": Greedy, "greedy-coalition": CoalitionGreedy}  # behaviour-cloning teachers
+TEACHERS = BASELINES  # behaviour-cloning / lookahead teachers, by method name
 DEFAULTS: dict[str, Any] = {
     "version": CONFIG_VERSION,
     "name": "default",
