@@ -92,7 +92,9 @@ DEFAULTS: dict[str, Any] = {
     "pretrain": {"iterations": 0, "instances_per_iter": 16, "lr": 1.0e-3, "epochs": 2, "batch": 512,
                  "teacher": "greedy",  # greedy | greedy-coalition (the baseline whose choices are cloned)
                  "dagger": 0.0,  # share of instances whose visited states come from the policy's argmax rollout
-                 "tau": 0.0},  # > 0 (greedy-coalition): soft targets from its start estimates (see _soft_target)
+                 "tau": 0.0,  # > 0 (greedy-coalition): soft targets from its start estimates (see _soft_target)
+                 # expert iteration: > 0 policy samples compete with the teacher's trajectory, the best is cloned
+                 "samples": 0, "temperature": 1.0},
     "validation": {"every": 25, "seed": 990001, "rows": [[9, 3, 20, 3, 16], [25, 5, 50, 5, 16]]},
     "checkpoint": {"every": 10},
 }
@@ -141,6 +143,11 @@ def load_config(path: str | Path) -> dict:
     if cfg["pretrain"]["tau"] > 0 and not hasattr(TEACHERS[cfg["pretrain"]["teacher"]], "estimates"):
         raise ValueError(f"{p}: pretrain.tau: soft targets need a teacher with start estimates "
                          f"(greedy-coalition), not {cfg['pretrain']['teacher']!r}")
+    if int(cfg["pretrain"]["samples"]) < 0 or float(cfg["pretrain"]["temperature"]) <= 0:
+        raise ValueError(f"{p}: pretrain.samples must be >= 0 and pretrain.temperature > 0, got "
+                         f"{cfg['pretrain']['samples']!r} and {cfg['pretrain']['temperature']!r}")
+    if cfg["pretrain"]["samples"] and cfg["pretrain"]["tau"] > 0:
+        raise ValueError(f"{p}: pretrain.samples needs hard targets (pretrain.tau: 0)")
     if cfg["distill"]["teacher"] not in ("policy", *TEACHERS):
         raise ValueError(f"{p}: distill.teacher: expected one of policy, {', '.join(TEACHERS)}, "
                          f"got {cfg['distill']['teacher']!r}")
@@ -297,18 +304,21 @@ class Trainer:
                     soft.append(self._soft_target(teacher, st, nodes, int(hit[0]), tau))
             return n
 
-        on_policy = []
+        on_policy, pool = [], []  # DAgger states; (teacher's finished state, its first label) per pooled instance
         for inst in insts:
             st = MissionState(inst, seed=int(self.np_rng.integers(2**31)), rules=self.train_rules)
             if self.np_rng.random() < p["dagger"]:
                 on_policy.append(st)  # DAgger: the policy drives, the teacher labels
                 continue
+            first = len(acts)
             while not st.done:
                 st.step(label(st))
+            pool.append((st, first))
+        self.model.eval()
         if on_policy:
-            self.model.eval()
             rollout(self.model, on_policy, sample=False,
                     before_step=lambda idx, o, nodes, act: [label(on_policy[i]) for i in idx])
+        pool_stats = self._pool(pool, obs, deciders, acts) if p["samples"] and pool else {}
         for g in self.opt.param_groups:
             g["lr"] = p["lr"]
         self.model.train()
@@ -337,7 +347,43 @@ class Trainer:
                 losses.append(loss.item())
         self.pretrain_done += 1
         return {"iteration": self.pretrain_done, "bc_loss": float(np.mean(losses)), "labels": n,
-                "tasks": insts[0].n_tasks, "agents": insts[0].n_agents}
+                "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, **pool_stats}
+
+    def _pool(self, pool: list[tuple[MissionState, int]], obs: list, deciders: list, acts: list) -> dict:
+        """Expert iteration (``pretrain.samples``): ``samples`` sampled rollouts of the policy compete
+        with the teacher's trajectory on each pooled instance; where a sample has the better return
+        (-T - W), its decisions replace the teacher's labels of that instance. The targets are then
+        never worse than the teacher and are, where the policy won, its own (learnable) choices.
+        ``pool``: (the teacher's finished state, index of its first label) per instance, in label order."""
+        p, t = self.cfg["pretrain"], self.cfg["train"]
+        S = int(p["samples"])
+        states = [MissionState(st.inst, seed=st.seed, rules=self.train_rules) for st, _ in pool for _ in range(S)]
+        traj = rollout(self.model, states, sample=True, generator=self.torch_gen, record=True,
+                       amp=t["amp"] and self.device.type == "cpu", temperature=p["temperature"])
+        self.episodes += len(states)
+        self.decisions += traj.decisions
+        R = returns(states, t["t_max"]).reshape(len(pool), S)  # [I, S]
+        Rt = returns([st for st, _ in pool], t["t_max"])  # [I] the teacher's
+        win = R.max(1) > Rt + 1e-9  # [I] a sample beats the teacher
+        ends = [first for _, first in pool[1:]] + [len(acts)]
+        keep = np.ones(len(acts), dtype=bool)
+        for (_, first), end, w in zip(pool, ends, win):
+            keep[first:end] = not w  # drop the teacher's labels where a sample won
+        obs[:] = [o for o, k in zip(obs, keep) if k]
+        deciders[:] = [d for d, k in zip(deciders, keep) if k]
+        acts[:] = [a for a, k in zip(acts, keep) if k]
+        best = set((np.flatnonzero(win) * S + R.argmax(1)[win]).tolist())  # winning episodes
+        for o, a, e in zip(traj.obs, traj.actions, traj.episode):
+            for r in np.flatnonzero([int(x) in best for x in e]):
+                n_t, n_a = int(o["task_valid"][r].sum()), int(o["agent_valid"][r].sum())
+                obs.append((o["tasks"][r, :n_t].numpy(), o["agents"][r, :n_a].numpy(),
+                            o["action_mask"][r, :n_t].numpy()))
+                deciders.append(int(o["decider"][r]))
+                acts.append(int(a[r]))
+        mk_t = np.array([st.makespan for st, _ in pool])  # [I]
+        mk_s = np.array([s.makespan for s in states]).reshape(len(pool), S)  # [I, S]
+        return {"teacher_makespan": float(mk_t.mean()), "pool_makespan": float(np.where(win, mk_s[np.arange(len(pool)), R.argmax(1)], mk_t).mean()),
+                "teacher_wins": float(1 - win.mean())}
 
     @staticmethod
     def _soft_target(teacher, st: MissionState, nodes: np.ndarray, row: int, tau: float) -> np.ndarray:
@@ -575,7 +621,8 @@ class Trainer:
         log_path = self.run_dir / "log.csv"
         fields = ["phase", "iteration", "episodes", "reward", "makespan", "success", "entropy", "loss", "lr",
                   "decisions_per_s", "episodes_per_s", "sil_loss", "best_makespan", "lookahead_gain", "changed",
-                  "labels", "tasks", "agents", "seconds", "bc_loss",
+                  "labels", "tasks", "agents", "seconds", "bc_loss", "teacher_makespan", "pool_makespan",
+                  "teacher_wins",
                   "val_makespan", "val_success", "greedy_makespan", "wall"]
         new = not log_path.exists()
         f = open(log_path, "a", newline="")

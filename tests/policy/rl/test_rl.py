@@ -228,6 +228,56 @@ def test_behaviour_cloning_learns_the_coalition_teacher(tmp_path, dagger, tau):
     assert agreement() > before
 
 
+def test_expert_iteration_clones_the_best_of_teacher_and_samples(tmp_path):
+    """pretrain.samples: where a policy sample beats the teacher's trajectory, that sample's own
+    decisions replace the teacher's labels (replaying them reproduces the sample's schedule);
+    where the teacher wins, its labels stay; and the phase runs end to end."""
+    from hmrta.rl.features import observe
+
+    inst = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
+    FixedTrainer.fixed = inst
+    cfg = _tiny_cfg(pretrain={"iterations": 4, "instances_per_iter": 2, "lr": 3e-3, "epochs": 1, "batch": 64,
+                              "teacher": "greedy-coalition", "samples": 6, "temperature": 1.0})
+    tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
+
+    def farthest(st):  # a poor but valid teacher: always the farthest admissible task
+        cand = np.flatnonzero(st.mask()[1:])
+        if len(cand) == 0:
+            return 0
+        d = np.hypot(*(inst.task_locations[cand] - st.positions()[st.agent]).T)
+        return 1 + int(cand[np.argmax(d)])
+
+    obs, deciders, acts = [], [], []
+    st = MissionState(inst, seed=0, rules=RULES)
+    while not st.done:
+        tf, af, mask, nodes, row = observe(st)
+        obs.append((tf, af, mask)), deciders.append(row)
+        acts.append(farthest(st))  # (no observation window: row = node)
+        st.step(acts[-1])
+    teacher_labels = list(acts)
+    stats = tr._pool([(st, 0)], obs, deciders, acts)
+    assert stats["teacher_wins"] == 0.0 and stats["pool_makespan"] < stats["teacher_makespan"] == st.makespan
+    assert acts != teacher_labels and len(acts) == len(obs) == len(deciders)
+    replay = MissionState(inst, seed=0, rules=RULES)
+    for (tf, af, mask), row, a in zip(obs, deciders, acts):
+        assert mask[a] and np.allclose(observe(replay)[0], tf) and observe(replay)[4] == row
+        replay.step(a)
+    assert replay.done and replay.makespan == pytest.approx(stats["pool_makespan"])
+
+    # a teacher no sample beats keeps its labels: here the policy's own argmax trajectory against
+    # near-argmax samples (temperature 1e-3), which tie with it
+    own = MissionState(inst, seed=0, rules=RULES)
+    rollout(tr.model.eval(), [own], sample=False)
+    tr.cfg["pretrain"]["temperature"] = 1e-3
+    labels = [0, 1, 2]
+    kept = tr._pool([(own, 0)], [None] * 3, [0] * 3, labels)
+    assert kept["teacher_wins"] == 1.0 and labels == [0, 1, 2]
+    tr.cfg["pretrain"]["temperature"] = 1.0
+
+    rows = [tr.pretrain_step() for _ in range(4)]
+    assert tr.pretrain_done == 4 and all(r["labels"] > 0 and 0 <= r["teacher_wins"] <= 1 for r in rows)
+
+
 def test_checkpoint_round_trip_and_resume(tmp_path):
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
     ref = FixedTrainer(_tiny_cfg(), tmp_path / "a", device="cpu")
@@ -313,6 +363,9 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\npretrain: {teacher: oracle}\n", "pretrain.teacher: expected one of greedy, greedy-coalition"),
     ("version: 1\npretrain: {dagger: 2}\n", "pretrain.dagger: expected a share in [0, 1]"),
     ("version: 1\npretrain: {tau: 1}\n", "pretrain.tau: soft targets need a teacher with start estimates"),
+    ("version: 1\npretrain: {samples: -1}\n", "pretrain.samples must be >= 0"),
+    ("version: 1\npretrain: {samples: 4, temperature: 0}\n", "pretrain.temperature > 0"),
+    ("version: 1\npretrain: {teacher: greedy-coalition, samples: 4, tau: 0.5}\n", "pretrain.samples needs hard targets"),
     ("version: 1\ndistill: {teacher: cpsat}\n", "distill.teacher: expected one of policy, greedy, greedy-coalition"),
     ("version: 1\ntrain: 3\n", "train: expected a mapping"),
     ("version: 2\n", "version: expected 1"),
