@@ -27,7 +27,10 @@ Optional behaviour-cloning warm start (``pretrain``): cross-entropy on a baselin
 starts from a baseline-level policy (project choice, recorded in the checkpoint config). With
 ``pretrain.dagger`` > 0 that share of the instances is driven by the policy's own argmax and
 labelled by the teacher (DAgger, Ross et al. 2011), so the policy also learns to recover from its
-own mistakes.
+own mistakes. With ``pretrain.samples`` > 0 (expert iteration, project choice) that many sampled
+rollouts of the policy (``pretrain.temperature``) compete with the teacher's trajectory on each
+teacher-driven instance, and the best of them by return is cloned: the targets are never worse
+than the teacher, and where the policy won they are its own, learnable choices.
 
 Checkpoints hold model, optimiser, learning-rate schedule, RNG states, counters, the resolved
 config and the code version; ``--resume`` continues exactly.
