@@ -65,8 +65,8 @@ def load_policy(checkpoint: str | Path | None = None) -> LoadedPolicy:
         except TypeError as e:
             raise CheckpointError(f"{path}: model config does not match this hmrta version ({e})") from None
         model = PolicyNet(cfg)
-        try:
-            model.load_state_dict(ck["model"])
+        try:  # a training checkpoint with averaged weights (train.ema) is scored, and so used, by those
+            model.load_state_dict(ck.get("ema") or ck["model"])
         except RuntimeError as e:
             first = str(e).strip().splitlines()[0]
             raise CheckpointError(f"{path}: weights do not match the network ({first})") from None

@@ -82,6 +82,8 @@ DEFAULTS: dict[str, Any] = {
         "temperature": 1.0,  # collection samples softmax(logits / T); the gradient is for that policy
         "entropy_coef": 0.0,  # entropy bonus (of the tempered policy) in the loss
         "amp": True,  # bfloat16 autocast for collection and re-scoring (CPU); evaluation is float32
+        "ema": 0.0,  # > 0: decay of an exponential moving average of the weights (every phase's updates),
+        # which validation scores, best.pt keeps and export ships (0: the raw weights)
         "distribution": {"tasks": [15, 50], "species": [3, 5], "per_species": [3, 5], "skills": 5},
         "curriculum": [],  # [{until: ITER, tasks: [lo, hi]}, ...] narrows the task range early on
         # self-imitation of the best of the beta rollouts (coef 0 and steps 0: plain REINFORCE)
@@ -143,6 +145,8 @@ def load_config(path: str | Path) -> dict:
                          f"got {cfg['pretrain']['teacher']!r}")
     if not 0.0 <= float(cfg["pretrain"]["dagger"]) <= 1.0:
         raise ValueError(f"{p}: pretrain.dagger: expected a share in [0, 1], got {cfg['pretrain']['dagger']!r}")
+    if not 0.0 <= float(cfg["train"]["ema"]) < 1.0:
+        raise ValueError(f"{p}: train.ema: expected a decay in [0, 1), got {cfg['train']['ema']!r}")
     if cfg["pretrain"]["tau"] > 0 and not hasattr(TEACHERS[cfg["pretrain"]["teacher"]], "estimates"):
         raise ValueError(f"{p}: pretrain.tau: soft targets need a teacher with start estimates "
                          f"(greedy-coalition), not {cfg['pretrain']['teacher']!r}")
@@ -207,6 +211,7 @@ class Trainer:
         self.train_rules = self.eval_rules = rules_from(cfg)
         self.sil_buffer: list[dict[str, torch.Tensor]] = []  # best-rollout decisions, not checkpointed
         self.distill_buffer: list[dict[str, torch.Tensor]] = []  # lookahead targets, not checkpointed
+        self.ema: dict[str, torch.Tensor] | None = None  # averaged weights (train.ema > 0), from the first update
 
     # ---- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -214,6 +219,7 @@ class Trainer:
             "config": self.cfg,
             "code_version": code_version(),
             "model": self.model.state_dict(),
+            "ema": self.ema,
             "optimizer": self.opt.state_dict(),
             "iteration": self.iteration,
             "pretrain_done": self.pretrain_done,
@@ -238,6 +244,7 @@ class Trainer:
     def load(self, path: Path) -> None:
         ck = torch.load(path, map_location=self.device, weights_only=False)
         self.model.load_state_dict(ck["model"])
+        self.ema = ck.get("ema") if self.cfg["train"]["ema"] > 0 else None
         if "optimizer" in ck:
             self.opt.load_state_dict(ck["optimizer"])
         self.iteration = ck.get("iteration", 0)
@@ -258,12 +265,41 @@ class Trainer:
         d = {"config": self.cfg, "code_version": code_version(), "iteration": self.iteration,
              "pretrain_done": self.pretrain_done, "distill_done": self.distill_done, "decisions": self.decisions,
              "episodes": self.episodes, "best_val": self.best_val, "greedy_val": self.greedy_val,
-             "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()}}
+             "model": {k: v.detach().cpu() for k, v in self.policy_weights().items()}}
         if summary:
             d["summary"] = summary
         tmp = path.with_name(path.name + ".tmp")
         torch.save(d, tmp)
         tmp.replace(path)
+
+    # ---- weight averaging ------------------------------------------------------------------------
+    def _optimizer_step(self) -> None:
+        """One optimiser update, then (``train.ema`` > 0) the moving average of the weights."""
+        self.opt.step()
+        decay = float(self.cfg["train"]["ema"])
+        if decay <= 0:
+            return
+        with torch.no_grad():
+            if self.ema is None:
+                self.ema = {k: v.detach().clone() for k, v in self.model.state_dict().items()}
+            else:
+                for k, v in self.model.state_dict().items():
+                    if v.is_floating_point():
+                        self.ema[k].mul_(decay).add_(v.detach(), alpha=1.0 - decay)
+                    else:
+                        self.ema[k].copy_(v)
+
+    def policy_weights(self) -> dict[str, torch.Tensor]:
+        """The weights that are validated and shipped: the moving average when there is one."""
+        return self.ema if self.ema is not None else self.model.state_dict()
+
+    def eval_model(self) -> PolicyNet:
+        """The network with ``policy_weights`` (the training model itself without averaging)."""
+        if self.ema is None:
+            return self.model.eval()
+        m = copy.deepcopy(self.model)
+        m.load_state_dict(self.ema)
+        return m.eval()
 
     # ---- data --------------------------------------------------------------------------------
     def _lr(self) -> float:
@@ -346,7 +382,7 @@ class Trainer:
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg["train"]["grad_clip"])
-                self.opt.step()
+                self._optimizer_step()
                 losses.append(loss.item())
         self.pretrain_done += 1
         return {"iteration": self.pretrain_done, "bc_loss": float(np.mean(losses)), "labels": n,
@@ -544,7 +580,7 @@ class Trainer:
     def _clipped_step(self, clip: float) -> None:
         gnorm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), clip)
         if torch.isfinite(gnorm):
-            self.opt.step()
+            self._optimizer_step()
         else:  # never let one bad batch poison the weights
             self.log(f"iteration {self.iteration + 1}: non-finite gradient, update skipped")
         self.opt.zero_grad(set_to_none=True)
@@ -578,9 +614,8 @@ class Trainer:
 
         if self.greedy_val is None:
             self.greedy_val = float(np.mean([solve(i, "greedy", 0).makespan for i in self.val_set]))
-        self.model.eval()
         states = [MissionState(i, seed=0, rules=self.eval_rules) for i in self.val_set]
-        rollout(self.model, states, sample=False)
+        rollout(self.eval_model(), states, sample=False)
         mk = np.array([s.makespan if s.success else self.cfg["train"]["t_max"] for s in states])
         return {"val_makespan": float(mk.mean()), "val_success": float(np.mean([s.success for s in states])),
                 "greedy_makespan": self.greedy_val}

@@ -278,6 +278,35 @@ def test_expert_iteration_clones_the_best_of_teacher_and_samples(tmp_path):
     assert tr.pretrain_done == 4 and all(r["labels"] > 0 and 0 <= r["teacher_wins"] <= 1 for r in rows)
 
 
+def test_weight_averaging_is_validated_checkpointed_and_shipped(tmp_path):
+    """train.ema: a moving average of the weights follows every update; validation scores it, it
+    survives save/load, export ships it, and load_policy uses it from a training checkpoint."""
+    FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
+    cfg = _tiny_cfg(train={"ema": 0.9},
+                    pretrain={"iterations": 3, "instances_per_iter": 2, "lr": 3e-3, "epochs": 1, "batch": 64,
+                              "teacher": "greedy-coalition"})
+    tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
+    start = {k: v.clone() for k, v in tr.model.state_dict().items()}
+    for _ in range(3):
+        tr.pretrain_step()
+    raw = tr.model.state_dict()
+    k = next(k for k, v in raw.items() if v.is_floating_point() and not torch.equal(v, start[k]))
+    assert not torch.equal(tr.ema[k], raw[k]) and not torch.equal(tr.ema[k], start[k])
+    assert torch.equal(tr.eval_model().state_dict()[k], tr.ema[k])
+    assert torch.equal(tr.model.state_dict()[k], raw[k])  # evaluating never touches the trained weights
+
+    tr.save(tmp_path / "last.pt")
+    t2 = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
+    t2.load(tmp_path / "last.pt")
+    assert torch.equal(t2.ema[k], tr.ema[k]) and torch.equal(t2.model.state_dict()[k], raw[k])
+    tr.export(tmp_path / "shipped.pt")
+    for ck in ("shipped.pt", "last.pt"):
+        assert torch.equal(load_policy(tmp_path / ck).model.state_dict()[k], tr.ema[k])
+    off = FixedTrainer(_tiny_cfg(), tmp_path / "off", device="cpu", log=lambda s: None)
+    off.pretrain_step() if off.cfg["pretrain"]["iterations"] else off.train_step()
+    assert off.ema is None and off.eval_model() is off.model
+
+
 def test_checkpoint_round_trip_and_resume(tmp_path):
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
     ref = FixedTrainer(_tiny_cfg(), tmp_path / "a", device="cpu")
@@ -364,6 +393,7 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\npretrain: {dagger: 2}\n", "pretrain.dagger: expected a share in [0, 1]"),
     ("version: 1\npretrain: {tau: 1}\n", "pretrain.tau: soft targets need a teacher with start estimates"),
     ("version: 1\npretrain: {samples: -1}\n", "pretrain.samples must be >= 0"),
+    ("version: 1\ntrain: {ema: 1.0}\n", "train.ema: expected a decay in [0, 1)"),
     ("version: 1\npretrain: {samples: 4, temperature: 0}\n", "pretrain.temperature > 0"),
     ("version: 1\npretrain: {teacher: greedy-coalition, samples: 4, tau: 0.5}\n", "pretrain.samples needs hard targets"),
     ("version: 1\ndistill: {teacher: cpsat}\n", "distill.teacher: expected one of policy, greedy, greedy-coalition"),
