@@ -8,7 +8,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .features import AGENT_FEATURES, TASK_FEATURES
+from .features import AGENT_FEATURES, K_MAX, TASK_FEATURES
+
+TASK_POS = slice(2 * K_MAX, 2 * K_MAX + 2)  # task rows: position relative to the decider
+AGENT_POS = slice(K_MAX + 3, K_MAX + 5)  # agent rows: position relative to the decider
 
 
 @dataclass
@@ -19,6 +22,10 @@ class ModelConfig:
     clip: float = 10.0
     task_features: int = TASK_FEATURES
     agent_features: int = AGENT_FEATURES
+    # project option (off in every shipped config): the two cross encoders add -slope_h x the
+    # robot-task distance to each head's attention scores (slopes learnt, starting at 0, so a
+    # checkpoint without them loads unchanged and starts from the same function)
+    travel_bias: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -37,9 +44,17 @@ class Block(nn.Module):
             self.ff_out = nn.Linear(ff, d)
             self.ln2 = nn.LayerNorm(d)
 
-    def forward(self, q: torch.Tensor, kv: torch.Tensor, kv_ignore: torch.Tensor) -> torch.Tensor:
-        # q [B, Lq, d], kv [B, Lk, d], kv_ignore [B, Lk] (True = padding / masked)
-        h = self.ln1(q + self.mha(q, kv, kv, key_padding_mask=kv_ignore, need_weights=False)[0])  # [B, Lq, d]
+    def forward(self, q: torch.Tensor, kv: torch.Tensor, kv_ignore: torch.Tensor,
+                bias: torch.Tensor | None = None) -> torch.Tensor:
+        # q [B, Lq, d], kv [B, Lk, d], kv_ignore [B, Lk] (True = padding / masked),
+        # bias [B * heads, Lq, Lk] added to the attention scores (optional)
+        if bias is None:
+            att = self.mha(q, kv, kv, key_padding_mask=kv_ignore, need_weights=False)[0]
+        else:
+            heads = bias.shape[0] // q.shape[0]
+            bias = bias.masked_fill(kv_ignore.repeat_interleave(heads, 0)[:, None, :], float("-inf"))
+            att = self.mha(q, kv, kv, attn_mask=bias, need_weights=False)[0]
+        h = self.ln1(q + att)  # [B, Lq, d]
         if not self.ff:
             return h
         x, g = self.ff_in(h).chunk(2, dim=-1)  # [B, Lq, ff] x2
@@ -62,6 +77,8 @@ class PolicyNet(nn.Module):
         self.dec2 = Block(d, h, None)  # ... then to the admissible tasks
         self.wq = nn.Linear(d, d, bias=False)
         self.wk = nn.Linear(d, d, bias=False)
+        if cfg.travel_bias:
+            self.travel_slope = nn.Parameter(torch.zeros(2, h))  # [task_cross / agent_cross, heads]
 
     def forward(self, tasks, agents, task_valid, agent_valid, action_mask, decider) -> torch.Tensor:
         """Logits over [depot, tasks] ([B, T]); inadmissible entries are -inf."""
@@ -70,8 +87,15 @@ class PolicyNet(nn.Module):
         ae = self.agent_embed(agents)  # [B, N, d]
         te = self.task_enc(te, te, t_ign)  # [B, T, d]
         ae = self.agent_enc(ae, ae, a_ign)  # [B, N, d]
-        tx = self.task_cross(te, ae, a_ign)  # [B, T, d]
-        ax = self.agent_cross(ae, te, t_ign)  # [B, N, d]
+        tb = ab = None
+        if self.cfg.travel_bias:
+            B, T, N, h = tasks.shape[0], tasks.shape[1], agents.shape[1], self.cfg.heads
+            dist = torch.cdist(tasks[..., TASK_POS].float(), agents[..., AGENT_POS].float())  # [B, T, N]
+            s = self.travel_slope  # [2, h]
+            tb = (-s[0, None, :, None, None] * dist[:, None]).reshape(B * h, T, N)  # [B*h, T, N]
+            ab = (-s[1, None, :, None, None] * dist.transpose(1, 2)[:, None]).reshape(B * h, N, T)  # [B*h, N, T]
+        tx = self.task_cross(te, ae, a_ign, tb)  # [B, T, d]
+        ax = self.agent_cross(ae, te, t_ign, ab)  # [B, N, d]
         tg = _masked_mean(tx, task_valid)  # [B, d]
         ag = _masked_mean(ax, agent_valid)  # [B, d]
         me = ax[torch.arange(ax.shape[0]), decider]  # [B, d]

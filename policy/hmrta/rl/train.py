@@ -243,9 +243,12 @@ class Trainer:
 
     def load(self, path: Path) -> None:
         ck = torch.load(path, map_location=self.device, weights_only=False)
-        self.model.load_state_dict(ck["model"])
-        self.ema = ck.get("ema") if self.cfg["train"]["ema"] > 0 else None
-        if "optimizer" in ck:
+        missing, unexpected = self.model.load_state_dict(ck["model"], strict=False)
+        added = set(missing) == {"travel_slope"}  # a checkpoint from before model.travel_bias: starts at 0
+        if unexpected or (missing and not added):
+            raise RuntimeError(f"{path}: weights do not match the network (missing {missing}, unexpected {unexpected})")
+        self.ema = ck.get("ema") if self.cfg["train"]["ema"] > 0 and not added else None
+        if "optimizer" in ck and not added:
             self.opt.load_state_dict(ck["optimizer"])
         self.iteration = ck.get("iteration", 0)
         self.pretrain_done = ck.get("pretrain_done", 0)

@@ -63,6 +63,37 @@ def test_padding_invariance(model):
             assert torch.isneginf(together[b, n:]).all()
 
 
+def test_travel_bias_option(tmp_path):
+    """model.travel_bias: with zero slopes the network computes exactly what it computed without
+    the option (so older checkpoints resume into it); with slopes set it differs, keeps padding
+    invariance and never lets a masked action through."""
+    torch.manual_seed(0)
+    plain = PolicyNet(SMALL).eval()
+    biased = PolicyNet(ModelConfig(d_model=32, heads=4, ff_hidden=32, travel_bias=True)).eval()
+    missing = biased.load_state_dict(plain.state_dict(), strict=False).missing_keys
+    assert missing == ["travel_slope"]
+    states = [MissionState(i, seed=5, rules=RULES) for i in _insts()]
+    obs = batch_observations(states)[0]
+    with torch.inference_mode():
+        assert torch.equal(plain(**obs), biased(**obs))
+        biased.travel_slope.copy_(torch.linspace(-1.0, 2.0, 8).reshape(2, 4))
+        together = biased(**obs)
+        assert not torch.equal(together, plain(**obs))
+        assert torch.isneginf(together[~obs["action_mask"]]).all() and torch.isfinite(together[obs["action_mask"]]).all()
+        for b, s in enumerate(states):
+            alone = biased(**batch_observations([s])[0])[0]
+            torch.testing.assert_close(together[b, :len(alone)], alone, rtol=1e-5, atol=1e-5)
+    # a trainer with the option starts from a checkpoint without it (slopes at 0)
+    FixedTrainer.fixed = _insts()[0]
+    src = FixedTrainer(_tiny_cfg(), tmp_path / "a", device="cpu", log=lambda s: None)
+    src.save(tmp_path / "a.pt")
+    tr = FixedTrainer(_tiny_cfg(model={"travel_bias": True}), tmp_path / "b", device="cpu", log=lambda s: None)
+    tr.load(tmp_path / "a.pt")
+    assert torch.equal(tr.model.travel_slope, torch.zeros(2, 4))
+    tr.train_step()  # and trains
+    assert not torch.equal(tr.model.travel_slope, torch.zeros(2, 4))
+
+
 def test_batched_rollout_equals_core_simulator(model):
     insts = _insts()
     batched = [MissionState(i, seed=7, rules=RULES) for i in insts]
