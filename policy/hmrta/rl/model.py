@@ -12,6 +12,7 @@ from .features import AGENT_FEATURES, K_MAX, TASK_FEATURES
 
 TASK_POS = slice(2 * K_MAX, 2 * K_MAX + 2)  # task rows: position relative to the decider
 AGENT_POS = slice(K_MAX + 3, K_MAX + 5)  # agent rows: position relative to the decider
+TRAVEL_SLOPE_SCALE = 50.0  # travel_bias slopes per unit of distance (positions are in the unit square)
 
 
 @dataclass
@@ -91,7 +92,7 @@ class PolicyNet(nn.Module):
         if self.cfg.travel_bias:
             B, T, N, h = tasks.shape[0], tasks.shape[1], agents.shape[1], self.cfg.heads
             dist = torch.cdist(tasks[..., TASK_POS].float(), agents[..., AGENT_POS].float())  # [B, T, N]
-            s = self.travel_slope  # [2, h]
+            s = TRAVEL_SLOPE_SCALE * self.travel_slope  # [2, h] (scaled: Adam moves each slope by ~lr per step)
             tb = (-s[0, None, :, None, None] * dist[:, None]).reshape(B * h, T, N)  # [B*h, T, N]
             ab = (-s[1, None, :, None, None] * dist.transpose(1, 2)[:, None]).reshape(B * h, N, T)  # [B*h, N, T]
         tx = self.task_cross(te, ae, a_ign, tb)  # [B, T, d]
