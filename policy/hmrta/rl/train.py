@@ -235,7 +235,7 @@ class Trainer:
         }
 
     def save(self, path: Path) -> None:
-        if not all(torch.isfinite(v).all() for v in self.model.state_dict().values()):
+        if not all(torch.isfinite(v).all() for sd in (self.model.state_dict(), self.ema or {}) for v in sd.values()):
             raise RuntimeError(f"refusing to save non-finite weights to {path}")
         tmp = path.with_name(path.name + ".tmp")
         torch.save(self.state_dict(), tmp)
@@ -346,7 +346,7 @@ class Trainer:
                     soft.append(self._soft_target(teacher, st, nodes, int(hit[0]), tau))
             return n
 
-        on_policy, pool = [], []  # DAgger states; (teacher's finished state, its first label) per pooled instance
+        on_policy, pool = [], []  # DAgger states; (teacher's finished state, its label range) per pooled instance
         for inst in insts:
             st = MissionState(inst, seed=int(self.np_rng.integers(2**31)), rules=self.train_rules)
             if self.np_rng.random() < p["dagger"]:
@@ -355,7 +355,7 @@ class Trainer:
             first = len(acts)
             while not st.done:
                 st.step(label(st))
-            pool.append((st, first))
+            pool.append((st, first, len(acts)))
         self.model.eval()
         if on_policy:
             rollout(self.model, on_policy, sample=False,
@@ -391,25 +391,25 @@ class Trainer:
         return {"iteration": self.pretrain_done, "bc_loss": float(np.mean(losses)), "labels": n,
                 "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, **pool_stats}
 
-    def _pool(self, pool: list[tuple[MissionState, int]], obs: list, deciders: list, acts: list) -> dict:
+    def _pool(self, pool: list[tuple[MissionState, int, int]], obs: list, deciders: list, acts: list) -> dict:
         """Expert iteration (``pretrain.samples``): ``samples`` sampled rollouts of the policy compete
         with the teacher's trajectory on each pooled instance; where a sample has the better return
         (-T - W), its decisions replace the teacher's labels of that instance. The targets are then
         never worse than the teacher and are, where the policy won, its own (learnable) choices.
-        ``pool``: (the teacher's finished state, index of its first label) per instance, in label order."""
+        ``pool``: (the teacher's finished state, [first, end) of its labels) per instance; the other
+        labels (DAgger's) are kept."""
         p, t = self.cfg["pretrain"], self.cfg["train"]
         S = int(p["samples"])
-        states = [MissionState(st.inst, seed=st.seed, rules=self.train_rules) for st, _ in pool for _ in range(S)]
+        states = [MissionState(st.inst, seed=st.seed, rules=self.train_rules) for st, _, _ in pool for _ in range(S)]
         traj = rollout(self.model, states, sample=True, generator=self.torch_gen, record=True,
                        amp=t["amp"] and self.device.type == "cpu", temperature=p["temperature"])
         self.episodes += len(states)
         self.decisions += traj.decisions
         R = returns(states, t["t_max"]).reshape(len(pool), S)  # [I, S]
-        Rt = returns([st for st, _ in pool], t["t_max"])  # [I] the teacher's
+        Rt = returns([st for st, _, _ in pool], t["t_max"])  # [I] the teacher's
         win = R.max(1) > Rt + 1e-9  # [I] a sample beats the teacher
-        ends = [first for _, first in pool[1:]] + [len(acts)]
         keep = np.ones(len(acts), dtype=bool)
-        for (_, first), end, w in zip(pool, ends, win):
+        for (_, first, end), w in zip(pool, win):
             keep[first:end] = not w  # drop the teacher's labels where a sample won
         obs[:] = [o for o, k in zip(obs, keep) if k]
         deciders[:] = [d for d, k in zip(deciders, keep) if k]
@@ -422,7 +422,7 @@ class Trainer:
                             o["action_mask"][r, :n_t].numpy()))
                 deciders.append(int(o["decider"][r]))
                 acts.append(int(a[r]))
-        mk_t = np.array([st.makespan for st, _ in pool])  # [I]
+        mk_t = np.array([st.makespan for st, _, _ in pool])  # [I]
         mk_s = np.array([s.makespan for s in states]).reshape(len(pool), S)  # [I, S]
         return {"teacher_makespan": float(mk_t.mean()), "pool_makespan": float(np.where(win, mk_s[np.arange(len(pool)), R.argmax(1)], mk_t).mean()),
                 "teacher_wins": float(1 - win.mean())}

@@ -286,8 +286,13 @@ def test_expert_iteration_clones_the_best_of_teacher_and_samples(tmp_path):
         acts.append(farthest(st))  # (no observation window: row = node)
         st.step(acts[-1])
     teacher_labels = list(acts)
-    stats = tr._pool([(st, 0)], obs, deciders, acts)
+    n = len(acts)
+    other = ("dagger-obs", 0, 7)  # labels of other instances (e.g. DAgger's) after the pooled range stay
+    obs.append(other[0]), deciders.append(other[1]), acts.append(other[2])
+    stats = tr._pool([(st, 0, n)], obs, deciders, acts)
     assert stats["teacher_wins"] == 0.0 and stats["pool_makespan"] < stats["teacher_makespan"] == st.makespan
+    assert (obs[0], deciders[0], acts[0]) == other
+    obs, deciders, acts = obs[1:], deciders[1:], acts[1:]
     assert acts != teacher_labels and len(acts) == len(obs) == len(deciders)
     replay = MissionState(inst, seed=0, rules=RULES)
     for (tf, af, mask), row, a in zip(obs, deciders, acts):
@@ -301,7 +306,7 @@ def test_expert_iteration_clones_the_best_of_teacher_and_samples(tmp_path):
     rollout(tr.model.eval(), [own], sample=False)
     tr.cfg["pretrain"]["temperature"] = 1e-3
     labels = [0, 1, 2]
-    kept = tr._pool([(own, 0)], [None] * 3, [0] * 3, labels)
+    kept = tr._pool([(own, 0, 3)], [None] * 3, [0] * 3, labels)
     assert kept["teacher_wins"] == 1.0 and labels == [0, 1, 2]
     tr.cfg["pretrain"]["temperature"] = 1.0
 
@@ -320,7 +325,7 @@ def test_weight_averaging_is_validated_checkpointed_and_shipped(tmp_path):
     start = {k: v.clone() for k, v in tr.model.state_dict().items()}
     for _ in range(3):
         tr.pretrain_step()
-    raw = tr.model.state_dict()
+    raw = {k: v.clone() for k, v in tr.model.state_dict().items()}
     k = next(k for k, v in raw.items() if v.is_floating_point() and not torch.equal(v, start[k]))
     assert not torch.equal(tr.ema[k], raw[k]) and not torch.equal(tr.ema[k], start[k])
     assert torch.equal(tr.eval_model().state_dict()[k], tr.ema[k])
