@@ -52,8 +52,7 @@ class Block(nn.Module):
         if bias is None:
             att = self.mha(q, kv, kv, key_padding_mask=kv_ignore, need_weights=False)[0]
         else:
-            heads = bias.shape[0] // q.shape[0]
-            bias = bias.masked_fill(kv_ignore.repeat_interleave(heads, 0)[:, None, :], float("-inf"))
+            bias = bias.masked_fill(kv_ignore.repeat_interleave(self.mha.num_heads, 0)[:, None, :], float("-inf"))
             att = self.mha(q, kv, kv, attn_mask=bias, need_weights=False)[0]
         h = self.ln1(q + att)  # [B, Lq, d]
         if not self.ff:

@@ -423,8 +423,8 @@ class Trainer:
                 deciders.append(int(o["decider"][r]))
                 acts.append(int(a[r]))
         mk_t = np.array([st.makespan for st, _, _ in pool])  # [I]
-        mk_s = np.array([s.makespan for s in states]).reshape(len(pool), S)  # [I, S]
-        return {"teacher_makespan": float(mk_t.mean()), "pool_makespan": float(np.where(win, mk_s[np.arange(len(pool)), R.argmax(1)], mk_t).mean()),
+        mk_best = np.array([s.makespan for s in states])[np.arange(len(pool)) * S + R.argmax(1)]  # [I]
+        return {"teacher_makespan": float(mk_t.mean()), "pool_makespan": float(np.where(win, mk_best, mk_t).mean()),
                 "teacher_wins": float(1 - win.mean())}
 
     @staticmethod
