@@ -13,6 +13,9 @@ from .features import AGENT_FEATURES, K_MAX, TASK_FEATURES
 TASK_POS = slice(2 * K_MAX, 2 * K_MAX + 2)  # task rows: position relative to the decider
 AGENT_POS = slice(K_MAX + 3, K_MAX + 5)  # agent rows: position relative to the decider
 TRAVEL_SLOPE_SCALE = 50.0  # travel_bias slopes per unit of distance (positions are in the unit square)
+# parameters of options that start at zero (the same function as without them): a checkpoint that
+# lacks them may be loaded into a network that has them
+ZERO_INIT_PARAMS = frozenset({"travel_slope"})
 
 
 @dataclass

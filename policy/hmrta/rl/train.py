@@ -56,7 +56,7 @@ from ..core import MissionState, Rules
 from ..generators import ScenarioGenerator, TrainingGenerator
 from ..instance import atomic_write_text
 from .features import collate, observe
-from .model import ModelConfig, PolicyNet
+from .model import ZERO_INIT_PARAMS, ModelConfig, PolicyNet
 from .rollout import action_costs, best_action, returns, rollout
 
 CONFIG_VERSION = 1
@@ -244,7 +244,7 @@ class Trainer:
     def load(self, path: Path) -> None:
         ck = torch.load(path, map_location=self.device, weights_only=False)
         missing, unexpected = self.model.load_state_dict(ck["model"], strict=False)
-        added = set(missing) == {"travel_slope"}  # a checkpoint from before model.travel_bias: starts at 0
+        added = bool(missing) and set(missing) <= ZERO_INIT_PARAMS  # e.g. from before model.travel_bias
         if unexpected or (missing and not added):
             raise RuntimeError(f"{path}: weights do not match the network (missing {missing}, unexpected {unexpected})")
         self.ema = ck.get("ema") if self.cfg["train"]["ema"] > 0 and not added else None
@@ -414,9 +414,9 @@ class Trainer:
         obs[:] = [o for o, k in zip(obs, keep) if k]
         deciders[:] = [d for d, k in zip(deciders, keep) if k]
         acts[:] = [a for a, k in zip(acts, keep) if k]
-        best = set((np.flatnonzero(win) * S + R.argmax(1)[win]).tolist())  # winning episodes
+        best = torch.as_tensor(np.flatnonzero(win) * S + R.argmax(1)[win])  # winning episodes
         for o, a, e in zip(traj.obs, traj.actions, traj.episode):
-            for r in np.flatnonzero([int(x) in best for x in e]):
+            for r in torch.isin(e, best).nonzero()[:, 0].tolist():  # rows of this step from a winner
                 n_t, n_a = int(o["task_valid"][r].sum()), int(o["agent_valid"][r].sum())
                 obs.append((o["tasks"][r, :n_t].numpy(), o["agents"][r, :n_a].numpy(),
                             o["action_mask"][r, :n_t].numpy()))
