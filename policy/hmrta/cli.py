@@ -228,7 +228,7 @@ def cmd_train(args) -> int:
     if args.resume:
         src = Path(args.init) if args.init else last
         if src.exists():
-            tr.load(src)
+            tr.load(src, reseed=args.reseed)
             print(f"resumed from {src}: iteration {tr.iteration}, {tr.episodes} episodes", file=sys.stderr)
         else:
             print(f"nothing to resume in {run_dir}: starting fresh", file=sys.stderr)
@@ -387,6 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--config", default="policy/configs/default.yaml", help="training config YAML")
     t.add_argument("--resume", action="store_true", help="continue the run in --run-dir (model, optimiser, RNG)")
     t.add_argument("--init", default=None, help="with --resume: start from this checkpoint instead of last.pt")
+    t.add_argument("--reseed", action="store_true",
+                   help="with --resume: draw fresh random streams from the config's seed and forget the "
+                        "checkpoint's best validation score (an independent continuation, e.g. under other rules)")
     t.add_argument("--run-dir", default=None, help="run folder (default runs/<config name>)")
     t.add_argument("--max-minutes", type=float, default=None, help="stop after this many minutes (checkpointed)")
     t.add_argument("--iterations", type=int, default=None, help="override train.iterations")

@@ -241,7 +241,11 @@ class Trainer:
         torch.save(self.state_dict(), tmp)
         tmp.replace(path)
 
-    def load(self, path: Path) -> None:
+    def load(self, path: Path, reseed: bool = False) -> None:
+        """Restore a checkpoint (model, optimiser, averaged weights, counters, RNG streams, best
+        validation). ``reseed``: keep this trainer's fresh RNG streams (from the config's seed) and
+        its unset validation scores instead, for a second, independent continuation of the same
+        checkpoint (possibly under other rules or another validation set)."""
         ck = torch.load(path, map_location=self.device, weights_only=False)
         missing, unexpected = self.model.load_state_dict(ck["model"], strict=False)
         added = bool(missing) and set(missing) <= ZERO_INIT_PARAMS  # e.g. from before model.travel_bias
@@ -255,6 +259,8 @@ class Trainer:
         self.distill_done = ck.get("distill_done", 0)
         self.episodes = ck.get("episodes", 0)
         self.decisions = ck.get("decisions", 0)
+        if reseed:
+            return
         self.best_val = ck.get("best_val", math.inf)
         self.greedy_val = ck.get("greedy_val")
         if "np_rng" in ck:

@@ -3,6 +3,7 @@ deterministic greedy rollouts, a tiny training run that improves, checkpoint rou
 from __future__ import annotations
 
 import copy
+import math
 import re
 
 import numpy as np
@@ -362,6 +363,27 @@ def test_checkpoint_round_trip_and_resume(tmp_path):
     t2.export(tmp_path / "small.pt")
     pol = load_policy(tmp_path / "small.pt")
     assert pol.config["model"]["d_model"] == 32 and pol.rules == Rules(max_open=2, safety=True)
+
+
+def test_reseeded_resume_keeps_weights_but_not_the_random_streams(tmp_path):
+    FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
+    t1 = FixedTrainer(_tiny_cfg(), tmp_path / "a", device="cpu", log=lambda s: None)
+    t1.train_step()
+    t1.best_val = 12.5
+    t1.save(tmp_path / "a" / "last.pt")
+    same = FixedTrainer(_tiny_cfg(), tmp_path / "b", device="cpu", log=lambda s: None)
+    same.load(tmp_path / "a" / "last.pt")
+    cfg = _tiny_cfg()
+    cfg["seed"] = 99
+    new = FixedTrainer(cfg, tmp_path / "c", device="cpu", log=lambda s: None)
+    new.load(tmp_path / "a" / "last.pt", reseed=True)
+    fresh = np.random.default_rng(99).integers(2**31, size=4)
+    for k, v in t1.model.state_dict().items():
+        assert torch.equal(new.model.state_dict()[k], v) and torch.equal(same.model.state_dict()[k], v)
+    assert new.iteration == same.iteration == 1 and new.episodes == t1.episodes
+    assert same.best_val == 12.5 and new.best_val == math.inf
+    assert np.array_equal(new.np_rng.integers(2**31, size=4), fresh)
+    assert np.array_equal(same.np_rng.integers(2**31, size=4), t1.np_rng.integers(2**31, size=4))
 
 
 def test_mismatching_checkpoint_is_a_clear_error(tmp_path):
