@@ -416,6 +416,37 @@ def test_shipped_checkpoint_solves():
         assert evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
 
 
+OPEN_CHECKPOINT = DEFAULT_CHECKPOINT.with_name("coalition-open.pt")
+
+
+@pytest.mark.skipif(not OPEN_CHECKPOINT.exists(), reason="no alternative checkpoint")
+def test_alternative_checkpoint_runs_without_the_max_open_rule():
+    from hmrta.methods import solve
+    from hmrta.solution import evaluate_routes
+
+    pol = load_policy(OPEN_CHECKPOINT)
+    assert pol.rules == Rules(max_open=None, safety=True)
+    inst = ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(4242, 0)
+    sol = solve(inst, "rl", seed=0, checkpoint=str(OPEN_CHECKPOINT))
+    assert sol.success and evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
+    state = MissionState(inst, seed=0, rules=pol.rules)
+    rollout(pol.model, [state], sample=False)
+    assert state.success and state.makespan == pytest.approx(sol.makespan)
+    from hmrta.core import OPEN
+    from hmrta.methods import decider
+
+    decide, rules = decider("rl", checkpoint=str(OPEN_CHECKPOINT))
+    opened = []
+
+    def watch(st):  # the number of open tasks at each decision
+        opened.append(int((st.status == OPEN).sum()))
+        return decide(st)
+
+    live = run(inst, watch, 0, rules)
+    assert live.makespan == pytest.approx(sol.makespan)
+    assert max(opened) > 2  # no cap: more open tasks than the default checkpoint's max_open = 2
+
+
 def test_lookahead_is_never_worse_than_its_policy(model):
     from hmrta.rl.inference import lookahead_step
     from hmrta.rl.rollout import returns
