@@ -211,6 +211,8 @@ def cmd_train(args) -> int:
         cfg["train"]["max_minutes"] = args.max_minutes
     if args.iterations is not None:
         cfg["train"]["iterations"] = args.iterations
+    if (args.init or args.reseed) and not args.resume:
+        raise UserError("--init and --reseed only apply with --resume")
     run_dir = Path(args.run_dir or f"runs/{cfg['name']}")
     last = run_dir / "last.pt"
     if last.exists() and not args.resume:

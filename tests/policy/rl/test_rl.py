@@ -365,6 +365,15 @@ def test_checkpoint_round_trip_and_resume(tmp_path):
     assert pol.config["model"]["d_model"] == 32 and pol.rules == Rules(max_open=2, safety=True)
 
 
+def test_train_cli_rejects_init_or_reseed_without_resume(tmp_path, capsys):
+    from hmrta.cli import main
+
+    for extra in (["--reseed"], ["--init", str(tmp_path / "x.pt")]):
+        assert main(["train", "--run-dir", str(tmp_path / "run"), *extra]) == 2
+        assert "only apply with --resume" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
 def test_reseeded_resume_keeps_weights_but_not_the_random_streams(tmp_path):
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
     t1 = FixedTrainer(_tiny_cfg(), tmp_path / "a", device="cpu", log=lambda s: None)
