@@ -259,15 +259,14 @@ class Trainer:
         self.distill_done = ck.get("distill_done", 0)
         self.episodes = ck.get("episodes", 0)
         self.decisions = ck.get("decisions", 0)
-        if reseed:
-            return
-        self.best_val = ck.get("best_val", math.inf)
-        self.greedy_val = ck.get("greedy_val")
-        if "np_rng" in ck:
-            self.np_rng.bit_generator.state = ck["np_rng"]
-            self.torch_gen.set_state(ck["torch_gen"])
-            torch.set_rng_state(ck["torch_rng"])
-            random.setstate(ck["py_rng"])
+        if not reseed:  # validation scores and random streams continue the checkpoint's run
+            self.best_val = ck.get("best_val", math.inf)
+            self.greedy_val = ck.get("greedy_val")
+            if "np_rng" in ck:
+                self.np_rng.bit_generator.state = ck["np_rng"]
+                self.torch_gen.set_state(ck["torch_gen"])
+                torch.set_rng_state(ck["torch_rng"])
+                random.setstate(ck["py_rng"])
 
     def export(self, path: Path, summary: dict | None = None) -> None:
         """Small inference checkpoint: weights + resolved config + code version + summary."""

@@ -430,7 +430,8 @@ OPEN_CHECKPOINT = DEFAULT_CHECKPOINT.with_name("coalition-open.pt")
 
 @pytest.mark.skipif(not OPEN_CHECKPOINT.exists(), reason="no alternative checkpoint")
 def test_alternative_checkpoint_runs_without_the_max_open_rule():
-    from hmrta.methods import solve
+    from hmrta.core import OPEN
+    from hmrta.methods import decider, solve
     from hmrta.solution import evaluate_routes
 
     pol = load_policy(OPEN_CHECKPOINT)
@@ -441,8 +442,6 @@ def test_alternative_checkpoint_runs_without_the_max_open_rule():
     state = MissionState(inst, seed=0, rules=pol.rules)
     rollout(pol.model, [state], sample=False)
     assert state.success and state.makespan == pytest.approx(sol.makespan)
-    from hmrta.core import OPEN
-    from hmrta.methods import decider
 
     decide, rules = decider("rl", checkpoint=str(OPEN_CHECKPOINT))
     opened = []
