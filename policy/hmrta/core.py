@@ -11,6 +11,8 @@ The environment owns feasibility. Besides the SPEC's ability mask it applies (se
 "Semantics"):
 
 * **max-open-task rule** (``Rules.max_open``): with that many open tasks, empty tasks are masked.
+  ``max_open="team"`` scales the cap with the mission (:func:`team_cap`): about half the number of
+  coalitions the team can field at once.
 * **deadlock-avoidance mask** (``Rules.safety``, default on; project choice): a commitment is
   admissible only if afterwards the open tasks can still all be completed, one after another, by
   the agents not waiting at open tasks (a banker's-algorithm check). Together with the stall rule
@@ -31,6 +33,7 @@ from __future__ import annotations
 import copy
 import heapq
 import math
+import numbers
 import random
 from dataclasses import dataclass
 from typing import Any
@@ -47,12 +50,34 @@ EMPTY, OPEN, IN_PROGRESS, DONE, CANCELLED = 0, 1, 2, 3, 4
 STATUS_NAMES = ("empty", "open", "in_progress", "done", "cancelled")
 
 
+def team_cap(inst: Instance) -> int:
+    """The ``max_open="team"`` cap of a mission: max(1, round(A / 2c)), where c, the mean coalition
+    size, is the mean over tasks of (requirement sum) / (mean over agents of trait sum). A / c is
+    about how many coalitions the team can field at once. Measured with greedy-coalition (README,
+    "Team-scaled cap"): the best fixed cap grows with A / c, from 1 on SA-AT (A / c ~ 3) to 6 on
+    MA-AT (50,5,50,5) (A / c ~ 26), and this rule is within 2.5% of the best fixed cap on every
+    row tried."""
+    req = np.asarray(inst.requirements, dtype=np.float64)  # [M, K]
+    traits = np.asarray(inst.traits, dtype=np.float64)  # [A, K]
+    c = float((req.sum(1) / max(traits.sum(1).mean(), 1e-9)).mean()) if len(req) else 0.0
+    return max(1, int(round(inst.n_agents / (2 * c)))) if c > 0 else 1
+
+
 @dataclass(frozen=True)
 class Rules:
-    max_open: int | None = None  # max-open-task rule (None: no limit)
+    max_open: int | str | None = None  # max-open-task rule (None: no limit; "team": team_cap per mission)
     safety: bool = True  # deadlock-avoidance mask
     backdate: bool = True  # flashforward: a postponed agent's departure is back-dated (see module doc)
     t_max: float = math.inf  # episode fails when an event lies beyond this time
+
+    def __post_init__(self):
+        m = self.max_open
+        if not (m is None or m == "team" or (isinstance(m, numbers.Integral) and not isinstance(m, bool) and m >= 1)):
+            raise ValueError(f"max_open: expected a positive integer, null (no limit) or 'team', got {m!r}")
+
+    def open_cap(self, inst: Instance) -> int | None:
+        """The max-open-task cap this mission runs under (None: no limit)."""
+        return team_cap(inst) if self.max_open == "team" else self.max_open
 
     def to_dict(self) -> dict[str, Any]:
         return {"max_open": self.max_open, "safety": self.safety, "backdate": self.backdate,
@@ -65,6 +90,7 @@ class MissionState:
     def __init__(self, inst: Instance, seed: int = 0, rules: Rules = Rules()):
         self.inst = inst
         self.rules = rules
+        self.open_cap = rules.open_cap(inst)  # max-open-task cap of this mission (None: no limit)
         self.rng = random.Random(seed)
         self.seed = seed
         A, M, K = inst.n_agents, inst.n_tasks, inst.skills
@@ -145,7 +171,7 @@ class MissionState:
         """bool [M]: tasks agent a may join now (ability, max-open and safety rules)."""
         ca = self.cap[a]  # [K]
         contrib = (np.minimum(self.rem, ca) > 0).any(1)  # [M] reduces a positive remaining entry
-        if self.rules.max_open is not None and self.n_open >= self.rules.max_open:
+        if self.open_cap is not None and self.n_open >= self.open_cap:
             contrib &= self.status == OPEN
         if self.rules.safety and contrib.any():
             contrib = self._safe(a, contrib)
@@ -519,6 +545,7 @@ class MissionState:
         self.inst = inst
         r = d["rules"]
         self.rules = Rules(r["max_open"], r["safety"], r["backdate"], math.inf if r["t_max"] is None else r["t_max"])
+        self.open_cap = self.rules.open_cap(inst)
         self.A, self.M, self.K = inst.n_agents, inst.n_tasks, inst.skills
         self.additive = inst.additive
         self.cap = np.array(inst.traits if self.additive else inst.traits > 0, dtype=np.float64)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from hmrta.baselines import GREEDY_RULES, Greedy, RandomPolicy
-from hmrta.core import DONE, HOME, MissionState, Rules
+from hmrta.core import DONE, HOME, OPEN, MissionState, Rules, team_cap
 from hmrta.generators import ScenarioGenerator
 from hmrta.instance import instance_from_dict
 from hmrta.sim import run, simulate
@@ -378,3 +378,47 @@ def test_clone_branches_independently():
         state.step(pol(state))
     assert solution_from_state(twin, "x", 7, 0.0).to_dict() == solution_from_state(full, "x", 7, 0.0).to_dict()
     assert solution_from_state(state, "x", 7, 0.0).to_dict() == solution_from_state(full, "x", 7, 0.0).to_dict()
+
+
+# ---- team-scaled max-open-task rule ---------------------------------------------------------------
+def test_team_cap_by_hand():
+    # 8 robots of trait sum 2 (mean 2); tasks need 2 and 6 in total: c = mean(1, 3) = 2, A / 2c = 2
+    inst = make("additive", 2, [([1, 1], 8, (0, 0))], [((3, 4), [1, 1], 1), ((6, 8), [3, 3], 1)])
+    assert team_cap(inst) == 2
+    # three robots, a task that needs all of them: A / 2c = 3 / 6 rounds to 0, the cap is at least 1
+    inst = make("additive", 2, [([1, 1], 3, (0, 0))], [((3, 4), [3, 3], 1)])
+    assert team_cap(inst) == 1
+    assert team_cap(make("additive", 1, [([1], 2, (1, 2))], [])) == 1  # no tasks
+    # the scale follows the mission: a large multi-skill team gets a larger cap than a single-skill one
+    big = ScenarioGenerator("MA-AT", 50, 5, 50, 5).instance(seed=1, index=0)
+    small = ScenarioGenerator("SA-AT", 9, 3, 20, 3).instance(seed=1, index=0)
+    assert team_cap(big) > 4 and team_cap(small) <= 2
+
+
+@pytest.mark.parametrize("scenario", ["SA-AT", "SA-BT", "MA-AT"])
+def test_team_rule_is_the_fixed_cap_of_the_mission(scenario):
+    from hmrta.baselines import CoalitionGreedy
+
+    for index in range(3):
+        inst = ScenarioGenerator(scenario, 15, 5, 20, 5).instance(seed=2, index=index)
+        cap = team_cap(inst)
+        team = MissionState(inst, seed=5, rules=Rules(max_open="team"))
+        fixed = run(inst, CoalitionGreedy(), 5, Rules(max_open=cap))
+        most = 0
+        pol = CoalitionGreedy()
+        while not team.done:
+            most = max(most, int((team.status == OPEN).sum()))
+            assert team.n_open <= cap
+            team.step(pol(team))
+        assert team.success and team.routes == fixed.routes and team.makespan == fixed.makespan
+        assert most <= cap
+    # the snapshot carries the rule by name and restores the mission's cap
+    snap = json.loads(json.dumps(team.snapshot()))
+    assert snap["rules"]["max_open"] == "team"
+    assert MissionState.from_snapshot(inst, snap).open_cap == cap
+
+
+@pytest.mark.parametrize("bad", [0, -1, "teams", 1.5, True])
+def test_bad_max_open_is_a_clear_error(bad):
+    with pytest.raises(ValueError, match="max_open: expected a positive integer, null"):
+        Rules(max_open=bad)

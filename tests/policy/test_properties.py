@@ -74,7 +74,8 @@ policies = st.one_of(
               st.sampled_from([GREEDY_RULES, dataclasses.replace(GREEDY_RULES, backdate=False)])),
     st.tuples(st.just("random"), st.integers(0, 1000),
               st.sampled_from([Rules(), Rules(max_open=1), Rules(max_open=2, backdate=True),
-                               Rules(max_open=2, backdate=False), Rules(backdate=False)])),
+                               Rules(max_open=2, backdate=False), Rules(backdate=False),
+                               Rules(max_open="team")])),
 )
 
 

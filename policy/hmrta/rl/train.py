@@ -140,6 +140,10 @@ def load_config(path: str | Path) -> dict:
     if raw.get("version", CONFIG_VERSION) != CONFIG_VERSION:
         raise ValueError(f"{p}: version: expected {CONFIG_VERSION}, got {raw['version']!r}")
     cfg = deep_update(DEFAULTS, raw)
+    try:
+        rules_from(cfg)
+    except ValueError as e:
+        raise ValueError(f"{p}: rules.{e}") from None
     if cfg["pretrain"]["teacher"] not in TEACHERS:
         raise ValueError(f"{p}: pretrain.teacher: expected one of {', '.join(TEACHERS)}, "
                          f"got {cfg['pretrain']['teacher']!r}")

@@ -495,6 +495,8 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\npretrain: {teacher: greedy-coalition, samples: 4, tau: 0.5}\n", "pretrain.samples needs hard targets"),
     ("version: 1\ndistill: {teacher: cpsat}\n", "distill.teacher: expected one of policy, greedy, greedy-coalition"),
     ("version: 1\ntrain: 3\n", "train: expected a mapping"),
+    ("version: 1\nrules: {max_open: teams}\n", "rules.max_open: expected a positive integer, null (no limit) or 'team'"),
+    ("version: 1\nrules: {max_open: 0}\n", "rules.max_open: expected a positive integer"),
     ("version: 2\n", "version: expected 1"),
     ("[1, 2]\n", "expected a mapping"),
 ])
