@@ -425,25 +425,28 @@ def test_shipped_checkpoint_solves():
         assert evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
 
 
-OPEN_CHECKPOINT = DEFAULT_CHECKPOINT.with_name("coalition-open.pt")
+CHECKPOINTS = [("default.pt", "team"), ("coalition-open.pt", None)]
 
 
-@pytest.mark.skipif(not OPEN_CHECKPOINT.exists(), reason="no alternative checkpoint")
-def test_alternative_checkpoint_runs_without_the_max_open_rule():
-    from hmrta.core import OPEN
+@pytest.mark.parametrize("name,max_open", CHECKPOINTS)
+def test_shipped_checkpoints_run_under_their_own_max_open_rule(name, max_open):
+    from hmrta.core import OPEN, team_cap
     from hmrta.methods import decider, solve
     from hmrta.solution import evaluate_routes
 
-    pol = load_policy(OPEN_CHECKPOINT)
-    assert pol.rules == Rules(max_open=None, safety=True)
+    path = DEFAULT_CHECKPOINT.with_name(name)
+    if not path.exists():
+        pytest.skip(f"no checkpoint {name}")
+    pol = load_policy(path)
+    assert pol.rules == Rules(max_open=max_open, safety=True)
     inst = ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(4242, 0)
-    sol = solve(inst, "rl", seed=0, checkpoint=str(OPEN_CHECKPOINT))
+    sol = solve(inst, "rl", seed=0, checkpoint=str(path))
     assert sol.success and evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
     state = MissionState(inst, seed=0, rules=pol.rules)
     rollout(pol.model, [state], sample=False)
     assert state.success and state.makespan == pytest.approx(sol.makespan)
 
-    decide, rules = decider("rl", checkpoint=str(OPEN_CHECKPOINT))
+    decide, rules = decider("rl", checkpoint=str(path))
     opened = []
 
     def watch(st):  # the number of open tasks at each decision
@@ -452,7 +455,9 @@ def test_alternative_checkpoint_runs_without_the_max_open_rule():
 
     live = run(inst, watch, 0, rules)
     assert live.makespan == pytest.approx(sol.makespan)
-    assert max(opened) > 2  # no cap: more open tasks than the default checkpoint's max_open = 2
+    assert max(opened) > 2  # more open tasks at once than greedy's max_open = 2
+    if max_open == "team":
+        assert team_cap(inst) > 2 and max(opened) <= team_cap(inst)
 
 
 def test_lookahead_is_never_worse_than_its_policy(model):
