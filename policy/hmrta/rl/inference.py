@@ -74,7 +74,10 @@ def load_policy(checkpoint: str | Path | None = None) -> LoadedPolicy:
         for p in model.parameters():
             p.requires_grad_(False)
         meta = {k: ck.get(k) for k in ("code_version", "iteration", "episodes", "best_val", "greedy_val", "summary")}
-        lp = LoadedPolicy(model, ck["config"], str(path), meta)
+        try:
+            lp = LoadedPolicy(model, ck["config"], str(path), meta)
+        except ValueError as e:  # e.g. rules.max_open out of range
+            raise CheckpointError(f"{path}: rules.{e}") from None
         _CACHE[key] = lp
         return lp
 

@@ -409,6 +409,11 @@ def test_mismatching_checkpoint_is_a_clear_error(tmp_path):
         load_policy(tmp_path / "junk.pt")
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         load_policy(tmp_path / "missing.pt")
+    bad = copy.deepcopy(ck)
+    bad["config"]["rules"]["max_open"] = "teams"
+    torch.save(bad, tmp_path / "rules.pt")
+    with pytest.raises(CheckpointError, match=re.escape("rules.max_open: expected a positive integer, null")):
+        load_policy(tmp_path / "rules.pt")
 
 
 @pytest.mark.skipif(not DEFAULT_CHECKPOINT.exists(), reason="no shipped checkpoint")
