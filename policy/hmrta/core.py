@@ -79,6 +79,14 @@ class Rules:
         """The max-open-task cap this mission runs under (None: no limit)."""
         return team_cap(inst) if self.max_open == "team" else self.max_open
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Rules":
+        """Inverse of :meth:`to_dict`; missing keys take their defaults (configs name only max_open
+        and safety). Raises ValueError for an invalid max_open."""
+        t_max = d.get("t_max")
+        return cls(max_open=d.get("max_open"), safety=d.get("safety", True), backdate=d.get("backdate", True),
+                   t_max=math.inf if t_max is None else t_max)
+
     def to_dict(self) -> dict[str, Any]:
         return {"max_open": self.max_open, "safety": self.safety, "backdate": self.backdate,
                 "t_max": None if math.isinf(self.t_max) else self.t_max}
@@ -543,8 +551,7 @@ class MissionState:
     def from_snapshot(cls, inst: Instance, d: dict[str, Any]) -> "MissionState":
         self = cls.__new__(cls)
         self.inst = inst
-        r = d["rules"]
-        self.rules = Rules(r["max_open"], r["safety"], r["backdate"], math.inf if r["t_max"] is None else r["t_max"])
+        self.rules = Rules.from_dict(d["rules"])
         self.open_cap = self.rules.open_cap(inst)
         self.A, self.M, self.K = inst.n_agents, inst.n_tasks, inst.skills
         self.additive = inst.additive

@@ -37,8 +37,7 @@ class CheckpointError(ValueError):
 class LoadedPolicy:
     def __init__(self, model: PolicyNet, config: dict, path: str, meta: dict):
         self.model, self.config, self.path, self.meta = model, config, path, meta
-        r = config.get("rules", {})
-        self.rules = Rules(max_open=r.get("max_open"), safety=r.get("safety", True))
+        self.rules = Rules.from_dict(config.get("rules", {}))
 
 
 def checkpoint_path(checkpoint: str | Path | None = None) -> Path:

@@ -179,8 +179,7 @@ def code_version() -> str:
 
 def rules_from(cfg: dict) -> Rules:
     """State-machine rules of a config (the same in training and at inference)."""
-    r = cfg["rules"]
-    return Rules(max_open=r.get("max_open"), safety=r.get("safety", True))
+    return Rules.from_dict(cfg["rules"])
 
 
 def validation_set(cfg: dict) -> list:
