@@ -14,8 +14,9 @@ import random
 import numpy as np
 
 from .core import IN_PROGRESS, LOST, OPEN, TASK, MissionState, Rules
+from .sim import simulate
 
-# max_open=2 was the best of {1, 2, 3, 5, none} on seed-1 sets of six paper rows (README, "Greedy").
+# max_open=2 was the best of {1, 2, 3, 5, none} on seed-1 sets of six paper rows (docs/semantics.md).
 GREEDY_RULES = Rules(max_open=2, safety=True)
 
 
@@ -113,3 +114,31 @@ class RandomPolicy:
         nodes = np.flatnonzero(state.mask())
         w = [self.depot_weight if n == 0 else 1.0 for n in nodes]
         return int(self.rng.choices(list(nodes), weights=w)[0])
+
+
+RANDOM_RULES = Rules()  # the random policy explores the unrestricted state machine
+
+
+# --- entry points of the method table (hmrta.methods.METHODS) ---------------------------------
+def solve_greedy(inst, seed: int = 0):
+    return simulate(inst, Greedy(), seed, GREEDY_RULES, "greedy")
+
+
+def solve_greedy_coalition(inst, seed: int = 0):
+    return simulate(inst, CoalitionGreedy(), seed, GREEDY_RULES, "greedy-coalition")
+
+
+def solve_random(inst, seed: int = 0):
+    return simulate(inst, RandomPolicy(seed), seed, RANDOM_RULES, "random")
+
+
+def greedy_decider(seed: int = 0) -> Greedy:
+    return Greedy()
+
+
+def coalition_decider(seed: int = 0) -> CoalitionGreedy:
+    return CoalitionGreedy()
+
+
+def random_decider(seed: int = 0) -> RandomPolicy:
+    return RandomPolicy(seed)

@@ -1,98 +1,242 @@
-"""Named solution methods: one place that maps a method name to a solver.
+"""The method table: one record per solution method, the single source of method names.
 
-``solve(inst, method, seed, **options) -> Solution``. Built in: ``greedy``, ``greedy-coalition``,
-``random``; the learned
-policy adds ``rl`` (greedy decoding), ``rl-sN`` / ``rl-sample`` (N sampled rollouts, best kept) and
-``rl-lookahead`` (one-step lookahead over the policy's own greedy continuations);
-the CP-SAT solver adds ``cpsat``. Each solver module registers itself with :func:`register`.
+Each :class:`Method` says how the method solves a whole mission offline (``solve``), how it decides
+one step live on a robot (``decide``, None when it has no per-decision form), the state-machine
+rules it runs under, its options (name, type, default, help) and what it needs installed. The
+``hmrta`` CLI's ``--method`` choices and option flags, ``hmrta-mission``, the ROS nodes' parameters
+and the launch files' help are all generated from :data:`METHODS`.
+
+Entry points are named as ``"module:attribute"`` strings and imported on first use, so that this
+module (and the task board, which only needs :func:`rules`) never imports torch or ortools.
+
+``rl-sN`` is shorthand for ``rl-sample`` with ``samples=N`` in method lists (``bench --methods
+greedy,rl,rl-s10``); :func:`parse` is the one place that reads it, :func:`label` the one place that
+writes it.
 """
 from __future__ import annotations
 
-import functools
 import importlib
+import inspect
 import re
+from dataclasses import dataclass
 from typing import Any, Callable
 
-from .instance import Instance
-from .solution import Solution
+from .deps import require
+from .errors import MethodError
 
-Solver = Callable[..., Solution]
-_REGISTRY: dict[str, Solver] = {}
-# modules imported lazily the first time one of their methods is asked for
-_LAZY = {"rl": "hmrta.rl.inference", "rl-sample": "hmrta.rl.inference", "rl-lookahead": "hmrta.rl.inference",
-         "cpsat": "hmrta.solvers.cpsat"}
+__all__ = ["METHODS", "Method", "MethodError", "Option", "decider", "label", "parse", "rules", "solve"]
 
 
-class MethodError(ValueError):
-    """Unknown method name or bad method option (a user error)."""
+@dataclass(frozen=True)
+class Option:
+    """A method option: CLI flag ``--<name with dashes>``, ROS parameter ``<name>``."""
+
+    name: str
+    type: type  # int | float | str
+    default: Any
+    help: str
+    choices: tuple[str, ...] | None = None
+    minimum: float | None = None  # smallest value allowed (numbers)
+    live: bool = True  # also an option of the per-decision (ROS agent) form
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    def coerce(self, method: str, value: Any) -> Any:
+        """``value`` as this option's type, or MethodError naming the method and the option."""
+        try:
+            if self.type is int and (isinstance(value, bool) or (isinstance(value, float) and not value.is_integer())):
+                raise ValueError
+            v = self.type(value)
+        except (TypeError, ValueError):
+            raise MethodError(f"{method}: option {self.name}: expected {self.type.__name__}, got {value!r}") from None
+        if self.choices is not None and v not in self.choices:
+            raise MethodError(f"{method}: option {self.name}: expected one of {', '.join(self.choices)}, got {v!r}")
+        if self.minimum is not None and not v >= self.minimum:  # NaN fails too
+            raise MethodError(f"{method}: option {self.name}: expected a number >= {self.minimum}, got {value!r}")
+        return v
 
 
-def register(name: str, fn: Solver) -> None:
-    _REGISTRY[name] = fn
+@dataclass(frozen=True)
+class Method:
+    name: str
+    summary: str  # one line, for --help
+    solve: str | Callable  # "module:function"(inst, seed=0, **options) -> Solution
+    decide: str | None = None  # "module:function"(seed=0, **options) -> decide(state) -> node
+    rules: str = "hmrta.baselines:GREEDY_RULES"  # "module:attr": Rules, or a function(**options) -> Rules
+    options: tuple[Option, ...] = ()
+    needs: tuple[str, ...] = ()  # optional modules it imports (see hmrta.deps.EXTRAS)
+
+    def option(self, name: str) -> Option | None:
+        return next((o for o in self.options if o.name == name), None)
+
+    def check(self, options: dict[str, Any], live: bool = False) -> dict[str, Any]:
+        """Validated and typed options; an option this method does not take is a MethodError."""
+        out = {}
+        for k, v in options.items():
+            o = self.option(k)
+            if o is None or (live and not o.live):
+                takes = [x.name for x in self.options if x.live or not live]
+                raise MethodError(f"method {self.name} takes no option {k!r}"
+                                  + (f" (it takes: {', '.join(takes)})" if takes else " (it takes no options)"))
+            out[k] = v if v is None and k == "checkpoint" else o.coerce(self.name, v)
+        return out
 
 
-def parse(method: str) -> tuple[str, dict[str, Any]]:
-    """'rl-s10' -> ('rl-sample', {'samples': 10}); other names map to themselves."""
-    m = re.fullmatch(r"rl-s(\d+)", method)
-    if m:
-        return "rl-sample", {"samples": int(m.group(1))}
-    return method, {}
+CHECKPOINT = Option("checkpoint", str, None, "policy checkpoint file (default: the shipped one, or $HMRTA_CHECKPOINT)")
+_RL = dict(rules="hmrta.rl.checkpoint_info:checkpoint_rules", needs=("torch",))
+
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("greedy", "the nearest admissible task, the cheap rule",
+           "hmrta.baselines:solve_greedy", "hmrta.baselines:greedy_decider"),
+    Method("greedy-coalition", "the task whose coalition can start first",
+           "hmrta.baselines:solve_greedy_coalition", "hmrta.baselines:coalition_decider"),
+    Method("random", "a seeded random admissible task, for tests",
+           "hmrta.baselines:solve_random", "hmrta.baselines:random_decider", rules="hmrta.baselines:RANDOM_RULES"),
+    Method("rl", "learned policy, greedy decoding: RL(g.)",
+           "hmrta.rl.inference:solve_rl", "hmrta.rl.inference:rl_decider", options=(CHECKPOINT,), **_RL),
+    Method("rl-sample", "learned policy, N sampled rollouts, best kept: RL(s.N); live: sampled decoding",
+           "hmrta.rl.inference:solve_rl_sample", "hmrta.rl.inference:sample_decider",
+           options=(Option("samples", int, 10, "sampled rollouts per mission (offline; rl-sN is shorthand)",
+                           minimum=1, live=False), CHECKPOINT), **_RL),
+    Method("rl-lookahead", "one-step lookahead over the policy's greedy continuations: slower, better",
+           "hmrta.rl.inference:solve_rl_lookahead", "hmrta.rl.inference:lookahead_decider",
+           options=(CHECKPOINT,), **_RL),
+    Method("cpsat", "anytime exact solver: list scheduler, annealing and CP-SAT; offline only",
+           "hmrta.solvers.cpsat:solve_cpsat", None, rules="hmrta.baselines:RANDOM_RULES",
+           options=(Option("time_limit", float, 60.0, "seconds per mission", minimum=0.01),
+                    Option("warm_start", str, "none", "start from this method's solution",
+                           choices=("none", "greedy", "rl")),
+                    Option("workers", int, 2, "parallel search workers", minimum=1),
+                    Option("heuristic_seconds", float, None,
+                           "seconds of list scheduling and annealing before CP-SAT (default: a quarter of the limit)",
+                           minimum=0.0)),
+           needs=("ortools",)),
+)}
 
 
-def get(method: str) -> Solver:
-    if method not in _REGISTRY and method in _LAZY:
-        importlib.import_module(_LAZY[method])
-    if method not in _REGISTRY:
-        known = sorted(set(_REGISTRY) | set(_LAZY) | {"rl-sN"})
-        raise MethodError(f"unknown method {method!r} (expected one of {', '.join(known)})")
-    return _REGISTRY[method]
+def _resolve(target: str | Callable) -> Any:
+    if not isinstance(target, str):
+        return target
+    module, _, attr = target.partition(":")
+    return getattr(importlib.import_module(module), attr)
 
 
-def solve(inst: Instance, method: str, seed: int = 0, **options: Any) -> Solution:
-    base, implied = parse(method)
-    sol = get(base)(inst, seed=seed, **{**implied, **options})
-    sol.method = method
+def get(name: str) -> Method:
+    """The record of ``name`` (not a shorthand), or MethodError listing the known names."""
+    try:
+        return METHODS[name]
+    except KeyError:
+        raise MethodError(f"unknown method {name!r} (expected one of {', '.join(METHODS)}, or rl-sN)") from None
+
+
+def parse(spec: str) -> tuple[str, dict[str, Any]]:
+    """A method spec -> (name, options it implies): 'rl-s10' -> ('rl-sample', {'samples': 10})."""
+    m = re.fullmatch(r"rl-s(\d+)", spec)
+    name, implied = ("rl-sample", {"samples": int(m.group(1))}) if m else (spec, {})
+    get(name)
+    return name, implied
+
+
+def label(name: str, options: dict[str, Any] | None = None) -> str:
+    """How results name a method: 'rl-sample' with samples=N -> 'rl-sN' (the paper's RL(s.N))."""
+    if name == "rl-sample":
+        return f"rl-s{(options or {}).get('samples') or get(name).option('samples').default}"
+    return name
+
+
+def options_for(spec: str, options: dict[str, Any]) -> dict[str, Any]:
+    """Of shared options (e.g. a bench over several methods), those method ``spec`` takes."""
+    m = get(parse(spec)[0])
+    return {k: v for k, v in options.items() if m.option(k) is not None}
+
+
+def _needs(m: Method) -> None:
+    for mod in m.needs:
+        require(mod, f"method {m.name}")
+
+
+def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **options: Any):
+    """Solve ``inst`` with ``method`` (a name or shorthand) -> Solution (``sol.method`` = its label).
+    ``progress`` (optional) is passed to solvers that report progress."""
+    name, implied = parse(method)
+    m = get(name)
+    opts = m.check({**implied, **{k: v for k, v in options.items() if v is not None}})
+    _needs(m)
+    fn = _resolve(m.solve)
+    if progress is not None and "progress" in inspect.signature(fn).parameters:
+        opts["progress"] = progress
+    sol = fn(inst, seed=seed, **opts)
+    sol.method = label(name, opts)
     return sol
 
 
-def _baseline(name: str, inst: Instance, seed: int = 0, **_: Any) -> Solution:
-    from .baselines import BASELINES, GREEDY_RULES
-    from .sim import simulate
-
-    return simulate(inst, BASELINES[name](), seed, GREEDY_RULES, name)
-
-
-def _random(inst: Instance, seed: int = 0, **_: Any) -> Solution:
-    from .baselines import RandomPolicy
-    from .core import Rules
-    from .sim import simulate
-
-    return simulate(inst, RandomPolicy(seed), seed, Rules(), "random")
-
-
-for _name in ("greedy", "greedy-coalition"):  # = baselines.BASELINES (not imported here: keep start-up lean)
-    register(_name, functools.partial(_baseline, _name))
-register("random", _random)
+def rules(method: str, **options: Any):
+    """The state-machine rules ``method`` runs under (for rl methods: its checkpoint's, read from
+    the checkpoint's config without building the network or importing torch)."""
+    name, _ = parse(method)
+    m = get(name)
+    opts = m.check({k: v for k, v in options.items() if v is not None and k == "checkpoint"})
+    r = _resolve(m.rules)
+    return r(**opts) if callable(r) else r
 
 
 def decider(method: str, seed: int = 0, **options: Any):
-    """A per-decision policy for live use (ROS agents): returns ``(decide, rules)`` where
-    ``decide(state) -> node`` and ``rules`` are the state-machine rules it must run under.
+    """A per-decision policy for live use (ROS agents): ``(decide, rules)`` where
+    ``decide(state) -> node`` and ``rules`` are the state-machine rules it must run under."""
+    name, implied = parse(method)
+    m = get(name)
+    if m.decide is None:
+        live = [k for k, v in METHODS.items() if v.decide is not None]
+        raise MethodError(f"method {name} has no per-decision form (live methods: {', '.join(live)})")
+    opts = m.check({**implied, **{k: v for k, v in options.items() if v is not None}}, live=True)
+    _needs(m)
+    return _resolve(m.decide)(seed=seed, **opts), rules(name, **opts)
 
-    ``greedy`` / ``greedy-coalition`` -> the baselines; ``rl`` / ``rl-sample`` -> the learned policy (greedy or
-    sampled decoding; options: ``checkpoint``, ``seed``); ``rl-lookahead`` -> one-step lookahead
-    over the learned policy (option: ``checkpoint``)."""
-    base, implied = parse(method)
-    if base in ("greedy", "greedy-coalition"):
-        from .baselines import BASELINES, GREEDY_RULES
 
-        return BASELINES[base](), GREEDY_RULES
-    if base in ("rl", "rl-sample"):
-        from .rl.inference import rl_decider
+def live_methods() -> list[str]:
+    return [k for k, v in METHODS.items() if v.decide is not None]
 
-        return rl_decider(sample=base == "rl-sample", seed=seed, **options)
-    if base == "rl-lookahead":
-        from .rl.inference import lookahead_decider
 
-        return lookahead_decider(**options)
-    raise MethodError(f"method {method!r} has no per-decision form (expected greedy, greedy-coalition, rl, rl-sample or rl-lookahead)")
+def live_options() -> dict[str, Option]:
+    """Every option some live method takes (the ROS agents' and the launcher's parameters)."""
+    out: dict[str, Option] = {}
+    for m in METHODS.values():
+        if m.decide is not None:
+            for o in m.options:
+                if o.live:
+                    out.setdefault(o.name, o)
+    return out
+
+
+def help_text(names: list[str] | None = None) -> str:
+    """'greedy: the nearest ... | rl: ... | ...' for --help."""
+    return " | ".join(f"{k}: {METHODS[k].summary}" for k in (names or METHODS))
+
+
+def add_arguments(parser, live: bool = False, default: str = "greedy", methods_flag: bool = False) -> None:
+    """Add ``--method`` (or ``--methods``) and one flag per method option to an argparse parser;
+    read them back with :func:`options_from_args`."""
+    names = live_methods() if live else list(METHODS)
+    if methods_flag:
+        parser.add_argument("--methods", default=default,
+                            help="comma list of methods (rl-sN = rl-sample with N samples): " + help_text(names))
+    else:
+        parser.add_argument("--method", default=default, metavar="METHOD",
+                            help=help_text(names) + "; rl-sN = rl-sample with N samples")
+    seen: dict[str, tuple[Option, list[str]]] = {}
+    for k in names:
+        for o in METHODS[k].options:
+            if o.live or not live:
+                seen.setdefault(o.name, (o, []))[1].append(k)
+    for name, (o, users) in seen.items():
+        default_text = "" if o.default is None else f"; default {o.default}"
+        parser.add_argument(o.flag, dest=name, type=o.type, default=None, choices=o.choices,
+                            help=f"{', '.join(users)}: {o.help}{default_text}")
+
+
+def options_from_args(args) -> dict[str, Any]:
+    """The method options given on the command line (those left unset are omitted)."""
+    names = {o.name for m in METHODS.values() for o in m.options}
+    return {k: getattr(args, k) for k in names if getattr(args, k, None) is not None}

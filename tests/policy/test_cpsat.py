@@ -2,6 +2,7 @@
 behaviour (never worse than its warm start), consistent re-evaluation, hint feasibility."""
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import itertools
 import math
@@ -144,7 +145,7 @@ def test_warm_start_kept_when_model_has_no_time(monkeypatch):
     def fake_rl(inst_, seed=0, **_):
         return evaluate_routes(inst_, good.routes, "rl", seed)
 
-    monkeypatch.setitem(methods._REGISTRY, "rl", fake_rl)
+    monkeypatch.setitem(methods.METHODS, "rl", dataclasses.replace(methods.METHODS["rl"], solve=fake_rl))
     sol = solve(inst, "cpsat", seed=1, time_limit=0.3, warm_start="rl", heuristic_seconds=0.0)
     assert sol.makespan <= good.makespan + 1e-9
     assert sol.extra["warm_start_makespan"] == pytest.approx(good.makespan)
@@ -154,11 +155,11 @@ def test_rl_warm_start_failure_is_a_method_error(monkeypatch):
     def broken(inst_, seed=0, **_):
         raise FileNotFoundError("no checkpoint")
 
-    monkeypatch.setitem(methods._REGISTRY, "rl", broken)
+    monkeypatch.setitem(methods.METHODS, "rl", dataclasses.replace(methods.METHODS["rl"], solve=broken))
     inst = _tiny(TINY[0])
     with pytest.raises(MethodError, match="warm-start rl"):
         solve(inst, "cpsat", seed=0, time_limit=1, warm_start="rl")
-    with pytest.raises(MethodError, match="warm start"):
+    with pytest.raises(MethodError, match="warm_start: expected one of none, greedy, rl"):
         solve(inst, "cpsat", seed=0, time_limit=1, warm_start="bogus")
 
 

@@ -1,6 +1,6 @@
 """Exact / anytime CP-SAT solver for the full problem (SPEC §1, route semantics of §3).
 
-Registered as method ``cpsat``: ``solve(inst, 'cpsat', seed, time_limit=60, warm_start=None,
+Method ``cpsat`` of :data:`hmrta.methods.METHODS`: ``solve(inst, 'cpsat', seed, time_limit=60, warm_start=None,
 workers=2)``. The returned :class:`~hmrta.solution.Solution` is always the core's re-evaluation
 (:func:`hmrta.solution.evaluate_routes`, exact float arithmetic) of per-agent routes; ``extra``
 carries ``status`` (optimal / feasible / none), ``lower_bound``, ``objective`` and solver details.
@@ -38,7 +38,7 @@ Phases (all within ``time_limit`` seconds of wall time):
 2. CP-SAT (``workers`` threads) on the model above, hinted with the best solution so far, for the
    rest of the time.
 The result is the best of all of them, re-evaluated, so never worse than the warm start. Models
-with more than ``max_arcs`` species arcs (about 110 tasks with 5 species) are not built: the whole
+with more than ``MAX_ARCS`` species arcs (about 110 tasks with 5 species) are not built: the whole
 time goes to the heuristic, the status is ``none`` and the bound is the cheap one.
 
 Rounding: every model time is >= 1000 x the float time, so the re-evaluated makespan of the
@@ -52,13 +52,12 @@ from __future__ import annotations
 
 import math
 import time
-from fractions import Fraction
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from ..instance import Instance
-from ..methods import MethodError, register
+from ..errors import MethodError
 from ..solution import Solution, evaluate_routes
 from .listsched import SerialDecoder, best_list_schedule, order_of, parallel_anneal, prune_routes
 
@@ -408,6 +407,10 @@ def _extract(D: _Data, solver, start, f) -> list[list[int]]:
 # ---------------------------------------------------------------------------------------------
 # method
 # ---------------------------------------------------------------------------------------------
+MAX_ARCS = 60_000  # larger models are not built (all the time goes to the heuristic)
+LOG_SEARCH = False  # CP-SAT's own search log on stdout (for debugging the model)
+
+
 def _warm(inst: Instance, warm_start: str | None, seed: int) -> Solution | None:
     from ..methods import solve
 
@@ -432,11 +435,24 @@ def _reeval(inst: Instance, sol: Solution | None, seed: int) -> Solution | None:
         return None
 
 
+def _ProgressCallback(report: Callable[[str], None]):
+    """A CP-SAT solution callback reporting every improving solution of the scaled model."""
+    from ortools.sat.python import cp_model
+
+    class _CB(cp_model.CpSolverSolutionCallback):
+        def on_solution_callback(self) -> None:
+            obj, bound = self.ObjectiveValue() / SCALE, self.BestObjectiveBound() / SCALE
+            report(f"CP-SAT solution {obj:.3f}, model bound {bound:.3f}")
+
+    return _CB()
+
+
 def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_start: str | None = None,
-                workers: int = 2, heuristic_seconds: float | None = None, log: bool = False,
-                max_arcs: int = 60_000,
-                **_: Any) -> Solution:
-    """Anytime CP-SAT solve; see the module docstring."""
+                workers: int = 2, heuristic_seconds: float | None = None,
+                progress: Callable[..., None] | None = None) -> Solution:
+    """Anytime CP-SAT solve; see the module docstring. ``progress(done, total, unit, note)``, if
+    given, is called with the seconds spent out of the time limit (unit "s") at every phase and
+    every improving CP-SAT solution, the note naming the best makespan so far."""
     from ortools.sat.python import cp_model
 
     from ..bounds import lower_bounds
@@ -461,11 +477,17 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     warm_eval = _reeval(inst, warm, seed)
     cands = [c for c in (warm_eval, _reeval(inst, solve(inst, "greedy", seed), seed)) if c is not None]
     n_arcs = sum((len(u) + 1) ** 2 for u in D.useful)
-    too_big = n_arcs > max_arcs  # then no model: all the time goes to the heuristic
+    too_big = n_arcs > MAX_ARCS  # then no model: all the time goes to the heuristic
     hs = heuristic_seconds if heuristic_seconds is not None else 0.25 * time_limit
     if too_big:
         hs = max(0.0, time_limit - (time.perf_counter() - t0) - 0.5)
     best0 = min(cands, key=lambda c: c.makespan) if cands else None
+
+    def report(note: str) -> None:
+        if progress is not None:
+            progress(time.perf_counter() - t0, float(time_limit), "s", note)
+
+    report("heuristic" + (f", best {best0.makespan:.3f}" if best0 is not None else ""))
     ls = best_list_schedule(inst, seed, min(1.0, 0.1 * hs), incumbent=best0)
     if ls is not None:
         cands.append(ls)
@@ -492,7 +514,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
         out = evaluate_routes(inst, [list(r) for r in best.routes], "cpsat", seed)
         out.compute_seconds = time.perf_counter() - t0
         out.extra.update({"status": "none", "lower_bound": float(cheap), "objective": None,
-                          "note": f"model not built: {n_arcs} arcs > max_arcs={max_arcs}; heuristic solution",
+                          "note": f"model not built: {n_arcs} arcs > MAX_ARCS={MAX_ARCS}; heuristic solution",
                           "time_limit": float(time_limit), "workers": int(workers),
                           "warm_start": warm_start,
                           "warm_start_makespan": None if warm_eval is None else float(warm_eval.makespan),
@@ -506,9 +528,10 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     solver.parameters.max_time_in_seconds = remaining
     solver.parameters.num_workers = int(workers)
     solver.parameters.random_seed = int(seed)
-    solver.parameters.log_search_progress = bool(log)
+    solver.parameters.log_search_progress = LOG_SEARCH
+    report(f"CP-SAT, best {min(c.makespan for c in cands):.3f}" if cands else "CP-SAT")
     t1 = time.perf_counter()
-    code = solver.Solve(md)
+    code = solver.Solve(md, _ProgressCallback(report) if progress is not None else None)
     solve_wall = time.perf_counter() - t1
     status = {cp_model.OPTIMAL: "optimal", cp_model.FEASIBLE: "feasible"}.get(code, "none")
     slack = D.slack()
@@ -529,6 +552,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     out = evaluate_routes(inst, [list(r) for r in best.routes], "cpsat", seed)
     out.compute_seconds = time.perf_counter() - t0
     lb = max(cheap, solver_lb)
+    report(f"{status}, makespan {out.makespan:.3f}, bound {lb:.3f}")
     out.extra.update({
         "status": status,
         "lower_bound": float(lb),
@@ -547,5 +571,3 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     })
     return out
 
-
-register("cpsat", solve_cpsat)

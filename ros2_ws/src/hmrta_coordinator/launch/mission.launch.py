@@ -2,22 +2,23 @@
 agent node per robot (own process, namespace /robot_<i>). The launch ends when the board does.
 
     ros2 launch hmrta_coordinator mission.launch.py instance:=/path/mission.yaml seed:=1 \\
-        output:=/tmp/mission.json policy:=greedy time_scale:=5.0
+        output:=/tmp/mission.json method:=greedy time_scale:=5.0
 
 ``instance`` defaults to the built-in example mission. For a real fleet, list the robots that
-are not simulated in ``external`` (comma-separated) and remap their topics (see the README).
+are not simulated in ``external`` (comma-separated) and remap their topics (see docs/ros.md).
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+from hmrta import methods
+
 ARGS = {
     "instance": ("", "mission file (hmrta-instance/1 YAML or CTAS-D config.json); empty: the example"),
     "seed": ("0", "episode seed (decision order)"),
-    "policy": ("greedy", "greedy | rl"),
-    "decoding": ("greedy", "greedy | sample (rl only)"),
-    "checkpoint": ("", "policy checkpoint for rl (empty: the shipped one)"),
+    "method": ("greedy", methods.help_text(methods.live_methods())),
+    **{o.name: ("" if o.default is None else str(o.default), o.help) for o in methods.live_options().values()},
     "output": ("mission.json", "where the task board writes the hmrta-solution/1 JSON"),
     "time_scale": ("0.0", "sim seconds per wall second (0: as fast as possible)"),
     "external": ("", "comma-separated robots driven outside (not simulated)"),
@@ -29,15 +30,15 @@ def _nodes(context):
     from pathlib import Path
 
     import hmrta
-    from hmrta.instance import load_instance
+    from hmrta.formats import load_instance
 
     arg = {k: LaunchConfiguration(k).perform(context) for k in ARGS}
     instance = arg["instance"] or str(Path(hmrta.__file__).resolve().parent / "data" / "example.yaml")
     inst = load_instance(instance)
     robots = [f"robot_{a}" for a in range(inst.n_agents)]
     external = [r.strip() for r in arg["external"].split(",") if r.strip()]
-    common = {"seed": int(arg["seed"]), "policy": arg["policy"], "decoding": arg["decoding"],
-              "checkpoint": arg["checkpoint"]}
+    common = {"seed": int(arg["seed"]), "method": arg["method"],
+              **{k: o.type(arg[k]) for k, o in methods.live_options().items() if arg[k] != ""}}
     board = Node(package="hmrta_coordinator", executable="task_board", name="task_board", output="screen",
                  parameters=[{"instance": instance, "output": arg["output"], "robot_names": robots,
                               "heartbeat_timeout": float(arg["heartbeat_timeout"]), **common}],

@@ -29,14 +29,38 @@ def local_env(env: dict[str, str] | None = None, domain_id: int | None = None) -
     return out
 
 
-def method_name(policy: str, decoding: str = "greedy") -> str:
-    """The ``policy`` / ``decoding`` node parameters -> an hmrta method name for
-    :func:`hmrta.methods.decider`: ('rl', 'sample') -> 'rl-sample'; others map to ``policy``."""
-    from hmrta.methods import MethodError
+def _param_default(o) -> object:
+    """A ROS parameter's default for a method option (ROS has no None: empty string / 0)."""
+    if o.default is not None:
+        return o.default
+    return {str: "", int: 0, float: 0.0}[o.type]
 
-    if decoding not in ("greedy", "sample"):
-        raise MethodError(f"decoding: expected greedy or sample, got {decoding!r}")
-    return "rl-sample" if policy == "rl" and decoding == "sample" else policy
+
+def declare_method_parameters(node) -> tuple[str, dict]:
+    """Declare ``method`` and every live method option (from :data:`hmrta.methods.METHODS`) on
+    ``node``; return the method and the options given (unset ones omitted). Raises MethodError
+    for an unknown method or an option it does not take."""
+    from hmrta.methods import get, live_options, parse
+
+    method = node.declare_parameter("method", "greedy").value
+    name, implied = parse(method)
+    rec = get(name)
+    opts = dict(implied)
+    for o in live_options().values():
+        value = node.declare_parameter(o.name, _param_default(o)).value
+        if value != _param_default(o):
+            opts[o.name] = value
+    return method, rec.check(opts, live=True)
+
+
+def method_parameters_help() -> str:
+    """The ROS parameters of :func:`declare_method_parameters`, for ``--help``."""
+    from hmrta.methods import help_text, live_methods, live_options
+
+    lines = [f"  method (string, default greedy): {help_text(live_methods())}"]
+    for o in live_options().values():
+        lines.append(f"  {o.name} ({o.type.__name__}, default {_param_default(o)!r}): {o.help}")
+    return "\n".join(lines)
 
 
 def make_executor():

@@ -1,0 +1,91 @@
+"""What a checkpoint says about itself, read without torch: its resolved config and its rules.
+
+A checkpoint is a torch zip archive whose ``data.pkl`` holds a dict (``model``, ``config``, ...).
+This module reads that pickle with a whitelist unpickler that knows only the few globals torch
+writes for plain state dicts (tensors become ``None``; their storages are never read), so the
+task board and other torch-free processes learn the rules a policy was trained under without
+building the network. Anything else in the pickle (a global outside the whitelist, as a file
+crafted to run code would need) is refused with a :class:`CheckpointError`.
+"""
+from __future__ import annotations
+
+import functools
+import io
+import os
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+from ..errors import MethodError
+
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "default.pt"
+
+# (module, name) pairs torch.save writes for a dict of tensors and plain data
+_ALLOWED = {("collections", "OrderedDict"), ("torch._utils", "_rebuild_tensor_v2"),
+            ("torch._utils", "_rebuild_parameter"), ("torch", "Size")}
+
+
+class CheckpointError(MethodError):
+    """Missing, unreadable or incompatible checkpoint (a user error)."""
+
+
+def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
+    """The checkpoint file an rl method uses: the given one, $HMRTA_CHECKPOINT, or the shipped one."""
+    return Path(checkpoint or os.environ.get("HMRTA_CHECKPOINT") or DEFAULT_CHECKPOINT)
+
+
+class _Unpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) == ("collections", "OrderedDict"):
+            return dict
+        if (module, name) in _ALLOWED or (module == "torch" and name.endswith("Storage")):
+            return _tensor_placeholder
+        raise pickle.UnpicklingError(f"global {module}.{name} is not allowed in a checkpoint")
+
+    def persistent_load(self, pid: Any) -> None:  # tensor storages: not read
+        return None
+
+
+def _tensor_placeholder(*_: Any, **__: Any) -> None:
+    return None
+
+
+@functools.lru_cache(maxsize=16)
+def _read(path: str, mtime_ns: int) -> dict:
+    try:
+        with zipfile.ZipFile(path) as z:
+            pkl = [n for n in z.namelist() if n.endswith("/data.pkl") or n == "data.pkl"]
+            if len(pkl) != 1:
+                raise CheckpointError(f"{path}: not an hmrta checkpoint (no single data.pkl in the archive)")
+            data = _Unpickler(io.BytesIO(z.read(pkl[0]))).load()
+    except CheckpointError:
+        raise
+    except (zipfile.BadZipFile, pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
+            IndexError, KeyError, RecursionError, MemoryError) as e:
+        raise CheckpointError(f"{path}: not a readable hmrta checkpoint ({type(e).__name__}: {e})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("config"), dict):
+        raise CheckpointError(f"{path}: not an hmrta checkpoint (expected a dict with a 'config' mapping)")
+    return data
+
+
+def read_config(checkpoint: str | Path | None = None) -> dict:
+    """The resolved training config stored in a checkpoint (no torch needed)."""
+    path = checkpoint_path(checkpoint)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint (train one with `hmrta train`)")
+    return _read(str(path.resolve()), path.stat().st_mtime_ns)["config"]
+
+
+def checkpoint_rules(checkpoint: str | Path | None = None):
+    """The state-machine rules the checkpoint's policy was trained under and must run under."""
+    from ..core import Rules
+
+    path = checkpoint_path(checkpoint)
+    rules = read_config(path).get("rules", {})
+    if not isinstance(rules, dict):
+        raise CheckpointError(f"{path}: rules: expected a mapping, got {type(rules).__name__}")
+    try:
+        return Rules.from_dict(rules)
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(f"{path}: rules.{e}") from None

@@ -1,0 +1,185 @@
+"""The method table: every record is truthful (entry points exist and take exactly the declared
+options), option errors name the method, shorthands parse in one place, rules are read without
+torch, and the core's modules import each other without cycles."""
+from __future__ import annotations
+
+import ast
+import inspect
+import io
+import pickle
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from hmrta import methods
+from hmrta.baselines import GREEDY_RULES
+from hmrta.core import Rules
+from hmrta.instance import load_instance
+from hmrta.methods import METHODS, MethodError
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "policy" / "hmrta" / "data" / "example.yaml"
+CHECKPOINTS = sorted((ROOT / "policy" / "hmrta" / "checkpoints").glob("*.pt"))
+
+
+@pytest.mark.parametrize("name", list(METHODS))
+def test_entry_points_take_exactly_the_declared_options(name):
+    m = METHODS[name]
+    pytest.importorskip(m.needs[0]) if m.needs else None
+    params = set(inspect.signature(methods._resolve(m.solve)).parameters) - {"inst", "seed", "progress"}
+    assert params == {o.name for o in m.options}
+    if m.decide is not None:
+        live = set(inspect.signature(methods._resolve(m.decide)).parameters) - {"seed"}
+        assert live == {o.name for o in m.options if o.live}
+
+
+def test_option_errors_name_the_method():
+    inst = load_instance(EXAMPLE)
+    with pytest.raises(MethodError, match="method greedy takes no option 'time_limit'"):
+        methods.solve(inst, "greedy", time_limit=3)
+    with pytest.raises(MethodError, match="rl-sample: option samples: expected a number >= 1"):
+        methods.solve(inst, "rl-sample", samples=0)
+    with pytest.raises(MethodError, match="cpsat: option workers: expected int"):
+        methods.solve(inst, "cpsat", workers=1.5)
+    with pytest.raises(MethodError, match="unknown method 'greedy2'"):
+        methods.solve(inst, "greedy2")
+    with pytest.raises(MethodError, match="method rl-sample takes no option 'samples'"):
+        methods.decider("rl-sample", samples=4)  # offline-only option
+    with pytest.raises(MethodError, match="method cpsat has no per-decision form"):
+        methods.decider("cpsat")
+
+
+def test_shorthand_parses_in_one_place_and_labels_results():
+    assert methods.parse("rl-s10") == ("rl-sample", {"samples": 10})
+    assert methods.parse("greedy") == ("greedy", {})
+    assert methods.label("rl-sample", {"samples": 4}) == "rl-s4"
+    assert methods.label("rl-sample") == "rl-s10"
+    with pytest.raises(MethodError):
+        methods.parse("rl-sx")
+    sol = methods.solve(load_instance(EXAMPLE), "random", seed=3)
+    assert sol.method == "random"
+
+
+def test_options_for_keeps_what_each_method_takes():
+    shared = {"checkpoint": "x.pt", "time_limit": 5.0}
+    assert methods.options_for("greedy", shared) == {}
+    assert methods.options_for("rl-s4", shared) == {"checkpoint": "x.pt"}
+    assert methods.options_for("cpsat", shared) == {"time_limit": 5.0}
+
+
+def test_baseline_rules_and_live_form():
+    assert methods.rules("greedy") == GREEDY_RULES
+    decide, rules = methods.decider("greedy-coalition")
+    assert rules == GREEDY_RULES and callable(decide)
+
+
+@pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
+def test_checkpoint_rules_read_without_torch_equal_the_loaded_ones(path):
+    torch = pytest.importorskip("torch")
+    from hmrta.rl.checkpoint_info import read_config
+
+    ck = torch.load(path, map_location="cpu", weights_only=True)
+    assert read_config(path) == ck["config"]
+    assert methods.rules("rl", checkpoint=str(path)) == Rules.from_dict(ck["config"].get("rules", {}))
+
+
+def test_board_side_never_imports_torch():
+    """The task board learns an rl method's rules from the checkpoint without torch."""
+    code = ("import sys, hmrta.methods as m, hmrta_coordinator.task_board\n"
+            "r = m.rules('rl'); assert 'torch' not in sys.modules, 'torch imported'; print(r.max_open)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+
+
+def _zip_with_pickle(path: Path, payload: bytes) -> None:
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("ck/data.pkl", payload)
+
+
+class _RunsCode:
+    def __reduce__(self):
+        return (subprocess.call, (["touch", "/tmp/hmrta-pwned"],))
+
+
+def test_checkpoint_config_reader_refuses_foreign_globals(tmp_path):
+    from hmrta.rl.checkpoint_info import CheckpointError, read_config
+
+    bad = tmp_path / "evil.pt"
+    _zip_with_pickle(bad, pickle.dumps({"config": {"rules": {}}, "x": _RunsCode()}))
+    with pytest.raises(CheckpointError, match="not allowed"):
+        read_config(bad)
+    plain = tmp_path / "plain.pt"
+    _zip_with_pickle(plain, pickle.dumps({"config": {"rules": {"max_open": "team"}}}, protocol=2))
+    assert methods.rules("rl", checkpoint=str(plain)) == Rules(max_open="team")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a zip")
+    with pytest.raises(CheckpointError, match="not a readable hmrta checkpoint"):
+        read_config(junk)
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        read_config(tmp_path / "missing.pt")
+    wrong = tmp_path / "wrong.pt"
+    _zip_with_pickle(wrong, pickle.dumps({"config": {"rules": {"max_open": 0}}}))
+    with pytest.raises(CheckpointError, match="rules.max_open"):
+        methods.rules("rl", checkpoint=str(wrong))
+
+
+def test_cli_help_lists_every_method_and_option():
+    from hmrta.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "cmd")
+    buf = io.StringIO()
+    sub.choices["solve"].print_help(buf)
+    text = " ".join(buf.getvalue().split())
+    for name, m in METHODS.items():
+        assert f"{name}: {' '.join(m.summary.split())}" in text
+        for o in m.options:
+            assert o.flag in text
+
+
+def _imports(path: Path, module: str, package: str, known: set[str]) -> set[str]:
+    """Every hmrta module ``module`` imports, anywhere in the file (function-level imports too)."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split(".")[: len(package.split(".")) - node.level + 1] if node.level else []
+            mod = ".".join(base + ([node.module] if node.module else []))
+            names = [mod] + [f"{mod}.{a.name}" for a in node.names]
+        else:
+            continue
+        out |= {n for n in names if n in known and n != module}
+    return out
+
+
+def test_no_import_cycles_in_the_core():
+    root = ROOT / "policy" / "hmrta"
+    files = {}
+    for p in root.rglob("*.py"):
+        parts = p.relative_to(root.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        files[name] = p
+    known = set(files)
+    graph = {m: _imports(p, m, m if p.name == "__init__.py" else m.rsplit(".", 1)[0], known)
+             for m, p in files.items()}
+    graph = {m: {d for d in deps if d != "hmrta"} for m, deps in graph.items()}  # the package itself: __version__
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(stack: list[str]) -> None:
+        m = stack[-1]
+        state[m] = 1
+        for d in sorted(graph[m]):
+            if state.get(d) == 1:
+                cycles.append(" -> ".join(stack[stack.index(d):] + [d]))
+            elif d not in state:
+                visit(stack + [d])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit([m])
+    assert not cycles, "import cycles: " + "; ".join(cycles)

@@ -1,0 +1,42 @@
+"""Rules travel with the mission: an agent checks once, on joining, that its method runs under the
+mission's rules, and refuses loudly otherwise (real rclpy node, its own domain)."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from rclpy.parameter import Parameter
+
+from hmrta.baselines import GREEDY_RULES, RANDOM_RULES
+from hmrta.instance import load_instance
+from hmrta_agent.agent_node import AgentNode, Host
+from hmrta_msgs_py.codec import Mission, mission_from_msg, mission_to_msg
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "policy" / "hmrta" / "data" / "example.yaml"
+
+
+def _agent(graph, method: str) -> AgentNode:
+    node = AgentNode(Host(), context=graph.context, namespace="/robot_0", start_parameter_services=False,
+                     parameter_overrides=[Parameter("robot", value="robot_0"), Parameter("method", value=method)])
+    graph.nodes.append(node)
+    return node
+
+
+def _mission(rules) -> Mission:
+    inst = load_instance(EXAMPLE)
+    m = Mission("s1", inst, tuple(f"robot_{a}" for a in range(inst.n_agents)), 0, "greedy", rules=rules)
+    return mission_from_msg(mission_to_msg(m))  # as received over the wire
+
+
+def test_agent_joins_a_mission_under_its_rules_and_refuses_other_rules(graph):
+    greedy = _agent(graph, "greedy")
+    greedy.join(_mission(GREEDY_RULES))
+    assert greedy.mission is not None and greedy.index == 0
+    # the board's real-time departures (backdate off) are its own call, not a mismatch
+    greedy.join(_mission(dataclasses.replace(GREEDY_RULES, backdate=False)))
+    assert greedy.mission is not None
+
+    rand = _agent(graph, "random")  # runs under the unrestricted rules
+    assert rand.rules == RANDOM_RULES != GREEDY_RULES
+    rand.join(_mission(GREEDY_RULES))
+    assert rand.mission is None and rand.index is None  # refused: not taking part
