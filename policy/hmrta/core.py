@@ -7,8 +7,8 @@ policy, the batched trainer, the task board) reads :meth:`MissionState.mask` and
 one commitment and then advances: later deciders of the same instant, then task completions in
 time order, until a decider with an admissible task exists or the episode ends.
 
-The environment owns feasibility. Besides the SPEC's ability mask it applies (see README,
-"Semantics"):
+The environment owns feasibility. Besides the SPEC's ability mask it applies (see
+docs/semantics.md):
 
 * **max-open-task rule** (``Rules.max_open``): with that many open tasks, empty tasks are masked.
   ``max_open="team"`` scales the cap with the mission (:func:`team_cap`): about half the number of
@@ -53,8 +53,8 @@ STATUS_NAMES = ("empty", "open", "in_progress", "done", "cancelled")
 def team_cap(inst: Instance) -> int:
     """The ``max_open="team"`` cap of a mission: max(1, round(A / 2c)), where c, the mean coalition
     size, is the mean over tasks of (requirement sum) / (mean over agents of trait sum). A / c is
-    about how many coalitions the team can field at once. Measured with greedy-coalition (README,
-    "Team-scaled cap"): the best fixed cap grows with A / c, from 1 on SA-AT (A / c ~ 3) to 6 on
+    about how many coalitions the team can field at once. Measured with greedy-coalition
+    (docs/semantics.md): the best fixed cap grows with A / c, from 1 on SA-AT (A / c ~ 3) to 6 on
     MA-AT (50,5,50,5) (A / c ~ 26), and this rule is within 2.5% of the best fixed cap on every
     row tried."""
     req = np.asarray(inst.requirements, dtype=np.float64)  # [M, K]
@@ -90,6 +90,48 @@ class Rules:
     def to_dict(self) -> dict[str, Any]:
         return {"max_open": self.max_open, "safety": self.safety, "backdate": self.backdate,
                 "t_max": None if math.isinf(self.t_max) else self.t_max}
+
+
+# ---------------------------------------------------------------------------------------------
+# the hmrta-state/1 format (MissionState.snapshot; docs/schemas/hmrta-state-1.schema.json)
+# ---------------------------------------------------------------------------------------------
+STATE_FORMAT = "hmrta-state/1"
+RULE_KEYS = ("max_open", "safety", "backdate", "t_max")
+
+
+class SnapshotError(ValueError):
+    """A state snapshot that cannot be restored: unknown format or version, or a field that is
+    missing, mistyped or does not fit the instance (one line, names the field)."""
+
+
+def parse_rules(d: Any, where: str = "rules") -> Rules:
+    """Strict reading of a :meth:`Rules.to_dict` mapping received from outside (a snapshot, a
+    mission message). All four rules must be present; an unknown rule, a mistyped value or an
+    invalid ``max_open`` is a ValueError naming the field (``where.key``). Unknown rules are
+    refused rather than ignored: a rule this build does not implement would change the semantics."""
+    if not isinstance(d, dict):
+        raise ValueError(f"{where}: expected a mapping with keys {list(RULE_KEYS)}, got {_short(d)}")
+    unknown = sorted(str(k) for k in d if k not in RULE_KEYS)
+    if unknown:
+        raise ValueError(f"{where}.{unknown[0]}: unknown rule (expected {', '.join(RULE_KEYS)})")
+    missing = [k for k in RULE_KEYS if k not in d]
+    if missing:
+        raise ValueError(f"{where}: missing rule {missing[0]!r}")
+    for k in ("safety", "backdate"):
+        if not isinstance(d[k], bool):
+            raise ValueError(f"{where}.{k}: expected true or false, got {_short(d[k])}")
+    t = d["t_max"]
+    if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or math.isnan(t)):
+        raise ValueError(f"{where}.t_max: expected a number or null (no limit), got {_short(t)}")
+    try:
+        return Rules.from_dict(d)
+    except ValueError as e:
+        raise ValueError(f"{where}.{e}") from None
+
+
+def _short(v: Any, n: int = 60) -> str:
+    r = repr(v)
+    return r if len(r) <= n else r[: n - 3] + "..."
 
 
 class MissionState:
@@ -246,7 +288,7 @@ class MissionState:
         self._advance()
 
     def commit(self, a: int, node: int) -> None:
-        """One commitment: agent a departs for its depot (node 0) or task node - 1 (SPEC §3.2)."""
+        """One commitment: agent a departs for its depot (node 0) or task node - 1 (SPEC §3, rule 2)."""
         mode = self.mode[a]
         backdate = self.rules.backdate and mode in (FREE, WAIT)
         t_dep = self.free_since[a] if backdate else self.clock
@@ -271,7 +313,7 @@ class MissionState:
         self.held[m] += self.cap[a]
         self.rem[m] = np.maximum(self.rem[m] - self.cap[a], 0.0)
         was_open = self.status[m] == OPEN
-        if (self.rem[m] <= 0).all():  # coalition satisfies m: in progress (SPEC §3.3)
+        if (self.rem[m] <= 0).all():  # coalition satisfies m: in progress (SPEC §3, rule 3)
             self.status[m] = IN_PROGRESS
             if was_open:
                 self.n_open -= 1
@@ -518,68 +560,142 @@ class MissionState:
         return mem
 
     # ------------------------------------------------------------------------------------------
-    # snapshots (the ROS board publishes them; agents rebuild the state to decide)
+    # snapshots: hmrta-state/1 (the ROS board publishes them; agents rebuild the state to decide)
     # ------------------------------------------------------------------------------------------
-    _ARRAYS = ("rem", "status", "start", "finish", "held", "mode", "target", "from_pos", "to_pos", "depart",
-               "arrive", "free_since", "wait_total", "depot_stops", "pool")
-    _SCALARS = ("n_open", "n_done", "n_cancelled", "clock", "_seq", "_stall", "_commits", "_stall_commits", "decisions", "done",
-                "success", "failure", "agent", "seed")
-
     def clone(self) -> "MissionState":
         """Independent copy of the running state (the instance and rules are shared, read-only):
         lookahead and branching without replaying the mission from the start."""
         return copy.deepcopy(self, memo={id(self.inst): self.inst, id(self.rules): self.rules})
 
     def snapshot(self) -> dict[str, Any]:
-        """A JSON-serialisable copy of the full state (exact floats; restore with from_snapshot)."""
-        d: dict[str, Any] = {k: getattr(self, k).tolist() for k in self._ARRAYS}
-        for k in ("start", "finish"):  # strict JSON: not-yet-started tasks are null, not NaN
-            d[k] = [None if x != x else x for x in d[k]]
-        d.update({k: getattr(self, k) for k in self._SCALARS})
-        d["rules"] = self.rules.to_dict()
-        d["members"] = self.members
-        d["routes"] = self.routes
-        d["events"] = [list(e) for e in self.events]
-        d["queue"] = list(self.queue)
-        d["deferred"] = sorted(self._deferred)
-        d["mask"] = None if self._mask is None else self._mask.tolist()
-        v, internal, gauss = self.rng.getstate()
-        d["rng"] = [v, list(internal), gauss]
-        return d
+        """The full state as an ``hmrta-state/1`` mapping (docs/schemas/hmrta-state-1.schema.json).
+
+        Strict JSON (a task not started has ``null`` start and finish, never NaN) with exact floats
+        (JSON keeps Python's shortest round-trip repr); :meth:`from_snapshot` restores a state that
+        continues exactly like this one. Per-task and per-agent fields are columns indexed by task
+        and agent id; ``queue`` lists the deciders still to come at this instant, next first."""
+        version, internal, gauss = self.rng.getstate()
+        return {
+            "format": STATE_FORMAT,
+            "rules": self.rules.to_dict(),
+            "seed": self.seed,
+            "clock": float(self.clock),
+            "decisions": int(self.decisions),
+            "done": bool(self.done),
+            "success": bool(self.success),
+            "failure": self.failure,
+            "decider": None if self.agent is None else int(self.agent),
+            "mask": None if self._mask is None else self._mask.tolist(),
+            "queue": [int(a) for a in reversed(self.queue)],
+            "deferred": sorted(int(a) for a in self._deferred),
+            "stall": {"commitments": self._commits - self._stall_commits} if self._stall else None,
+            "events": [[float(t), int(m)] for t, _, m in sorted(self.events)],
+            "pool": self.pool.tolist(),
+            "tasks": {
+                "status": [STATUS_NAMES[s] for s in self.status.tolist()],
+                "remaining": self.rem.tolist(),
+                "held": self.held.tolist(),
+                "start": [None if math.isnan(x) else x for x in self.start.tolist()],
+                "finish": [None if math.isnan(x) else x for x in self.finish.tolist()],
+                "members": [[int(a) for a in mem] for mem in self.members],
+            },
+            "agents": {
+                "mode": [MODE_NAMES[x] for x in self.mode.tolist()],
+                "target": [None if m < 0 else m for m in self.target.tolist()],
+                "from": self.from_pos.tolist(),
+                "to": self.to_pos.tolist(),
+                "depart": self.depart.tolist(),
+                "arrive": self.arrive.tolist(),
+                "free_since": self.free_since.tolist(),
+                "wait_total": self.wait_total.tolist(),
+                "routes": [[int(m) for m in r] for r in self.routes],
+                "depot_stops": self.depot_stops.tolist(),
+            },
+            "rng": {"version": version, "state": list(internal), "gauss_next": gauss},
+        }
 
     @classmethod
-    def from_snapshot(cls, inst: Instance, d: dict[str, Any]) -> "MissionState":
+    def from_snapshot(cls, inst: Instance, d: Any) -> "MissionState":
+        """Rebuild the state of a mission on ``inst`` from an ``hmrta-state/1`` mapping
+        (:meth:`snapshot`). Raises :class:`SnapshotError` (a ValueError naming the field) for an
+        unknown format or version, or a field that is missing, mistyped or does not fit ``inst``.
+        Fields this version does not know are ignored."""
+        f = _Fields(d, "")
+        got = d.get("format")
+        if got != STATE_FORMAT:
+            if "format" not in d:
+                raise SnapshotError(f"snapshot: missing field 'format' (expected {STATE_FORMAT!r})")
+            if isinstance(got, str) and got.rpartition("/")[0] == STATE_FORMAT.rpartition("/")[0]:
+                raise SnapshotError(f"snapshot format: unsupported version {got!r} (this build reads "
+                                    f"{STATE_FORMAT!r})")
+            raise f.err("format", repr(STATE_FORMAT), got)
+        A, M, K = inst.n_agents, inst.n_tasks, inst.skills
         self = cls.__new__(cls)
         self.inst = inst
-        self.rules = Rules.from_dict(d["rules"])
+        rules = f.raw("rules")
+        try:
+            self.rules = parse_rules(rules)
+        except ValueError as e:
+            raise SnapshotError(f"snapshot {e}") from None
         self.open_cap = self.rules.open_cap(inst)
-        self.A, self.M, self.K = inst.n_agents, inst.n_tasks, inst.skills
+        self.A, self.M, self.K = A, M, K
         self.additive = inst.additive
         self.cap = np.array(inst.traits if self.additive else inst.traits > 0, dtype=np.float64)
         self.req = np.array(inst.requirements if self.additive else inst.requirements > 0, dtype=np.float64)
-        for k in cls._ARRAYS:
-            arr = np.array([math.nan if x is None else x for x in d[k]]) if k in ("start", "finish") else np.array(d[k])
-            if k in ("status", "mode", "target", "depot_stops"):
-                arr = arr.astype(np.int64)
-            else:
-                arr = arr.astype(np.float64)
-            if k in ("held", "rem"):
-                arr = arr.reshape(self.M, self.K)
-            elif k in ("from_pos", "to_pos"):
-                arr = arr.reshape(self.A, 2)
-            setattr(self, k, arr)
-        for k in cls._SCALARS:
-            setattr(self, k, d[k])
-        self.members = [list(m) for m in d["members"]]
-        self.routes = [list(r) for r in d["routes"]]
-        self.events = [(float(t), int(s), int(m)) for t, s, m in d["events"]]
+        self.seed = f.integer("seed")
+        self.clock = f.number("clock")
+        self.decisions = f.integer("decisions", 0)
+        self.done, self.success = f.boolean("done"), f.boolean("success")
+        self.failure = f.text("failure")
+        self.agent = f.integer("decider", 0, A, nullable=True)
+        mask = f.raw("mask")
+        if mask is not None and not (isinstance(mask, list) and len(mask) == M + 1
+                                     and all(isinstance(x, bool) for x in mask)):
+            raise f.err("mask", f"null or a list of {M + 1} booleans (depot, then each task)", mask)
+        if (mask is None) != (self.agent is None):
+            raise SnapshotError("snapshot mask: expected a list exactly when a decider is named, null otherwise")
+        self._mask = None if mask is None else np.array(mask, dtype=bool)
+        self.queue = f.ints("queue", None, 0, A)[::-1]
+        self._deferred = set(f.ints("deferred", None, 0, A))
+        if f.raw("stall") is None:
+            self._stall, self._commits, self._stall_commits = False, 0, -1
+        else:
+            self._stall, self._commits, self._stall_commits = True, f.obj("stall").integer("commitments", 0), 0
+        # pending completions in processing order; their sequence numbers only break ties in time
+        self.events = [(t, i + 1, m) for i, (t, m) in enumerate(f.events("events", M))]
         heapq.heapify(self.events)
-        self.queue = list(d["queue"])
-        self._deferred = set(d["deferred"])
-        self._mask = None if d["mask"] is None else np.array(d["mask"], dtype=bool)
+        self._seq = len(self.events)
+        self.pool = f.floats("pool", (K,))
+        t = f.obj("tasks")
+        self.status = t.names("status", STATUS_NAMES, M)
+        self.rem = t.floats("remaining", (M, K))
+        self.held = t.floats("held", (M, K))
+        self.start = t.floats("start", (M,), nullable=True)
+        self.finish = t.floats("finish", (M,), nullable=True)
+        self.members = t.id_lists("members", M, A)
+        a = f.obj("agents")
+        self.mode = a.names("mode", MODE_NAMES, A)
+        self.target = np.array(a.ints("target", A, 0, M, nullable=True), dtype=np.int64)
+        self.from_pos = a.floats("from", (A, 2))
+        self.to_pos = a.floats("to", (A, 2))
+        for k in ("depart", "arrive", "free_since", "wait_total"):
+            setattr(self, k, a.floats(k, (A,)))
+        self.routes = a.id_lists("routes", A, M)
+        self.depot_stops = np.array(a.ints("depot_stops", A, 0, None), dtype=np.int64)
+        self.n_open = int((self.status == OPEN).sum())
+        self.n_done = int((self.status == DONE).sum())
+        self.n_cancelled = int((self.status == CANCELLED).sum())
+        rng = f.obj("rng")
+        if rng.raw("version") != 3:
+            raise rng.err("version", "3 (the state layout of Python's random.Random)", rng.raw("version"))
+        state = (3, tuple(rng.ints("state", None, 0, 2**32)), rng.raw("gauss_next"))
+        if state[2] is not None:
+            state = state[:2] + (rng.number("gauss_next"),)
         self.rng = random.Random()
-        v, internal, gauss = d["rng"]
-        self.rng.setstate((v, tuple(internal), gauss))
+        try:
+            self.rng.setstate(state)
+        except (ValueError, TypeError, OverflowError) as e:
+            raise SnapshotError(f"snapshot rng: not a state of Python's random.Random ({e})") from None
         return self
 
     # ------------------------------------------------------------------------------------------
@@ -591,3 +707,134 @@ class MissionState:
     @property
     def makespan(self) -> float:
         return float(self.arrive.max()) if self.success else math.nan
+
+
+class _Fields:
+    """Typed reading of one mapping of an ``hmrta-state/1`` snapshot; every error is a
+    :class:`SnapshotError` naming the field (``tasks.remaining``, ``agents.routes[3][0]``)."""
+
+    def __init__(self, d: Any, where: str):
+        if not isinstance(d, dict):
+            raise SnapshotError(f"snapshot {where or '(top level)'}: expected a mapping, got {_short(d)}")
+        self.d, self.where = d, where
+
+    def name(self, key: str) -> str:
+        return f"{self.where}.{key}" if self.where else key
+
+    def err(self, key: str, what: str, v: Any) -> SnapshotError:
+        return SnapshotError(f"snapshot {self.name(key)}: expected {what}, got {_short(v)}")
+
+    def raw(self, key: str) -> Any:
+        if key not in self.d:
+            raise SnapshotError(f"snapshot: missing field {self.name(key)!r}")
+        return self.d[key]
+
+    def obj(self, key: str) -> "_Fields":
+        return _Fields(self.raw(key), self.name(key))
+
+    def boolean(self, key: str) -> bool:
+        v = self.raw(key)
+        if not isinstance(v, bool):
+            raise self.err(key, "true or false", v)
+        return v
+
+    def text(self, key: str) -> str | None:
+        v = self.raw(key)
+        if v is not None and not isinstance(v, str):
+            raise self.err(key, "a string or null", v)
+        return v
+
+    def integer(self, key: str, lo: int | None = None, hi: int | None = None, *, nullable: bool = False) -> Any:
+        v = self.raw(key)
+        if v is None and nullable:
+            return None
+        if not _is_int(v, lo, hi):
+            raise self.err(key, _int_text(lo, hi) + (" or null" if nullable else ""), v)
+        return v
+
+    def number(self, key: str) -> float:
+        v = self.raw(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise self.err(key, "a finite number", v)
+        return float(v)
+
+    def ints(self, key: str, n: int | None, lo: int, hi: int | None, *, nullable: bool = False) -> list[int]:
+        """A list (of n entries, if given) of integers in [lo, hi); null entries read as -1."""
+        v = self.raw(key)
+        if not isinstance(v, list) or (n is not None and len(v) != n):
+            raise self.err(key, f"a list of {'' if n is None else f'{n} '}integers", v)
+        if all(type(x) is int for x in v) and (not v or (min(v) >= lo and (hi is None or max(v) < hi))):
+            return list(v)  # the common case, checked fast
+        out = []
+        for i, x in enumerate(v):
+            if x is None and nullable:
+                out.append(-1)
+            elif _is_int(x, lo, hi):
+                out.append(x)
+            else:
+                raise self.err(f"{key}[{i}]", _int_text(lo, hi) + (" or null" if nullable else ""), x)
+        return out
+
+    def id_lists(self, key: str, n: int, hi: int) -> list[list[int]]:
+        """n lists of ids in [0, hi) (task members, agent routes)."""
+        v = self.raw(key)
+        if not isinstance(v, list) or len(v) != n:
+            raise self.err(key, f"a list of {n} lists of ids", v)
+        if all(type(x) is list for x in v):
+            flat = [y for x in v for y in x]
+            if all(type(y) is int for y in flat) and (not flat or (min(flat) >= 0 and max(flat) < hi)):
+                return [list(x) for x in v]  # the common case, checked fast
+        return [_Fields({f"{key}[{i}]": x}, self.where).ints(f"{key}[{i}]", None, 0, hi) for i, x in enumerate(v)]
+
+    def names(self, key: str, names: tuple[str, ...], n: int) -> np.ndarray:
+        v = self.raw(key)
+        if not isinstance(v, list) or len(v) != n:
+            raise self.err(key, f"a list of {n} of {', '.join(names)}", v)
+        index = {s: i for i, s in enumerate(names)}
+        out = [index.get(s, -1) if type(s) is str else -1 for s in v]
+        if -1 in out:
+            i = out.index(-1)
+            raise self.err(f"{key}[{i}]", f"one of {', '.join(names)}", v[i])
+        return np.array(out, dtype=np.int64)
+
+    def floats(self, key: str, shape: tuple[int, ...], *, nullable: bool = False) -> np.ndarray:
+        """A float64 array of this shape from nested lists of finite numbers (null read as NaN)."""
+        v = self.raw(key)
+        what = f"{' x '.join(map(str, shape))} {'numbers or nulls' if nullable else 'finite numbers'}"
+        w = [math.nan if x is None else x for x in v] if nullable and isinstance(v, list) else v
+        try:
+            a = np.asarray(w)
+        except (ValueError, TypeError):  # ragged nesting
+            raise self.err(key, what, v) from None
+        if a.size == 0 and a.dtype.kind == "f" and math.prod(shape) == 0:
+            a = a.reshape(shape)
+        if a.shape != shape or a.dtype.kind not in "iuf":
+            raise self.err(key, what, v)
+        a = a.astype(np.float64)
+        if (np.isinf(a) if nullable else ~np.isfinite(a)).any():
+            raise self.err(key, what, v)
+        return a
+
+    def events(self, key: str, M: int) -> list[tuple[float, int]]:
+        """Pending completions: a list of [time, task id]."""
+        v = self.raw(key)
+        if not isinstance(v, list):
+            raise self.err(key, "a list of [time, task] pairs", v)
+        out = []
+        for i, e in enumerate(v):
+            if (not isinstance(e, list) or len(e) != 2 or isinstance(e[0], bool) or not isinstance(e[0], (int, float))
+                    or not math.isfinite(e[0]) or not _is_int(e[1], 0, M)):
+                raise self.err(f"{key}[{i}]", f"[time, task id in 0..{M - 1}]", e)
+            out.append((float(e[0]), e[1]))
+        return out
+
+
+def _is_int(v: Any, lo: int | None, hi: int | None) -> bool:
+    return (isinstance(v, int) and not isinstance(v, bool) and (lo is None or v >= lo)
+            and (hi is None or v < hi))
+
+
+def _int_text(lo: int | None, hi: int | None) -> str:
+    if lo is not None and hi is not None:
+        return f"an integer in {lo}..{hi - 1}"
+    return "an integer" + ("" if lo is None else f" >= {lo}")

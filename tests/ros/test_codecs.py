@@ -1,24 +1,50 @@
-"""hmrta_msgs_py codecs: pure *_to_msg / *_from_msg pairs, tested without a ROS graph."""
+"""hmrta_msgs_py codecs: pure *_to_msg / *_from_msg pairs, tested without a ROS graph. Every
+encoded message validates against its published JSON Schema (docs/schemas/)."""
 from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
 pytest.importorskip("rclpy")
+import jsonschema  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
+from referencing import Registry, Resource  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from hmrta.baselines import GREEDY_RULES, Greedy  # noqa: E402
-from hmrta.core import MissionState  # noqa: E402
+from hmrta.core import MissionState, Rules  # noqa: E402
 from hmrta.generators import ScenarioGenerator  # noqa: E402
 from hmrta.methods import solve  # noqa: E402
 from hmrta_msgs_py import codec as C  # noqa: E402
 from hmrta_msgs_py import topics  # noqa: E402
 
 INST = ScenarioGenerator("MA-AT", 6, 3, 8, 3).instance(5, 0)
+RULES = Rules(max_open="team", backdate=False).to_dict()  # the rules object of a mission message
+SCHEMAS = Path(__file__).resolve().parents[2] / "docs" / "schemas"
+_ALL = [json.loads(p.read_text()) for p in sorted(SCHEMAS.glob("*.schema.json"))]
+REGISTRY = Registry().with_resources((s["$id"], Resource.from_contents(s)) for s in _ALL)
+
+
+def schema_errors(fmt: str, doc) -> list[str]:
+    """Errors of doc against the published schema of fmt (``hmrta-board/1#/$defs/legs`` for a part)."""
+    v = jsonschema.Draft202012Validator({"$ref": fmt}, registry=REGISTRY)
+    return [f"{list(e.absolute_path)}: {e.message[:200]}" for e in v.iter_errors(doc)]
+
+
+def assert_valid(fmt: str, doc) -> None:
+    errs = schema_errors(fmt, doc)
+    assert not errs, f"{fmt}: " + "; ".join(errs[:5])
+
+
+def _mission(**kw) -> C.Mission:
+    d = {"session": "abc", "instance": INST, "robots": tuple(f"r{a}" for a in range(INST.n_agents)), "seed": 4,
+         "method": "greedy", "frame_id": "odom", "scale": 2.5, "rules": Rules.from_dict(RULES)}
+    d.update(kw)
+    return C.Mission(**d)
 
 
 def _msg(text: str) -> String:
@@ -47,12 +73,37 @@ def _board(state: MissionState, **kw) -> C.Board:
 # round trips
 # ---------------------------------------------------------------------------------------------
 def test_mission_round_trip():
-    m = C.Mission("abc", INST, tuple(f"r{a}" for a in range(INST.n_agents)), 4, "greedy", "odom", 2.5)
+    m = _mission()
     back = C.mission_from_msg(C.mission_to_msg(m))
     assert back.instance.to_dict() == INST.to_dict()
-    assert (back.session, back.robots, back.seed, back.policy, back.frame_id, back.scale) == \
-        (m.session, m.robots, m.seed, m.policy, m.frame_id, m.scale)
+    assert (back.session, back.robots, back.seed, back.method, back.frame_id, back.scale, back.rules) == \
+        (m.session, m.robots, m.seed, m.method, m.frame_id, m.scale, m.rules)
+    assert back.rules == Rules(max_open="team", backdate=False)
+    assert json.loads(C.mission_to_msg(m).data)["rules"] == {"max_open": "team", "safety": True, "backdate": False,
+                                                              "t_max": None}
+    # a Rules.to_dict() mapping is accepted in place of a Rules
+    assert C.mission_to_msg(_mission(rules=RULES)).data == C.mission_to_msg(m).data
     assert back.index("r3") == 3 and back.index("nobody") is None
+
+
+def test_mission_rules_are_required_and_checked():
+    with pytest.raises(ValueError, match="Mission.rules is required"):
+        C.mission_to_msg(_mission(rules=None))
+    with pytest.raises(ValueError, match=r"Mission\.rules\.max_open: expected a positive integer"):
+        C.mission_to_msg(_mission(rules={**RULES, "max_open": 0}))
+    good = json.loads(C.mission_to_msg(_mission()).data)
+    w = "hmrta-mission/1"
+    for rules, reason in [(KeyError, f"{w}: missing field 'rules'"),
+                          ("team", f"{w}.rules: expected dict"),
+                          ({**RULES, "max_open": "teams"}, f"{w}.rules.max_open: expected a positive integer"),
+                          ({**RULES, "safety": "yes"}, f"{w}.rules.safety: expected true or false"),
+                          ({**RULES, "horizon": 5}, f"{w}.rules.horizon: unknown rule"),
+                          ({k: v for k, v in RULES.items() if k != "t_max"}, f"{w}.rules: missing rule 't_max'")]:
+        d = {k: v for k, v in good.items() if k != "rules"} if rules is KeyError else {**good, "rules": rules}
+        with pytest.raises(C.DecodeError) as e:
+            C.mission_from_msg(_msg(json.dumps(d)))
+        assert str(e.value).startswith(reason), str(e.value)
+        assert schema_errors("hmrta-mission/1", d)  # the published schema refuses it too
 
 
 def test_board_round_trip_rebuilds_the_exact_state():
@@ -98,6 +149,109 @@ def test_small_payload_round_trips():
     assert C.result_from_msg(C.result_to_msg(sol)) == json.loads(json.dumps(sol))
 
 
+# ---------------------------------------------------------------------------------------------
+# every encoded message validates against its published schema
+# ---------------------------------------------------------------------------------------------
+def test_encoded_messages_validate_against_their_schemas():
+    assert_valid("hmrta-mission/1", json.loads(C.mission_to_msg(_mission()).data))
+    assert_valid("hmrta-mission/1", json.loads(C.mission_to_msg(_mission(rules=Rules(t_max=90.0))).data))
+    for c in (C.Choice("robot_1", "s1", 12, 3, seq=4, compute_ms=1.25), C.Choice("r", "s", 0, 0)):
+        assert_valid("hmrta-choice/1", json.loads(C.choice_to_msg(c).data))
+    for s in (C.Status(("robot_1", "robot_2"), "s1", 9, "host:1"), C.Status((), "", 0)):
+        assert_valid("hmrta-status/1", json.loads(C.status_to_msg(s).data))
+    for r in (C.Rejection("masked", "node 3 is not admissible", "robot_1", 12), C.Rejection("malformed", "bad JSON")):
+        assert_valid("hmrta-rejection/1", json.loads(C.rejection_to_msg(r).data))
+    for reason in C.REJECTION_REASONS:
+        assert reason in json.loads((SCHEMAS / "hmrta-rejection-1.schema.json").read_text())[
+            "properties"]["reason"]["examples"]
+    for method in ("greedy", "greedy-coalition"):
+        assert_valid("hmrta-solution/1", json.loads(C.result_to_msg(solve(INST, method, 1).to_dict()).data))
+    # every format the codec writes has its schema file
+    assert {s["$id"] for s in _ALL} >= set(C.FORMATS)
+
+
+@pytest.mark.parametrize("steps", [0, 5, 12, None])
+def test_boards_validate_against_their_schemas(steps):
+    """Header, legs and a real snapshot (start, mid-mission, finished) each validate."""
+    state = MissionState(INST, seed=2, rules=GREEDY_RULES)
+    n = 0
+    while not state.done and (steps is None or n < steps):
+        state.step(Greedy()(state))
+        n += 1
+    board = _board(state, phase="done" if state.done else "decide", lost=() if state.done else (1, 3))
+    head, legs, snap = C.board_to_msg(board).data.split("\n")
+    assert_valid("hmrta-board/1", json.loads(head))
+    assert_valid("hmrta-board/1#/$defs/legs", json.loads(legs))
+    assert_valid("hmrta-state/1", json.loads(snap))
+    assert_valid("hmrta-board/1#/$defs/state", json.loads(snap))
+    assert json.loads(snap)["done"] == (steps is None)
+
+
+def test_signed_choices_and_statuses_validate():
+    keys = pytest.importorskip("hmrta.keys")
+    signer = keys.Signer({"robot_1": bytes(32), "robot_2": bytes(range(32))})
+    choice = signer.sign(json.loads(C.choice_to_msg(C.Choice("robot_1", "s1", 12, 3)).data))
+    status = signer.sign(json.loads(C.status_to_msg(C.Status(("robot_1", "robot_2"), "s1", 9)).data))
+    assert "mac" in choice and "counter" in status
+    assert_valid("hmrta-choice/1", choice)
+    assert_valid("hmrta-status/1", status)
+    assert C.choice_from_msg(_msg(json.dumps(choice))).node == 3  # readers ignore the signature fields
+
+
+# ---------------------------------------------------------------------------------------------
+# unknown formats and versions: DecodeError with the reason, per decoder
+# ---------------------------------------------------------------------------------------------
+def _encoded() -> dict[str, tuple[str, object]]:
+    """format -> (encoded text, decoder)."""
+    state = MissionState(INST, seed=2, rules=GREEDY_RULES)
+    return {
+        "hmrta-mission/1": (C.mission_to_msg(_mission()).data, C.mission_from_msg),
+        "hmrta-choice/1": (C.choice_to_msg(C.Choice("robot_1", "s1", 12, 3)).data, C.choice_from_msg),
+        "hmrta-status/1": (C.status_to_msg(C.Status(("robot_1",), "s1", 9)).data, C.status_from_msg),
+        "hmrta-rejection/1": (C.rejection_to_msg(C.Rejection("stale", "old")).data, C.rejection_from_msg),
+        "hmrta-solution/1": (C.result_to_msg(solve(INST, "greedy", 1).to_dict()).data, C.result_from_msg),
+        "hmrta-board/1": (C.board_to_msg(_board(state)).data, C.board_from_msg),
+    }
+
+
+@pytest.mark.parametrize("fmt", ["hmrta-mission/1", "hmrta-choice/1", "hmrta-status/1", "hmrta-rejection/1",
+                                 "hmrta-solution/1", "hmrta-board/1"])
+def test_decoders_reject_unknown_formats_and_versions_with_the_reason(fmt):
+    text, decode = _encoded()[fmt]
+    decode(_msg(text))  # the encoded message decodes
+    name = fmt.rpartition("/")[0]
+    first, sep, rest = text.partition("\n")  # a board's header is its first line
+    d = json.loads(first)
+    cases = [({**d, "format": f"{name}/2"}, f"{fmt}: unsupported version '{name}/2' (this build reads '{fmt}')"),
+             ({**d, "format": f"{name}/0"}, f"{fmt}: unsupported version '{name}/0'"),
+             ({**d, "format": "hmrta-other/1"}, f"expected format '{fmt}', got 'hmrta-other/1'"),
+             ({**d, "format": 1}, f"expected format '{fmt}', got 1"),
+             ({k: v for k, v in d.items() if k != "format"}, f"{fmt}: missing field 'format' (expected '{fmt}')"),
+             ({**{k: v for k, v in d.items() if k != "format"}, "schema": fmt}, f"{fmt}: missing field 'format'")]
+    for bad, reason in cases:
+        with pytest.raises(C.DecodeError) as e:
+            decode(_msg(json.dumps(bad) + sep + rest))
+        assert str(e.value) == reason or str(e.value).startswith(reason), (str(e.value), reason)
+        assert schema_errors(fmt, bad)  # and the published schema refuses it
+
+
+def test_board_state_of_an_unknown_version_is_rejected():
+    state = MissionState(INST, seed=2, rules=GREEDY_RULES)
+    head, legs, snap = C.board_to_msg(_board(state)).data.split("\n")
+    for fmt, reason in [("hmrta-state/2", "hmrta-board/1.state: hmrta-state/1: unsupported version 'hmrta-state/2'"),
+                        ("hmrta-board/1", "hmrta-board/1.state: expected format 'hmrta-state/1', got 'hmrta-board/1'")]:
+        msg = _msg("\n".join((head, legs, json.dumps({**json.loads(snap), "format": fmt}))))
+        with pytest.raises(C.DecodeError, match="^" + reason.replace(".", r"\.").replace("(", r"\(")):
+            C.board_from_msg(msg)
+        dec = C.BoardDecoder()
+        assert dec.decode(msg).version == 7  # the header alone still decodes
+        with pytest.raises(C.DecodeError, match="unsupported version|expected format"):
+            dec.state(msg)
+    msg = _msg("\n".join((head, legs, json.dumps({k: v for k, v in json.loads(snap).items() if k != "format"}))))
+    with pytest.raises(C.DecodeError, match="missing field 'format'"):
+        C.board_from_msg(msg)
+
+
 @pytest.mark.parametrize("t", [0.0, 1e-9, 0.5, 12.345678901, 1234567.123456789])
 def test_clock_and_stamps_round_to_the_nanosecond(t):
     assert abs(C.clock_from_msg(C.clock_to_msg(t)) - t) <= 1e-9 * max(1.0, t) * 1.01
@@ -138,9 +292,9 @@ def test_topic_names_and_qos_are_declared_once():
 # ---------------------------------------------------------------------------------------------
 # malformed payloads: always DecodeError, never anything else
 # ---------------------------------------------------------------------------------------------
-GOOD_CHOICE = {"schema": "hmrta-choice/1", "robot": "robot_1", "session": "s", "version": 3, "node": 1}
+GOOD_CHOICE = {"format": "hmrta-choice/1", "robot": "robot_1", "session": "s", "version": 3, "node": 1}
 BAD_CHOICES = [
-    "", "not json", "[1, 2]", "null", '"text"', "{}", '{"schema": "hmrta-choice/2"}',
+    "", "not json", "[1, 2]", "null", '"text"', "{}", '{"format": "hmrta-choice/2"}',
     json.dumps({**GOOD_CHOICE, "version": True}),
     json.dumps({**GOOD_CHOICE, "version": "3"}),
     json.dumps({**GOOD_CHOICE, "version": 3.0}),
@@ -149,7 +303,7 @@ BAD_CHOICES = [
     json.dumps({**GOOD_CHOICE, "robot": 7}),
     json.dumps({**GOOD_CHOICE, "compute_ms": "fast"}),
     json.dumps({k: v for k, v in GOOD_CHOICE.items() if k != "session"}),
-    '{"schema": "hmrta-choice/1", "robot": "r", "session": "s", "version": 1, "node": 1, "compute_ms": NaN}',
+    '{"format": "hmrta-choice/1", "robot": "r", "session": "s", "version": 1, "node": 1, "compute_ms": NaN}',
     "[" * 100000,
 ]
 
@@ -171,19 +325,19 @@ def test_malformed_boards_missions_and_statuses_raise_decode_error():
         with pytest.raises(C.DecodeError):
             C.board_from_msg(_msg(text))
     inst = INST.to_dict()
-    bad_missions = [{"schema": "hmrta-mission/1"},
-                    {"schema": "hmrta-mission/1", "session": "s", "instance": {**inst, "velocity": -1}, "robots": [],
-                     "seed": 0, "policy": "greedy", "frame_id": "map", "scale": 1.0},
-                    {"schema": "hmrta-mission/1", "session": "s", "instance": inst, "robots": ["a"] * INST.n_agents,
-                     "seed": 0, "policy": "greedy", "frame_id": "map", "scale": 1.0},
-                    {"schema": "hmrta-mission/1", "session": "s", "instance": inst,
-                     "robots": [f"r{i}" for i in range(INST.n_agents)], "seed": 0, "policy": "greedy",
+    bad_missions = [{"format": "hmrta-mission/1"},
+                    {"format": "hmrta-mission/1", "session": "s", "instance": {**inst, "velocity": -1}, "robots": [],
+                     "seed": 0, "method": "greedy", "frame_id": "map", "scale": 1.0},
+                    {"format": "hmrta-mission/1", "session": "s", "instance": inst, "robots": ["a"] * INST.n_agents,
+                     "seed": 0, "method": "greedy", "frame_id": "map", "scale": 1.0},
+                    {"format": "hmrta-mission/1", "session": "s", "instance": inst,
+                     "robots": [f"r{i}" for i in range(INST.n_agents)], "seed": 0, "method": "greedy",
                      "frame_id": "map", "scale": 0}]
     for d in bad_missions:
         with pytest.raises(C.DecodeError):
             C.mission_from_msg(_msg(json.dumps(d)))
-    for d in [{"schema": "hmrta-status/1", "robots": "robot_1", "session": "s", "seq": 1},
-              {"schema": "hmrta-status/1", "robots": [None], "session": "s", "seq": 1}]:
+    for d in [{"format": "hmrta-status/1", "robots": "robot_1", "session": "s", "seq": 1},
+              {"format": "hmrta-status/1", "robots": [None], "session": "s", "seq": 1}]:
         with pytest.raises(C.DecodeError):
             C.status_from_msg(_msg(json.dumps(d)))
     with pytest.raises(C.DecodeError):
@@ -193,7 +347,7 @@ def test_malformed_boards_missions_and_statuses_raise_decode_error():
 JSON = st.recursive(st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=8),
                     lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=8), c, max_size=5),
                     max_leaves=12)
-FIELDS = st.fixed_dictionaries({}, optional={"schema": st.sampled_from(["hmrta-choice/1", "hmrta-status/1",
+FIELDS = st.fixed_dictionaries({}, optional={"format": st.sampled_from(["hmrta-choice/1", "hmrta-status/1",
                                                                           "hmrta-board/1", "x"]),
                                              "robot": JSON, "robots": JSON, "session": JSON, "version": JSON,
                                              "node": JSON, "seq": JSON, "compute_ms": JSON, "phase": JSON})

@@ -1,16 +1,22 @@
 """Payload codecs: pairs of pure functions ``*_to_msg`` / ``*_from_msg``.
 
-Structured payloads are JSON objects with a ``schema`` field inside ``std_msgs/String``; standard
+Structured payloads are JSON objects inside ``std_msgs/String``, each naming its format and
+version in a ``format`` field (``hmrta-choice/1``; JSON Schemas in ``docs/schemas/``); standard
 types are used where they exist (``geometry_msgs/PoseStamped`` for poses and goals,
 ``rosgraph_msgs/Clock`` for sim time, ``visualization_msgs/MarkerArray`` for RViz). Every decoder
 validates what it reads and raises :class:`DecodeError` (one line, names the field) on anything
-malformed; nothing else escapes a ``*_from_msg``.
+malformed, an unknown format or an unknown version; nothing else escapes a ``*_from_msg``. Writers
+emit exactly the published schema; readers ignore fields they do not know.
 
 Board wire format (``hmrta-board/1``): three JSON documents separated by newlines (JSON text
 never contains a raw newline): the header (small), the legs (one entry per robot) and the full
-mission-state snapshot (:meth:`hmrta.core.MissionState.snapshot`). Readers that only need the
-header never parse the rest; :class:`BoardDecoder` shares one decoded copy between the nodes of a
-process.
+mission-state snapshot (``hmrta-state/1``, :meth:`hmrta.core.MissionState.snapshot`). Readers
+that only need the header never parse the rest; :class:`BoardDecoder` shares one decoded copy
+between the nodes of a process.
+
+Choices and statuses may be signed (``hmrta.keys``): ``choice_to_msg(c, signer)`` /
+``status_to_msg(s, signer)`` add ``counter`` and ``mac``; their decoders check the two fields'
+types and keep the decoded object in ``payload`` for the board's verifier.
 """
 from __future__ import annotations
 
@@ -25,21 +31,24 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker, MarkerArray
 
+from hmrta.core import STATE_FORMAT, Rules, parse_rules
 from hmrta.instance import Instance, InstanceError, instance_from_dict
+from hmrta.solution import FORMAT as RESULT_FORMAT
 
-MISSION_SCHEMA = "hmrta-mission/1"
-BOARD_SCHEMA = "hmrta-board/1"
-CHOICE_SCHEMA = "hmrta-choice/1"
-STATUS_SCHEMA = "hmrta-status/1"
-REJECTION_SCHEMA = "hmrta-rejection/1"
-RESULT_FORMAT = "hmrta-solution/1"
+MISSION_FORMAT = "hmrta-mission/1"
+BOARD_FORMAT = "hmrta-board/1"
+CHOICE_FORMAT = "hmrta-choice/1"
+STATUS_FORMAT = "hmrta-status/1"
+REJECTION_FORMAT = "hmrta-rejection/1"
+# every format this module writes (the board's third line is an hmrta-state/1 snapshot)
+FORMATS = (MISSION_FORMAT, BOARD_FORMAT, STATE_FORMAT, CHOICE_FORMAT, STATUS_FORMAT, REJECTION_FORMAT, RESULT_FORMAT)
 
 PHASES = ("starting", "wait", "decide", "closing", "done")
 HOLD = -1  # leg node: stay where you are (0 = own depot, 1 + m = task m)
 
 
 class DecodeError(ValueError):
-    """A received payload is malformed (bad JSON, wrong schema, missing or mistyped field)."""
+    """A received payload is malformed (bad JSON, unknown format or version, missing or mistyped field)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -58,12 +67,29 @@ def _loads(text: Any, what: str) -> Any:
         raise DecodeError(f"{what}: invalid JSON ({getattr(e, 'msg', e)})") from None
 
 
-def _obj(text: Any, schema: str) -> dict[str, Any]:
-    d = _loads(text, schema)
+def check_format(d: dict[str, Any], fmt: str) -> None:
+    """DecodeError unless ``d["format"]`` is ``fmt``; the reason tells a missing format, another
+    version of the same format and another format apart."""
+    got = d.get("format")
+    if got == fmt:
+        return
+    if "format" not in d:
+        raise DecodeError(f"{fmt}: missing field 'format' (expected {fmt!r})")
+    if isinstance(got, str) and got.rpartition("/")[0] == fmt.rpartition("/")[0]:
+        raise DecodeError(f"{fmt}: unsupported version {got!r} (this build reads {fmt!r})")
+    raise DecodeError(f"expected format {fmt!r}, got {_short(got)}")
+
+
+def _short(v: Any, n: int = 60) -> str:
+    r = repr(v)
+    return r if len(r) <= n else r[: n - 3] + "..."
+
+
+def _obj(text: Any, fmt: str) -> dict[str, Any]:
+    d = _loads(text, fmt)
     if not isinstance(d, dict):
-        raise DecodeError(f"{schema}: expected a JSON object, got {type(d).__name__}")
-    if d.get("schema") != schema:
-        raise DecodeError(f"expected schema {schema!r}, got {d.get('schema')!r}")
+        raise DecodeError(f"{fmt}: expected a JSON object, got {type(d).__name__}")
+    check_format(d, fmt)
     return d
 
 
@@ -156,9 +182,10 @@ class Mission:
     instance: Instance
     robots: tuple[str, ...]  # robot name of agent index a
     seed: int
-    policy: str
+    method: str  # the method every agent runs (hmrta.methods)
     frame_id: str = "map"
     scale: float = 1.0  # frame units per mission unit
+    rules: Rules | None = None  # the state-machine rules the mission runs under (required on the wire)
 
     def index(self, robot: str) -> int | None:
         try:
@@ -168,13 +195,16 @@ class Mission:
 
 
 def mission_to_msg(m: Mission) -> String:
-    return _str(_dumps({"schema": MISSION_SCHEMA, "session": m.session, "instance": m.instance.to_dict(),
-                        "robots": list(m.robots), "seed": m.seed, "policy": m.policy,
-                        "frame_id": m.frame_id, "scale": m.scale}))
+    if m.rules is None:
+        raise ValueError("mission_to_msg: Mission.rules is required (the rules the mission runs under)")
+    rules = m.rules if isinstance(m.rules, Rules) else parse_rules(m.rules, "Mission.rules")  # or its to_dict()
+    return _str(_dumps({"format": MISSION_FORMAT, "session": m.session, "instance": m.instance.to_dict(),
+                        "robots": list(m.robots), "seed": m.seed, "method": m.method,
+                        "frame_id": m.frame_id, "scale": m.scale, "rules": rules.to_dict()}))
 
 
 def mission_from_msg(msg: String) -> Mission:
-    w = MISSION_SCHEMA
+    w = MISSION_FORMAT
     d = _obj(msg.data, w)
     try:
         inst = instance_from_dict(_get(d, "instance", dict, w), source="mission")
@@ -187,8 +217,13 @@ def mission_from_msg(msg: String) -> Mission:
     scale = _num(d, "scale", w)
     if scale <= 0:
         raise DecodeError(f"{w}.scale: expected a positive number, got {scale}")
-    return Mission(_get(d, "session", str, w), inst, names, _get(d, "seed", int, w), _get(d, "policy", str, w),
-                   _get(d, "frame_id", str, w), scale)
+    rules = _get(d, "rules", dict, w)
+    try:
+        rules = parse_rules(rules)
+    except ValueError as e:
+        raise DecodeError(f"{w}.{e}") from None
+    return Mission(_get(d, "session", str, w), inst, names, _get(d, "seed", int, w), _get(d, "method", str, w),
+                   _get(d, "frame_id", str, w), scale, rules)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -216,7 +251,7 @@ class Board:
     state: dict[str, Any] | None = field(default=None, repr=False)
 
     def header(self) -> dict[str, Any]:
-        return {"schema": BOARD_SCHEMA, "session": self.session, "version": self.version, "rev": self.rev,
+        return {"format": BOARD_FORMAT, "session": self.session, "version": self.version, "rev": self.rev,
                 "phase": self.phase, "decider": self.decider, "clock": self.clock, "horizon": self.horizon,
                 "n_done": self.n_done, "n_cancelled": self.n_cancelled, "n_tasks": self.n_tasks,
                 "lost": list(self.lost)}
@@ -237,12 +272,12 @@ def state_to_json(state: dict[str, Any]) -> str:
 
 def _split(data: Any) -> list[str]:
     if not isinstance(data, str):
-        raise DecodeError(f"{BOARD_SCHEMA}: expected text")
+        raise DecodeError(f"{BOARD_FORMAT}: expected text")
     return data.split("\n", 2)
 
 
 def _board_header(text: str) -> Board:
-    w = BOARD_SCHEMA
+    w = BOARD_FORMAT
     d = _obj(text, w)
     phase = _get(d, "phase", str, w)
     if phase not in PHASES:
@@ -263,7 +298,7 @@ def _leg(g: Any, where: str) -> Leg:
 
 
 def _legs(text: str) -> tuple[RobotLegs | None, ...]:
-    w = f"{BOARD_SCHEMA}.legs"
+    w = f"{BOARD_FORMAT}.legs"
     legs = _loads(text, w)
     if not isinstance(legs, list):
         raise DecodeError(f"{w}: expected a list")
@@ -279,18 +314,28 @@ def _legs(text: str) -> tuple[RobotLegs | None, ...]:
     return tuple(out)
 
 
+def _state(text: str) -> dict[str, Any]:
+    """The board's third line: an hmrta-state/1 snapshot (its fields are checked by
+    :meth:`hmrta.core.MissionState.from_snapshot`, which raises SnapshotError)."""
+    w = f"{BOARD_FORMAT}.state"
+    st = _loads(text, w)
+    if not isinstance(st, dict):
+        raise DecodeError(f"{w}: expected a JSON object")
+    try:
+        check_format(st, STATE_FORMAT)
+    except DecodeError as e:
+        raise DecodeError(f"{w}: {e}") from None
+    return st
+
+
 def board_from_msg(msg: String, *, legs: bool = True, state: bool = True) -> Board:
     """Decode a board; ``legs`` / ``state`` False skips parsing those parts (they stay None)."""
     parts = _split(msg.data)
     if len(parts) != 3:
-        raise DecodeError(f"{BOARD_SCHEMA}: expected header, legs and state lines")
+        raise DecodeError(f"{BOARD_FORMAT}: expected header, legs and state lines")
     b = _board_header(parts[0])
     lg = _legs(parts[1]) if legs else None
-    st = None
-    if state:
-        st = _loads(parts[2], f"{BOARD_SCHEMA}.state")
-        if not isinstance(st, dict):
-            raise DecodeError(f"{BOARD_SCHEMA}.state: expected a JSON object")
+    st = _state(parts[2]) if state else None
     return Board(**{**b.__dict__, "legs": lg, "state": st})
 
 
@@ -321,10 +366,7 @@ class BoardDecoder:
     def state(self, msg: String) -> dict[str, Any]:
         self.decode(msg)
         if self._state is None:
-            st = _loads(self._state_text, f"{BOARD_SCHEMA}.state")
-            if not isinstance(st, dict):
-                raise DecodeError(f"{BOARD_SCHEMA}.state: expected a JSON object")
-            self._state = st
+            self._state = _state(self._state_text)
         return self._state
 
 
@@ -339,20 +381,40 @@ class Choice:
     node: int  # 0 = own depot, 1 + m = task m
     seq: int = 0  # the agent's own counter (for logs)
     compute_ms: float = 0.0  # board received -> choice published, measured by the agent
+    # the decoded JSON object (signed messages: with ``counter`` and ``mac``), for verification
+    payload: dict[str, Any] | None = field(default=None, compare=False, repr=False)
 
 
-def choice_to_msg(c: Choice) -> String:
-    return _str(_dumps({"schema": CHOICE_SCHEMA, "robot": c.robot, "session": c.session, "version": c.version,
-                        "node": c.node, "seq": c.seq, "compute_ms": c.compute_ms}))
+def _signed(d: dict[str, Any], signer: Any) -> dict[str, Any]:
+    """``d`` signed by ``signer`` (an :class:`hmrta.keys.Signer`: adds ``counter`` and ``mac``)."""
+    return d if signer is None else signer.sign(d)
+
+
+def _check_signature_fields(d: dict[str, Any], what: str) -> None:
+    """Optional ``counter`` (integer >= 0) and ``mac`` (object) of a signed message; their
+    values are checked by :meth:`hmrta.keys.Verifier.verify`."""
+    c = _get(d, "counter", int, what, optional=True)
+    if c is not None and c < 0:
+        raise DecodeError(f"{what}.counter: expected an integer >= 0, got {c}")
+    _get(d, "mac", dict, what, optional=True)
+
+
+def choice_to_msg(c: Choice, signer: Any = None) -> String:
+    """With ``signer`` (:class:`hmrta.keys.Signer` holding the robot's key) the message carries
+    ``counter`` and ``mac``."""
+    return _str(_dumps(_signed({"format": CHOICE_FORMAT, "robot": c.robot, "session": c.session,
+                                "version": c.version, "node": c.node, "seq": c.seq, "compute_ms": c.compute_ms},
+                               signer)))
 
 
 def choice_from_msg(msg: String) -> Choice:
-    w = CHOICE_SCHEMA
+    w = CHOICE_FORMAT
     d = _obj(msg.data, w)
+    _check_signature_fields(d, w)
     return Choice(_name(d.get("robot"), f"{w}.robot"), _get(d, "session", str, w), _get(d, "version", int, w),
                   _get(d, "node", int, w),
                   _get(d, "seq", int, w, optional=True, default=0),
-                  _num(d, "compute_ms", w, optional=True, default=0.0))
+                  _num(d, "compute_ms", w, optional=True, default=0.0), d)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -364,41 +426,51 @@ class Status:
     session: str  # the board session (mission run) the robots take part in
     seq: int
     host: str = ""
+    # the decoded JSON object (signed messages: with ``counter`` and ``mac``), for verification
+    payload: dict[str, Any] | None = field(default=None, compare=False, repr=False)
 
 
-def status_to_msg(s: Status) -> String:
-    return _str(_dumps({"schema": STATUS_SCHEMA, "robots": list(s.robots), "session": s.session, "seq": s.seq,
-                        "host": s.host}))
+def status_to_msg(s: Status, signer: Any = None) -> String:
+    """With ``signer`` (holding the key of every robot listed) the message carries ``counter``
+    and one MAC per robot."""
+    return _str(_dumps(_signed({"format": STATUS_FORMAT, "robots": list(s.robots), "session": s.session,
+                                "seq": s.seq, "host": s.host}, signer)))
 
 
 def status_from_msg(msg: String) -> Status:
-    w = STATUS_SCHEMA
+    w = STATUS_FORMAT
     d = _obj(msg.data, w)
+    _check_signature_fields(d, w)
     robots = _get(d, "robots", list, w)
     return Status(tuple(_name(r, f"{w}.robots[{i}]") for i, r in enumerate(robots)), _get(d, "session", str, w),
                   _get(d, "seq", int, w),
-                  _get(d, "host", str, w, optional=True, default=""))
+                  _get(d, "host", str, w, optional=True, default=""), d)
 
 
 # ---------------------------------------------------------------------------------------------
 # rejection (board -> anyone: why a message was refused)
 # ---------------------------------------------------------------------------------------------
+REJECTION_REASONS = ("malformed", "foreign_session", "unknown_robot", "lost", "duplicate", "stale", "not_released",
+                     "not_your_turn", "masked",
+                     # authenticated missions (hmrta.keys.rejection_code)
+                     "unsigned", "forged", "replayed", "unauthenticated")
+
+
 @dataclass(frozen=True)
 class Rejection:
-    reason: str  # malformed | foreign_session | unknown_robot | lost | duplicate | stale | not_released
-    #              | not_your_turn | masked
+    reason: str  # one of REJECTION_REASONS (readers accept any string: a later board may add reasons)
     detail: str
     robot: str = ""
     version: int = -1
 
 
 def rejection_to_msg(r: Rejection) -> String:
-    return _str(_dumps({"schema": REJECTION_SCHEMA, "reason": r.reason, "detail": r.detail, "robot": r.robot,
+    return _str(_dumps({"format": REJECTION_FORMAT, "reason": r.reason, "detail": r.detail, "robot": r.robot,
                         "version": r.version}))
 
 
 def rejection_from_msg(msg: String) -> Rejection:
-    w = REJECTION_SCHEMA
+    w = REJECTION_FORMAT
     d = _obj(msg.data, w)
     return Rejection(_get(d, "reason", str, w), _get(d, "detail", str, w),
                      _get(d, "robot", str, w, optional=True, default=""),
@@ -415,9 +487,7 @@ def result_to_msg(solution: dict[str, Any]) -> String:
 
 
 def result_from_msg(msg: String) -> dict[str, Any]:
-    d = _loads(msg.data, RESULT_FORMAT)
-    if not isinstance(d, dict) or d.get("format") != RESULT_FORMAT:
-        raise DecodeError(f"expected format {RESULT_FORMAT!r}")
+    d = _obj(msg.data, RESULT_FORMAT)
     for k in ("routes", "tasks", "agents", "success"):
         if k not in d:
             raise DecodeError(f"{RESULT_FORMAT}: missing field {k!r}")
