@@ -14,11 +14,15 @@ driver listen, so that nothing the agent sends is lost).
 
 One robot per process::
 
-    agent_node --ros-args -r __ns:=/robot_3 -p policy:=greedy -p seed:=1
+    agent_node --ros-args -r __ns:=/robot_3 -p method:=greedy -p seed:=1
 
 or many robots in one process (lean nodes on one executor, one shared copy of the policy)::
 
-    agent_node --robots robot_0,robot_1,robot_2 --ros-args -p policy:=rl
+    agent_node --robots robot_0,robot_1,robot_2 --ros-args -p method:=rl
+
+Authenticated missions (``hmrta.keys``, docs/security.md): ``-p keystore:=DIR`` (the process
+loads the keys of the robots it hosts from the mission keystore) or ``-p key_file:=FILE`` (one
+robot's ``robots/<robot>.key.json``); the process then signs every choice and heartbeat.
 """
 from __future__ import annotations
 
@@ -39,14 +43,19 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
 from hmrta.core import MissionState
+from hmrta.keys import KeystoreError, Signer, load_key_file, load_keystore
 from hmrta.methods import MethodError, decider
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (BoardDecoder, Choice, DecodeError, Mission, Status, choice_to_msg, clock_from_msg,
                                  mission_from_msg, pose_to_msg, status_to_msg)
-from hmrta_msgs_py.runtime import LEAN_NODE, method_name, spin_nodes
+from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, method_parameters_help, spin_nodes
 
 
 EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
+# a choice the board has not acted on after this many seconds is sent again (freshly signed): a
+# flood of junk on /hmrta/choice can push it out of the board's queue; a copy that arrives after
+# the first was applied is rejected as a duplicate and changes nothing
+RESEND_AFTER = 1.0
 
 
 class Host:
@@ -65,12 +74,32 @@ class Host:
         self._seq = 0
         self._status_pub = None
         self.clock = 0.0
+        self.keys: dict[str, bytes] = {}  # the hosted robots' keys (authenticated missions)
+        self.signer: Signer | None = None  # one per process: its counter orders every message it signs
+        self._keystores: dict[str, dict[str, bytes]] = {}
 
-    def decider(self, method: str, seed: int, checkpoint: str):
-        key = (method, seed, checkpoint)
+    def add_key(self, robot: str, keystore: str, key_file: str) -> None:
+        """Load ``robot``'s key from a keystore folder or from its own key file (KeystoreError:
+        missing, unreadable, or the file is another robot's)."""
+        if keystore:
+            if keystore not in self._keystores:
+                self._keystores[keystore] = load_keystore(keystore)
+            keys = self._keystores[keystore]
+            if robot not in keys:
+                raise KeystoreError(f"{keystore}: robots: no key for {robot}")
+            self.keys[robot] = keys[robot]
+        elif key_file:
+            owner, key = load_key_file(key_file)
+            if owner != robot:
+                raise KeystoreError(f"{key_file}: robot: the key of {owner!r}, not of {robot!r}")
+            self.keys[robot] = key
+        if self.keys:
+            self.signer = Signer(self.keys)
+
+    def decider(self, method: str, seed: int, options: dict[str, Any]):
+        key = (method, seed, tuple(sorted(options.items())))
         if key not in self._deciders:
-            opts = {"checkpoint": checkpoint} if checkpoint else {}
-            self._deciders[key] = decider(method, seed, **opts)
+            self._deciders[key] = decider(method, seed, **options)
         return self._deciders[key]
 
     def attach(self, node: Node, period: float) -> None:
@@ -134,9 +163,18 @@ class Host:
         for a in self.agents:
             if a.ready and not a.finished:
                 sessions.setdefault(a.mission.session, []).append(a.robot)
+        if self.board_msg is not None and self.mission is not None:
+            try:
+                board = self.boards.decode(self.board_msg)
+            except DecodeError:
+                board = None
+            if board is not None and board.session == self.mission.session:
+                for a in self.agents:
+                    a.resend(board)
         for session, robots in sessions.items():
             self._seq += 1
-            self._status_pub.publish(status_to_msg(Status(tuple(robots), session, self._seq, self._host)))
+            self._status_pub.publish(status_to_msg(Status(tuple(robots), session, self._seq, self._host),
+                                                   self.signer))
 
     def agent_finished(self) -> None:
         if all(a.finished for a in self.agents) and not self.all_done.done():
@@ -154,13 +192,14 @@ class AgentNode(Node):
             raise SystemExit("agent_node: set the robot name (-p robot:=NAME or a namespace, -r __ns:=/NAME)")
         self.index_param = self.declare_parameter("index", -1).value
         self.species_param = self.declare_parameter("species", -1).value
-        policy = self.declare_parameter("policy", "greedy").value
-        decoding = self.declare_parameter("decoding", "greedy").value
-        checkpoint = self.declare_parameter("checkpoint", "").value
+        self.method, options = declare_method_parameters(self)
         self.seed = self.declare_parameter("seed", 0).value
         self.exit_on_done = self.declare_parameter("exit_on_done", True).value
-        self.method = method_name(policy, decoding)
-        self.decide, self.rules = host.decider(self.method, self.seed, checkpoint)
+        self.decide, self.rules = host.decider(self.method, self.seed, options)
+        keystore = self.declare_parameter("keystore", "").value
+        key_file = self.declare_parameter("key_file", "").value
+        if keystore or key_file:
+            host.add_key(self.robot, keystore, key_file)
 
         self.mission: Mission | None = None
         self.index: int | None = None
@@ -170,6 +209,7 @@ class AgentNode(Node):
         self.pending: list = []  # legs whose departure time has not come yet
         self.ready = False
         self.seq = 0
+        self._sent: tuple[int, int, float, float] | None = None  # (board version, node, compute ms, monotonic time)
         self._warned: set[str] = set()
         self.choice_pub = self.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
         self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
@@ -197,6 +237,8 @@ class AgentNode(Node):
             self.get_logger().error(f"robot {self.robot!r} (index {self.index_param}) is not in mission "
                                     f"{mission.instance.name} (robots {', '.join(mission.robots[:5])}...)")
             return
+        if not self.compatible(mission):
+            return
         species = int(mission.instance.agent_species[idx])
         if self.species_param >= 0 and self.species_param != species:
             self.get_logger().error(f"robot {self.robot!r} is species {self.species_param} but the mission "
@@ -205,7 +247,18 @@ class AgentNode(Node):
         self.mission, self.index = mission, idx
         self.answered, self.leg_seq, self.pending = -1, None, []
         self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "
-                               f"{mission.instance.name}, policy {self.method}")
+                               f"{mission.instance.name}, method {self.method}")
+
+    def compatible(self, mission: Mission) -> bool:
+        """Whether this robot's method runs under the mission's rules (checked once, on joining).
+        The board decides ``backdate`` (real-time departures); everything else must match."""
+        theirs, mine = mission.rules.to_dict(), self.rules.to_dict()  # the codec requires and checks them
+        theirs.pop("backdate", None), mine.pop("backdate", None)
+        if theirs != mine:
+            self.get_logger().error(f"{self.robot}: method {self.method} runs under rules {mine} but mission "
+                                    f"{mission.instance.name} runs under {theirs} (method {mission.method}): "
+                                    "not taking part; start this agent with the mission's method and checkpoint")
+        return theirs == mine
 
     def act(self, board, t_recv: float) -> None:
         """Follow the board: queue this robot's new legs, decide when it is its turn."""
@@ -226,8 +279,11 @@ class AgentNode(Node):
 
     def _take_legs(self, seq: int, legs: tuple) -> None:
         """Queue this robot's legs that are new since the last board (all of them in order)."""
-        if self.leg_seq is None:  # first board seen (start or restart): only the latest leg matters
-            self.leg_seq = seq - 1 if legs else seq
+        if self.leg_seq is None:  # first board seen (start or restart): from the leg driven now on
+            # (its driver gets the current goal again, and the legs that came due while this process
+            # was down; without them an arrival the board waits for would never happen)
+            due = [i for i, g in enumerate(legs) if g[3] <= self.host.clock + EPS]
+            self.leg_seq = seq - len(legs) + (due[-1] if due else 0)
         first = seq - len(legs) + 1
         new = [g for i, g in enumerate(legs) if first + i > self.leg_seq]
         if new:
@@ -256,16 +312,26 @@ class AgentNode(Node):
             self.get_logger().error(f"board {version} names agent {self.index} but its state's decider is "
                                     f"{state.agent}: not answering")
             return
-        mine = {**self.rules.to_dict(), "backdate": snap.get("rules", {}).get("backdate")}  # the board's call
-        if snap.get("rules") != mine:
-            self._warn_once("rules", f"{self.robot}: policy {self.method} expects rules {self.rules.to_dict()} "
-                                     f"but the mission runs {snap.get('rules')}")
         node = int(self.decide(state))
-        self.seq += 1
         ms = (time.perf_counter() - t_recv) * 1e3
-        self.choice_pub.publish(choice_to_msg(Choice(self.robot, self.mission.session, version, node, self.seq,
-                                                     round(ms, 3))))
+        self._send(version, node, round(ms, 3))
         self.get_logger().debug(f"board {version}: chose node {node} ({ms:.1f} ms)")
+
+    def _send(self, version: int, node: int, ms: float) -> None:
+        self.seq += 1
+        self.choice_pub.publish(choice_to_msg(Choice(self.robot, self.mission.session, version, node, self.seq, ms),
+                                              self.host.signer))
+        self._sent = (version, node, ms, time.monotonic())
+
+    def resend(self, board) -> None:
+        """Send the last choice again when the board still waits for it after RESEND_AFTER s."""
+        sent = self._sent
+        if (sent is None or self.finished or board.phase != "decide" or board.decider != self.index
+                or board.version != sent[0] or time.monotonic() - sent[3] < RESEND_AFTER):
+            return
+        self.get_logger().warning(f"{self.robot}: board {sent[0]} still waits for this robot's choice after "
+                                  f"{RESEND_AFTER:g} s: sending it again", throttle_duration_sec=10.0)
+        self._send(sent[0], sent[1], sent[2])
 
     def _finish(self) -> None:
         if not self.finished and self.exit_on_done:
@@ -290,7 +356,9 @@ def _set_torch_threads(n: int) -> None:
 
 def main(args: list[str] | None = None) -> None:
     argv = sys.argv if args is None else args
-    p = argparse.ArgumentParser(prog="agent_node", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="agent_node", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="method parameters (--ros-args -p NAME:=VALUE):\n" + method_parameters_help())
     p.add_argument("--robots", type=robots_arg, default=None,
                    help="host several robots in this process (node /<robot>/agent each); default: one "
                         "robot named by -p robot:=NAME or by the namespace")

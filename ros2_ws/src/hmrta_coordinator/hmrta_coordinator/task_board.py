@@ -19,6 +19,16 @@ Robot loss: a robot whose agent heartbeat (``/hmrta/agent_status``) or pose stop
 commitments are released, the others re-plan, tasks nobody left can satisfy are cancelled. The
 result JSON (``hmrta-solution/1``, ``output`` parameter and ``/hmrta/result``) lists
 ``lost_robots`` and ``undone_tasks``.
+
+Authentication (``keystore`` parameter: a mission keystore folder, ``hmrta keys create``; empty:
+off): every choice and heartbeat must carry a valid MAC of the robot it speaks for with a fresh
+counter (``hmrta.keys``, docs/security.md). Choices that fail are rejected (``unsigned``,
+``forged``, ``replayed``, ``unknown_robot``) before any other check on their robot; heartbeats
+that fail keep nobody alive.
+
+Rejections are counted one by one; the log line and the ``/hmrta/rejections`` message of each
+are rate-limited (``rejection_rate`` per second), so a flood of junk costs the board little more
+than decoding it.
 """
 from __future__ import annotations
 
@@ -36,20 +46,24 @@ import rclpy
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 from hmrta.core import DONE, LOST, STATUS_NAMES, MissionState, Rules
-from hmrta.instance import InstanceError, load_instance
-from hmrta.methods import MethodError, decider
+from hmrta.formats import load_instance
+from hmrta.instance import InstanceError
+from hmrta.keys import Verifier, load_keystore, rejection_code
+from hmrta.methods import MethodError
+from hmrta.methods import rules as method_rules
 from hmrta.solution import solution_from_state
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (HOLD, Board, DecodeError, MarkerView, Mission, Rejection, board_to_msg,
                                  choice_from_msg, clock_from_msg, markers_to_msg, mission_to_msg, pose_from_msg,
                                  rejection_to_msg, result_to_msg, state_to_json, status_from_msg)
-from hmrta_msgs_py.runtime import method_name, spin_nodes
+from hmrta_msgs_py.runtime import declare_method_parameters, spin_nodes
 
 EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
 
@@ -91,9 +105,7 @@ class TaskBoard(Node):
         P = self.declare_parameter
         path = P("instance", "").value
         self.seed = P("seed", 0).value
-        policy = P("policy", "greedy").value
-        decoding = P("decoding", "greedy").value
-        checkpoint = P("checkpoint", "").value
+        self.method, method_opts = declare_method_parameters(self)
         self.output = P("output", "").value
         names = list(P("robot_names", Parameter.Type.STRING_ARRAY).value or [])
         frame_id = P("frame_id", "map").value
@@ -108,13 +120,16 @@ class TaskBoard(Node):
         self.progress_period = P("progress_period", 5.0).value
         # real robots cannot leave in the past: no back-dated departures for postponed robots
         real_time = P("real_time_departures", False).value
+        keystore = P("keystore", "").value  # mission keystore folder (or its keys.json); empty: no authentication
+        self.rejection_rate = float(P("rejection_rate", 200.0).value)  # logged + published rejections per second
+        # the board's receive queues of choices and heartbeats (messages): deep enough to ride out the
+        # moments the board process is not scheduled while junk floods the topics, bounded in memory
+        queue_depth = int(P("queue_depth", 2000).value)
 
         if not path:
             raise ValueError("task_board: set the mission file: -p instance:=PATH")
         self.inst = inst = load_instance(path)
-        self.method = method_name(policy, decoding)
-        opts = {"checkpoint": checkpoint} if checkpoint else {}
-        _, rules = decider(self.method, self.seed, **opts)
+        rules = method_rules(self.method, **method_opts)  # from the checkpoint's config: no torch here
         if real_time:
             rules = dataclasses.replace(rules, backdate=False)
         A = inst.n_agents
@@ -123,8 +138,11 @@ class TaskBoard(Node):
             raise ValueError(f"robot_names: expected {A} distinct names, got {len(names)}")
         self.names = names
         self.index = {n: a for a, n in enumerate(names)}
+        # KeystoreError (a ValueError, one line naming the file and field) is a user error
+        self.verifier = Verifier(load_keystore(keystore, names)) if keystore else None
         self.state = BoardState(inst, seed=self.seed, rules=rules)
-        self.mission = Mission(uuid.uuid4().hex[:12], inst, tuple(names), self.seed, self.method, frame_id, scale)
+        self.mission = Mission(uuid.uuid4().hex[:12], inst, tuple(names), self.seed, self.method, frame_id, scale,
+                               rules=rules)
 
         # bookkeeping (wall times from time.monotonic)
         self.version = 0  # published board version
@@ -143,6 +161,11 @@ class TaskBoard(Node):
         self.latency_ms: list[float] = []
         self.agent_ms: list[float] = []
         self.rejected: Counter[str] = Counter()
+        self.auth_rejected: dict[str, Counter[str]] = {"choice": Counter(), "status": Counter()}
+        self._rej_tokens = self.rejection_rate  # token bucket of logged/published rejections
+        self._rej_time = time.monotonic()
+        self._rej_quiet = 0  # rejections counted but neither logged nor published since the last summary
+        self._rej_summary_at = 0.0
         self.finished = False
         self.done = Future()
         self._key = None
@@ -158,8 +181,8 @@ class TaskBoard(Node):
         self.pub_result = self.create_publisher(String, topics.RESULT, topics.RESULT_QOS)
         self.pub_rej = self.create_publisher(String, topics.REJECTIONS, topics.REJECTION_QOS)
         self.pub_markers = self.create_publisher(MarkerArray, topics.MARKERS, topics.MARKER_QOS)
-        self.create_subscription(String, topics.CHOICE, self.on_choice, topics.CHOICE_QOS)
-        self.create_subscription(String, topics.STATUS, self.on_status, topics.STATUS_QOS)
+        self.create_subscription(String, topics.CHOICE, self.on_choice, _deeper(topics.CHOICE_QOS, queue_depth))
+        self.create_subscription(String, topics.STATUS, self.on_status, _deeper(topics.STATUS_QOS, queue_depth))
         self.create_subscription(Clock, topics.CLOCK, self.on_clock, topics.CLOCK_QOS)
         for a, n in enumerate(names):
             self.create_subscription(PoseStamped, topics.robot_topic(n, topics.POSE), partial(self.on_pose, a),
@@ -170,7 +193,7 @@ class TaskBoard(Node):
 
         self.pub_mission.publish(mission_to_msg(self.mission))
         self.get_logger().info(
-            f"mission {inst.name}: {A} robots, {inst.n_tasks} tasks, policy {self.method}, seed {self.seed}; "
+            f"mission {inst.name}: {A} robots, {inst.n_tasks} tasks, method {self.method}, seed {self.seed}; "
             + ("waiting for every robot's agent and pose" if self.wait_for_robots else "starting"))
         if not self.wait_for_robots:
             self._start()
@@ -207,8 +230,24 @@ class TaskBoard(Node):
 
     def _reject(self, reason: str, detail: str, robot: str = "", version: int = -1) -> None:
         self.rejected[reason] += 1
-        self.get_logger().warning(f"rejected: {detail}")
-        self.pub_rej.publish(rejection_to_msg(Rejection(reason, detail, robot, version)))
+        if self._rate_ok():
+            self.get_logger().warning(f"rejected: {detail}")
+            self.pub_rej.publish(rejection_to_msg(Rejection(reason, detail, robot, version)))
+
+    def _rate_ok(self) -> bool:
+        """Token bucket (``rejection_rate`` per second, as many in a burst): whether this
+        rejection is logged and published; the others are only counted, and summarised in one
+        log line every few seconds."""
+        if self.rejection_rate <= 0:
+            return True
+        now = time.monotonic()
+        self._rej_tokens = min(self.rejection_rate, self._rej_tokens + (now - self._rej_time) * self.rejection_rate)
+        self._rej_time = now
+        if self._rej_tokens >= 1.0:
+            self._rej_tokens -= 1.0
+            return True
+        self._rej_quiet += 1
+        return False
 
     # ------------------------------------------------------------------------------------------
     # the mission clock and arrival confirmations
@@ -294,6 +333,12 @@ class TaskBoard(Node):
         if c.session != self.mission.session:
             return self._reject("foreign_session", f"{who}: for mission run {c.session!r}, not this one", c.robot,
                                 c.version)
+        if self.verifier is not None:
+            why = self.verifier.verify(c.payload)
+            if why is not None:
+                code = rejection_code(why)
+                self.auth_rejected["choice"][code] += 1
+                return self._reject(code, f"{who}: {why}", c.robot, c.version)
         if a is None:
             return self._reject("unknown_robot", f"{who}: unknown robot", c.robot, c.version)
         if a in self.lost:
@@ -326,6 +371,13 @@ class TaskBoard(Node):
             return self._reject("malformed", f"malformed status: {e}")
         if s.session != self.mission.session:
             return  # agents of another mission run (e.g. before a board restart)
+        if self.verifier is not None:
+            why = self.verifier.verify(s.payload)
+            if why is not None:  # keeps nobody alive
+                self.auth_rejected["status"][rejection_code(why)] += 1
+                self.get_logger().warning(f"ignoring heartbeat of {', '.join(s.robots[:4])[:200]}: {why}",
+                                          throttle_duration_sec=5.0)
+                return
         now = time.monotonic()
         for r in s.robots:
             a = self.index.get(r)
@@ -388,6 +440,11 @@ class TaskBoard(Node):
         if (self.decision_timeout > 0 and self.phase == "decide"
                 and time.perf_counter() - self.released_at > self.decision_timeout):
             self._lose(self.state.agent, f"no decision within {self.decision_timeout:g} s")
+        if self._rej_quiet and now - self._rej_summary_at >= 5.0:
+            self._rej_summary_at = now
+            self.get_logger().warning(f"{self._rej_quiet} more message(s) rejected (not logged one by one: more than "
+                                      f"{self.rejection_rate:g}/s); by reason so far: {dict(self.rejected)}")
+            self._rej_quiet = 0
         if self.phase in ("wait", "closing") and now - max(self._published_at, self._clock_at) > 5.0:
             self.get_logger().warning(f"mission clock held: {self._waiting_for()}", throttle_duration_sec=10.0)
         if self.progress_period > 0 and now - self._last_progress >= self.progress_period:
@@ -447,6 +504,8 @@ class TaskBoard(Node):
             "agent_compute_ms": {"median": _r(statistics.median(self.agent_ms) if self.agent_ms else None),
                                  "p99": _r(percentile(self.agent_ms, 99))},
             "rejected_messages": dict(self.rejected),
+            "authenticated": self.verifier is not None,
+            "auth_rejections": {k: dict(v) for k, v in self.auth_rejected.items()},
             "board_versions": self.version,
         })
         if self.lost and alive:
@@ -471,6 +530,12 @@ class TaskBoard(Node):
         self._exit_timer.cancel()
         if not self.done.done():
             self.done.set_result(True)
+
+
+def _deeper(qos: QoSProfile, depth: int) -> QoSProfile:
+    """``qos`` with a receive history of ``depth`` messages (at least its own)."""
+    return QoSProfile(history=qos.history, depth=max(qos.depth, depth), reliability=qos.reliability,
+                      durability=qos.durability)
 
 
 def _r(v: float | None) -> float | None:
