@@ -170,8 +170,8 @@ def test_hostile_traffic_never_changes_the_board_and_late_joiners_get_it(tmp_pat
             raw.data = payload
             choice.publish(raw)
 
-    hostile = ["garbage", '{"schema": "hmrta-choice/1"}',
-               json.dumps({"schema": "hmrta-choice/1", "robot": me, "session": session, "version": "x", "node": 1}),
+    hostile = ["garbage", '{"format": "hmrta-choice/1"}',
+               json.dumps({"format": "hmrta-choice/1", "robot": me, "session": session, "version": "x", "node": 1}),
                C.Choice("intruder", session, v, good),
                C.Choice(me, "another-run", v, good),
                C.Choice(robots[(d + 1) % len(robots)], session, v, good),
@@ -276,7 +276,7 @@ def test_drop_in_robot_on_remapped_topics(tmp_path, graph, mission_procs):
 
 @pytest.mark.parametrize("policy", ["rl", "rl-lookahead"])
 def test_rl_policy_mission_equals_offline(tmp_path, domain, policy):
-    """--policy rl goes through hmrta.methods.decider in every agent (one shared copy of the
+    """--method rl goes through hmrta.methods.decider in every agent (one shared copy of the
     weights per process); greedy decoding is deterministic, so the mission equals the offline
     rollout. Uses the shipped checkpoint, or an untrained one when none is shipped yet."""
     torch = pytest.importorskip("torch")
@@ -299,7 +299,7 @@ def test_rl_policy_mission_equals_offline(tmp_path, domain, policy):
     path = save_instance(inst, tmp_path / "inst.yaml")
     out = tmp_path / "mission.json"
     proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", "1", "--out", str(out), "--quiet",
-                           "--no-plot", "--policy", policy, *checkpoint, "--domain-id", str(domain),
+                           "--no-plot", "--method", policy, *checkpoint, "--domain-id", str(domain),
                            "--agents-per-process", "6", "--timeout", "150"], capture_output=True, text=True, timeout=200)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     ref = json.loads(json.dumps(solve(inst, policy, 1, **({"checkpoint": checkpoint[1]} if checkpoint else {})).to_dict()))
@@ -309,13 +309,13 @@ def test_rl_policy_mission_equals_offline(tmp_path, domain, policy):
 
 
 def test_coalition_greedy_mission_equals_offline(tmp_path, domain):
-    """--policy greedy-coalition: every agent runs the coalition-aware greedy through
+    """--method greedy-coalition: every agent runs the coalition-aware greedy through
     hmrta.methods.decider on the board's state; the live mission equals the offline simulation."""
     inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 1)
     path = save_instance(inst, tmp_path / "inst.yaml")
     out = tmp_path / "mission.json"
     proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", "2", "--out", str(out), "--quiet",
-                           "--no-plot", "--policy", "greedy-coalition", "--domain-id", str(domain),
+                           "--no-plot", "--method", "greedy-coalition", "--domain-id", str(domain),
                            "--agents-per-process", "6", "--timeout", "150"], capture_output=True, text=True, timeout=200)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     ref = json.loads(json.dumps(solve(inst, "greedy-coalition", 2).to_dict()))

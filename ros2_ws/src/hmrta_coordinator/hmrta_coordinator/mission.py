@@ -5,6 +5,15 @@ default; ``--agents-per-process N`` hosts N robots per process), follows the boa
 progress bar, and when the mission ends writes the ``hmrta-solution/1`` JSON (plus a routes and
 Gantt picture), prints the metrics and stops every process it started.
 
+Any process may die. A simulated-robot or agent process that dies (a crash, any signal) is
+restarted, at most 3 times each, with the reason printed and kept in the result's ``incidents``;
+the new process resynchronises from the latched mission and board and the mission goes on. The
+board is not restarted: when it dies (or the mission times out, or is interrupted) the launcher
+stops the rest at once and writes a partial result (``success`` false, ``partial`` true, the
+``failure`` reason, and the routes and completed tasks of the latest board it saw). Exit status:
+0 mission completed, 3 completed without success (e.g. lost robots left tasks undone), 1 did not
+complete (partial result), 130 interrupted (partial result), 2 user error.
+
 DDS discovery stays on this machine unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is already set
 (e.g. SUBNET for a real multi-machine fleet); without ``ROS_DOMAIN_ID`` a random domain in
 100..199 is used so that missions never meet by accident.
@@ -13,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import subprocess
@@ -20,8 +30,9 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Callable
 
+from hmrta import methods
 from hmrta_msgs_py.runtime import local_env
 
 
@@ -57,6 +68,8 @@ class Child:
     proc: subprocess.Popen
     log: Path
     _fh: IO | None = None
+    restarts: int = 0
+    given_up: bool = False  # died once more than it may be restarted
 
 
 @dataclass
@@ -71,9 +84,8 @@ class MissionProcesses:
     log_dir: Path
     env: dict[str, str]
     seed: int = 0
-    policy: str = "greedy"
-    decoding: str = "greedy"
-    checkpoint: str = ""
+    method: str = "greedy"
+    method_options: dict[str, Any] = field(default_factory=dict)  # e.g. {"checkpoint": "my.pt"}
     agents_per_process: int = 1
     time_scale: float = 0.0
     board_params: dict[str, Any] = field(default_factory=dict)
@@ -83,9 +95,13 @@ class MissionProcesses:
     external: list[str] = field(default_factory=list)  # robots driven outside (not simulated)
     no_agent: list[str] = field(default_factory=list)  # robots whose agent runs elsewhere
     agent_ros_args: dict[str, list[str]] = field(default_factory=dict)  # robot -> its own process with these
+    keystore: Path | None = None  # mission keystore (hmrta keys create): board and agents authenticate
     board: Child | None = None
     sim: Child | None = None
     agents: list[Child] = field(default_factory=list)
+    max_restarts: int = 3  # per simulated-robot / agent process; the board is never restarted
+    incidents: list[str] = field(default_factory=list)  # what died and what was done about it
+    last_board: str | None = None  # the latest board message seen by run_monitor (its text)
 
     def _spawn(self, name: str, module: str, args: list[str]) -> Child:
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -105,7 +121,9 @@ class MissionProcesses:
         return groups + [([r], self.agent_ros_args[r]) for r in own]
 
     def start(self) -> None:
-        common = {"seed": self.seed, "policy": self.policy, "decoding": self.decoding, "checkpoint": self.checkpoint}
+        common = {"seed": self.seed, "method": self.method, **self.method_options}
+        if self.keystore is not None:
+            common["keystore"] = str(self.keystore)
         bp = {"instance": str(self.instance), "robot_names": self.robots, **common, **self.board_params}
         if self.out is not None:
             bp["output"] = str(self.out)
@@ -128,6 +146,40 @@ class MissionProcesses:
             if robot in robots:
                 return c
         raise KeyError(robot)
+
+    def supervise(self, clock: float = math.nan, log: IO | None = None) -> str | None:
+        """Restart the simulated-robot or agent process that died (non-zero exit: a crash, a
+        signal) while the board runs, at most ``max_restarts`` times each (they resynchronise
+        from the latched mission and board). Returns why the mission cannot go on, or None.
+        The board itself is not restarted (its exit is the caller's to judge)."""
+        at = f" at t={clock:.3f}" if clock == clock else ""
+        for c in ([self.sim] if self.sim is not None else []) + self.agents:
+            rc = c.proc.poll()
+            if rc is None or rc == 0 or c.given_up:  # running, or finished its part (done, or its robots lost)
+                continue
+            what = f"{c.name} process died ({exit_text(rc)}){at}"
+            if c.restarts >= self.max_restarts:
+                self.incidents.append(f"{what}; not restarted (already restarted {c.restarts} times)")
+                c.given_up = True
+                if c is self.sim:  # nobody drives the mission clock
+                    return f"{what} after {c.restarts} restarts"
+                continue  # the board declares its robots lost and goes on
+            c.restarts += 1
+            self.incidents.append(f"{what}; restarted ({c.restarts}/{self.max_restarts})")
+            print(f"hmrta-mission: {self.incidents[-1]}", file=log or sys.stderr, flush=True)
+            self._respawn(c, what)
+        return None
+
+    def _respawn(self, c: Child, why: str) -> None:
+        if c._fh is not None:
+            c._fh.close()
+        fh = open(c.log, "a")
+        fh.write(f"\n==== {why}; restarted by hmrta-mission ====\n")
+        fh.flush()
+        c.proc = subprocess.Popen(c.cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=self.env,
+                                  start_new_session=True,
+                                  preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+        c._fh = fh
 
     def stop(self, grace: float = 5.0) -> None:
         """Wait up to ``grace`` s for the children to exit, then SIGINT, SIGTERM, SIGKILL."""
@@ -153,6 +205,16 @@ class MissionProcesses:
                 c._fh = None
 
 
+def exit_text(rc: int) -> str:
+    """Popen return code -> 'SIGKILL' / 'exit code 1'."""
+    if rc < 0:
+        try:
+            return signal.Signals(-rc).name
+        except ValueError:
+            return f"signal {-rc}"
+    return f"exit code {rc}"
+
+
 def log_tail(path: Path, lines: int = 15) -> str:
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
@@ -161,15 +223,19 @@ def log_tail(path: Path, lines: int = 15) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bool) -> str:
-    """Follow the board with a progress bar until the board process exits; returns "ok" if it
-    exited cleanly within ``timeout``, else what went wrong."""
+def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bool,
+                on_board: Callable[[Any], None] | None = None) -> str:
+    """Follow the board with a progress bar until the board process exits, restarting the
+    simulated-robot and agent processes that die (``MissionProcesses.supervise``); returns "ok"
+    if the board exited cleanly within ``timeout``, else what went wrong. The latest board seen
+    stays in ``procs.last_board``; ``on_board`` (if given) is called with each board header."""
     import rclpy
+    from rosgraph_msgs.msg import Clock
     from std_msgs.msg import String
     from tqdm import tqdm
 
     from hmrta_msgs_py import topics
-    from hmrta_msgs_py.codec import DecodeError, board_from_msg
+    from hmrta_msgs_py.codec import DecodeError, board_from_msg, clock_from_msg
     from hmrta_msgs_py.runtime import LEAN_NODE
 
     rclpy.init(args=[])
@@ -179,11 +245,25 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
                bar_format="{desc}: {n_fmt}/{total_fmt} tasks |{bar}| {elapsed} {postfix}")
     told = [-1]  # without a terminal: one line per quarter of the tasks
 
-    def on_board(msg: String) -> None:
+    seen = {"clock": math.nan, "phase": ""}  # mission clock (/clock), board phase
+
+    def when() -> str:
+        return f" at t={seen['clock']:.3f}" if seen["clock"] == seen["clock"] else " before the mission clock started"
+
+    def clock_cb(msg: Clock) -> None:
+        t = clock_from_msg(msg)
+        if not t <= seen["clock"]:
+            seen["clock"] = t
+
+    def board_cb(msg: String) -> None:
         try:
             b = board_from_msg(msg, legs=False, state=False)
         except DecodeError:
             return
+        procs.last_board = msg.data
+        seen["phase"] = b.phase
+        if on_board is not None:
+            on_board(b)
         n = b.n_done + b.n_cancelled
         info = f"t={b.clock:.1f} {b.phase}" + (f" lost={len(b.lost)}" if b.lost else "")
         bar.n = n
@@ -193,24 +273,75 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
             told[0] = 4 * n // max(n_tasks, 1)
             print(f"mission: {n}/{n_tasks} tasks, {info}", file=sys.stderr, flush=True)
 
-    node.create_subscription(String, topics.BOARD, on_board, topics.BOARD_QOS)
+    node.create_subscription(String, topics.BOARD, board_cb, topics.BOARD_QOS)
+    node.create_subscription(Clock, topics.CLOCK, clock_cb, topics.CLOCK_QOS)
     deadline = time.monotonic() + timeout
-    status = "timed out"
+    status = f"timed out after {timeout:g} s"
     try:
         while time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.1)
-            if procs.board.proc.poll() is not None:
-                rc = procs.board.proc.returncode
-                status = "ok" if rc == 0 else f"the task board exited with {rc}"
+            rc = procs.board.proc.poll()
+            if rc is not None:
+                for _ in range(10):  # boards already received but not yet taken
+                    rclpy.spin_once(node, timeout_sec=0.02)
+                status = "ok" if rc == 0 else f"board process died ({exit_text(rc)}){when()}"
+                if rc != 0:
+                    procs.incidents.append(status + "; not restarted (the board's state lives in that process)")
                 break
-            if procs.sim.proc.poll() not in (None, 0):
-                status = f"sim_robot exited with {procs.sim.proc.returncode}"
-                break
+            if seen["phase"] != "done":  # after the end everybody exits on their own
+                failure = procs.supervise(seen["clock"])
+                if failure is not None:
+                    status = failure
+                    break
+        else:
+            status = f"{status}{when()}"
+            procs.incidents.append(status)
     finally:
         bar.close()
         node.destroy_node()
         rclpy.try_shutdown()
     return status
+
+
+def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: float, reason: str):
+    """The ``hmrta-solution/1`` of a mission that did not complete: ``success`` false, the
+    ``failure`` reason, and what was done according to the latest board seen (routes committed,
+    tasks completed with their times)."""
+    from std_msgs.msg import String
+
+    from hmrta.core import MissionState
+    from hmrta.solution import solution_from_state
+    from hmrta_msgs_py.codec import DecodeError, board_from_msg
+
+    state, b = None, None
+    if procs.last_board is not None:
+        try:
+            b = board_from_msg(String(data=procs.last_board))
+            state = MissionState.from_snapshot(inst, b.state)
+        except (DecodeError, KeyError, TypeError, ValueError):
+            state, b = None, None
+    if state is None:  # no board seen: nothing was done
+        state = MissionState(inst, seed=seed)
+    sol = solution_from_state(state, method, seed, wall)
+    sol.success = False
+    sol.makespan = math.nan
+    for ag in sol.agents:
+        ag["return_time"] = math.nan
+    n_done = sum(t["finish"] == t["finish"] for t in sol.tasks)
+    sol.extra.update({
+        "failure": reason,
+        "partial": True,
+        "transport": "ros2",
+        "robots": procs.robots,
+        "tasks_done": n_done,
+        "undone_tasks": [m for m, t in enumerate(sol.tasks) if t["finish"] != t["finish"]],
+        "lost_robots": [procs.robots[a] for a in b.lost] if b is not None else [],
+        "board_version": b.version if b is not None else None,
+        "board_clock": b.clock if b is not None else None,
+        "incidents": list(procs.incidents),
+        "mission_wall_seconds": round(wall, 3),
+    })
+    return sol
 
 
 def print_metrics(sol, extra: dict[str, Any], inst) -> None:
@@ -230,6 +361,8 @@ def print_metrics(sol, extra: dict[str, Any], inst) -> None:
     print(f"  mission wall time {extra.get('mission_wall_seconds', float('nan')):.2f} s")
     if extra.get("rejected_messages"):
         print(f"  rejected messages: {extra['rejected_messages']}")
+    if extra.get("authenticated"):
+        print(f"  robots authenticated (hmrta.keys); refused: {extra.get('auth_rejections')}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -243,11 +376,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="instance YAML (or CTAS-D config.json); default: the built-in example mission")
     p.add_argument("--seed", type=int, default=0, help="episode seed (decision order, sampling)")
     p.add_argument("--out", default="out/mission.json", help="solution JSON to write")
-    p.add_argument("--policy", default="greedy", choices=("greedy", "greedy-coalition", "rl", "rl-sample", "rl-lookahead"),
-                   help="decision policy every agent runs (greedy-coalition: the task whose coalition can start "
-                        "first; rl: learned policy, greedy decoding; rl-lookahead: one-step lookahead over it, "
-                        "slower per decision)")
-    p.add_argument("--checkpoint", default="", help="policy checkpoint for rl (default: the shipped one)")
+    methods.add_arguments(p, live=True)  # --method and its options, from the method table
     p.add_argument("--agents-per-process", type=int, default=1, metavar="N",
                    help="robots hosted per agent process (lean nodes on one executor)")
     p.add_argument("--time-scale", type=float, default=0.0,
@@ -259,11 +388,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--check-offline", action="store_true",
                    help="also run the offline rollout (hmrta solve) and compare routes and makespan")
     p.add_argument("--timeout", type=float, default=600.0, help="give up after this many wall seconds")
+    auth = p.add_mutually_exclusive_group()
+    auth.add_argument("--keystore", default=None, metavar="DIR",
+                      help="authenticate robots with this mission keystore (hmrta keys create; docs/security.md)")
+    auth.add_argument("--authenticate", action="store_true",
+                      help="authenticate robots with a fresh keystore made in the mission's log folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(remove_ros_args(argv)[1:])
 
-    from hmrta.instance import InstanceError, load_instance
+    from hmrta.formats import load_instance
+    from hmrta.instance import InstanceError
     from hmrta.solution import Solution
+
+    try:
+        name, implied = methods.parse(args.method)
+        method_options = methods.get(name).check({**implied, **methods.options_from_args(args)}, live=True)
+    except methods.MethodError as e:
+        print(f"hmrta-mission: {e}", file=sys.stderr)
+        return 2
+    if methods.get(name).decide is None:
+        print(f"hmrta-mission: method {name} has no per-decision form (live methods: "
+              f"{', '.join(methods.live_methods())})", file=sys.stderr)
+        return 2
 
     path = Path(args.instance) if args.instance else default_instance()
     try:
@@ -284,41 +430,63 @@ def main(argv: list[str] | None = None) -> int:
     env.setdefault("PYTHONUNBUFFERED", "1")
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")})
     robots = [f"robot_{a}" for a in range(inst.n_agents)]
-    decoding = "sample" if args.policy == "rl-sample" else "greedy"
-    policy = "rl" if args.policy in ("rl", "rl-sample") else args.policy
-    procs = MissionProcesses(path, robots, out, log_dir, env, seed=args.seed, policy=policy, decoding=decoding,
-                             checkpoint=args.checkpoint, agents_per_process=args.agents_per_process,
-                             time_scale=args.time_scale,
+    from hmrta import keys as hkeys
+
+    keystore = None
+    try:
+        if args.authenticate:
+            log_dir.mkdir(parents=True, exist_ok=True)
+            keystore = log_dir / "keys"
+            hkeys.create_keystore(keystore, robots, force=True)
+        elif args.keystore:
+            keystore = Path(args.keystore).absolute()
+            hkeys.load_keystore(keystore, robots)  # every robot of the mission has a key
+    except hkeys.KeystoreError as e:
+        print(f"hmrta-mission: {e}", file=sys.stderr)
+        return 2
+    procs = MissionProcesses(path, robots, out, log_dir, env, seed=args.seed, method=args.method,
+                             method_options=method_options, agents_per_process=args.agents_per_process,
+                             time_scale=args.time_scale, keystore=keystore,
                              board_params={"heartbeat_timeout": args.heartbeat_timeout, "progress_period": 0.0})
     n_proc = 2 + len(procs.agent_groups())
-    print(f"mission {inst.name}: {inst.n_agents} robots, {inst.n_tasks} tasks, policy {args.policy}, seed {args.seed}; "
+    print(f"mission {inst.name}: {inst.n_agents} robots, {inst.n_tasks} tasks, method {args.method}, seed {args.seed}; "
           f"{n_proc} processes on ROS domain {env['ROS_DOMAIN_ID']} "
           f"(discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}); logs in {log_dir}", flush=True)
     t0 = time.monotonic()
     procs.start()
+    interrupted, status = False, "interrupted"
     try:
         status = run_monitor(procs, inst.n_tasks, args.timeout, args.quiet)
     except (KeyboardInterrupt, ExternalShutdownException):
         print("interrupted: stopping the mission", file=sys.stderr)
-        procs.stop(grace=0.0)
-        return 130
+        interrupted = True
     finally:
-        procs.stop()
+        procs.stop(grace=5.0 if status == "ok" else 0.0)  # a failed mission: stop the rest at once
     wall = time.monotonic() - t0
-    if status != "ok" or not out.exists():
-        print(f"hmrta-mission: the mission did not complete ({status}); board log tail:\n"
-              f"{log_tail(procs.board.log)}", file=sys.stderr)
-        return 1
+    if not out.exists():  # the board did not finish: a partial result from the last board seen
+        if status == "ok":
+            status = "the task board exited without writing the result"
+        sol = partial_result(inst, procs, args.method, args.seed, wall, status)
+        sol.save(out)
+        print(f"hmrta-mission: the mission did not complete ({status}); {sol.extra['tasks_done']}/{inst.n_tasks} "
+              f"tasks were done; wrote the partial result {out}; board log tail:\n{log_tail(procs.board.log)}",
+              file=sys.stderr)
+        return 130 if interrupted else 1
     sol = Solution.from_dict(json.loads(out.read_text()))
+    if procs.incidents:  # the mission completed in spite of them: the result says what happened
+        sol.extra["incidents"] = list(procs.incidents)
+        sol.save(out)
+        for line in procs.incidents:
+            print(f"  incident: {line}")
     print_metrics(sol, sol.extra, inst)
     print(f"  total wall time {wall:.2f} s (including start-up of {n_proc} processes)")
     print(f"wrote {out}")
     if args.check_offline:
         from hmrta.methods import solve
 
-        ref = solve(inst, args.policy, seed=args.seed, **({"checkpoint": args.checkpoint} if args.checkpoint else {}))
+        ref = solve(inst, args.method, seed=args.seed, **method_options)
         same = ref.routes == sol.routes and ref.makespan == sol.makespan
-        print(f"offline rollout ({args.policy}): makespan {ref.makespan:.3f}; same routes and makespan: "
+        print(f"offline rollout ({args.method}): makespan {ref.makespan:.3f}; same routes and makespan: "
               f"{'yes' if same else 'NO'}")
     if not args.no_plot:
         plot = Path(args.plot) if args.plot else out.with_suffix(".png")

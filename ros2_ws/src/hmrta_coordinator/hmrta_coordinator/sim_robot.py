@@ -7,6 +7,13 @@ moving. The node publishes ``/clock`` (``rosgraph_msgs/Clock``): it advances sim
 horizon the board allows, at once (``time_scale`` 0: as fast as possible) or at ``time_scale``
 sim seconds per wall second. Robots named in ``external`` (real robots, drivers elsewhere) are
 not simulated; with every robot external this node is just the mission clock.
+
+Restart: the node starts from the latched mission and board, not from zero. The clock resumes at
+the board's horizon (the latest instant the board allowed; in as-fast-as-possible mode exactly
+where the previous process stopped) and each robot's position and in-flight legs are rebuilt from
+the legs the board lists, so a ``sim_robot`` that died (and was restarted by ``hmrta-mission``)
+continues the mission. A goal it already has (same pose, same departure) or one older than the
+leg a robot is driving is a repeat from a resynchronising agent and is ignored.
 """
 from __future__ import annotations
 
@@ -79,6 +86,8 @@ class SimRobot(Node):
         self.now = 0.0
         self.horizon = 0.0
         self._early_board: String | None = None  # a board that came before the mission
+        self.synced = False  # clock and robots rebuilt from the first board (start or restart)
+        self._early_goals: list[tuple[SimulatedRobot, PoseStamped]] = []  # goals before that
         self.done = Future()
         self.pub_clock = self.create_publisher(Clock, topics.CLOCK, topics.CLOCK_QOS)
         self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
@@ -114,7 +123,6 @@ class SimRobot(Node):
                                      lambda g, r=r: self.on_goal(r, g), topics.GOAL_QOS)
         self.get_logger().info(f"simulating {len(self.robots)} robot(s) at velocity {inst.velocity:g}; "
                                + ("as fast as possible" if self.time_scale <= 0 else f"x{self.time_scale:g} real time"))
-        self.on_heartbeat()
         if self._early_board is not None:
             self.on_board(self._early_board)
 
@@ -124,12 +132,14 @@ class SimRobot(Node):
             return
         self._early_board = None
         try:
-            b = board_from_msg(msg, legs=False, state=False)
+            b = board_from_msg(msg, legs=not self.synced, state=not self.synced)
         except DecodeError as e:
             self.get_logger().error(f"ignoring malformed board: {e}")
             return
         if b.session != self.mission.session:
             return
+        if not self.synced:
+            self.resync(b)
         self.horizon = max(self.horizon, b.horizon)
         if b.phase == "done":
             self.advance(max(self.now, b.clock))
@@ -139,19 +149,68 @@ class SimRobot(Node):
         if self.time_scale <= 0:
             self.advance(self.horizon)
 
+    def resync(self, b) -> None:
+        """Start from the board (first board seen): the clock at its horizon, every robot on the
+        legs the board lists for it (all of them from its depot when the board still has its whole
+        history, else from its latest legs), then the goals that came before the board."""
+        m = self.mission
+        self.synced = True
+        self.now = self.horizon = float(b.horizon)
+        agents = (b.state or {}).get("agents", {})
+        resumed = 0
+        for r in self.robots.values():
+            a = m.index(r.name)
+            entry = b.legs[a] if b.legs is not None and a < len(b.legs) else None
+            if not entry or not entry[1]:
+                continue
+            seq, legs = entry
+            resumed += 1
+            if seq > len(legs):  # older legs are gone: where did the first remaining one start?
+                _, x, y, depart = legs[0]
+                r.base = (x, y)  # unknown: arriving at once never holds the board's clock
+                try:  # the state's current leg, when it is this one, knows its start
+                    to, dep, frm = agents["to"][a], agents["depart"][a], agents["from"][a]
+                    if (abs(to[0] - x) <= EPS and abs(to[1] - y) <= EPS and abs(dep - depart) <= EPS):
+                        r.base = (float(frm[0]), float(frm[1]))
+                except (KeyError, IndexError, TypeError):
+                    pass
+            for _, x, y, depart in legs:
+                self._add_leg(r, x, y, depart)
+        if resumed or self.now > 0:
+            self.get_logger().info(f"resuming the mission at t={self.now:.3f} (board version {b.version}, "
+                                   f"{b.n_done}/{b.n_tasks} tasks done) with the legs of {resumed} robot(s)")
+        early, self._early_goals = self._early_goals, []
+        for r, g in early:
+            self.on_goal(r, g)
+        for r in self.robots.values():
+            self._announce(r)
+        self.on_heartbeat()
+
     def on_goal(self, r: SimulatedRobot, msg: PoseStamped) -> None:
+        if not self.synced:
+            self._early_goals.append((r, msg))
+            return
         try:
             x, y, t = pose_from_msg(msg, self.mission.scale)
         except DecodeError as e:
             self.get_logger().error(f"ignoring malformed goal for {r.name}: {e}")
             return
+        if any(abs(g.depart - t) <= EPS and abs(g.goal[0] - x) <= EPS and abs(g.goal[1] - y) <= EPS
+               for g in r.legs):
+            return  # a goal it already drives (an agent that resynchronised sends its legs again)
+        if r.legs and t < r.legs[0].depart - EPS and r.legs[0].depart <= self.now:
+            self.get_logger().debug(f"{r.name}: ignoring goal departing t={t:.6f}, before its current leg")
+            return
+        self._add_leg(r, x, y, t)
+        self._announce(r)
+
+    def _add_leg(self, r: SimulatedRobot, x: float, y: float, t: float) -> None:
         start = r.position(t)
         r.legs = [g for g in r.legs if g.depart < t]  # a goal replaces whatever was planned after it
         dist = math.hypot(x - start[0], y - start[1])
         r.legs.append(Leg(start, (x, y), t, t + dist / self.mission.instance.velocity))
         self.get_logger().debug(f"{r.name}: goal ({x:.3f}, {y:.3f}) from ({start[0]:.3f}, {start[1]:.3f}) departing "
                                 f"t={t:.6f}, arriving t={r.legs[-1].arrive:.6f} (now {self.now:.6f})")
-        self._announce(r)
 
     # ------------------------------------------------------------------------------------------
     def _announce(self, r: SimulatedRobot) -> None:
@@ -185,7 +244,7 @@ class SimRobot(Node):
             self.advance(min(self.horizon, self.now + dt * self.time_scale))
 
     def on_heartbeat(self) -> None:
-        if self.mission is None:
+        if self.mission is None or not self.synced:
             return
         m = self.mission
         for r in self.robots.values():

@@ -1,0 +1,167 @@
+"""Any process of a mission may die: real processes, real SIGKILL, the real launcher.
+
+``hmrta-mission`` restarts a simulated-robot or agent process that dies; the new process
+resynchronises from the latched board and the mission completes (and still equals the offline
+rollout). When the board dies the launcher ends at once with a partial result and a non-zero exit.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hmrta.formats import load_instance
+from hmrta.methods import solve
+
+rclpy = pytest.importorskip("rclpy")
+from std_msgs.msg import String  # noqa: E402
+
+from hmrta_coordinator.mission import default_instance  # noqa: E402
+from hmrta_msgs_py import topics  # noqa: E402
+from hmrta_msgs_py.codec import board_from_msg  # noqa: E402
+
+BIN = Path(sys.executable).parent
+TIME_SCALE = 8.0  # sim seconds per wall second: the example mission (makespan ~33) lasts ~4 s
+
+
+def launch(tmp_path: Path, domain: int, *extra: str) -> tuple[subprocess.Popen, Path]:
+    out = tmp_path / "mission.json"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env.pop("ROS_DOMAIN_ID", None)
+    proc = subprocess.Popen([str(BIN / "hmrta-mission"), "--agents-per-process", "5", "--time-scale", str(TIME_SCALE),
+                             "--out", str(out), "--no-plot", "--quiet", "--domain-id", str(domain), "--timeout", "90",
+                             "--heartbeat-timeout", "10", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            start_new_session=True)
+    return proc, out
+
+
+def children(pid: int) -> dict[int, str]:
+    """{pid: command line} of the launcher's child processes."""
+    try:
+        kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        return {}
+    out = {}
+    for k in kids:
+        try:
+            out[int(k)] = Path(f"/proc/{k}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            pass
+    return out
+
+
+def child_pid(launcher: subprocess.Popen, needle: str) -> int:
+    found = [p for p, cmd in children(launcher.pid).items() if needle in cmd]
+    assert len(found) == 1, f"expected one child running {needle!r}, found {children(launcher.pid)}"
+    return found[0]
+
+
+def kill_mid_mission(graph, launcher: subprocess.Popen, needle: str, n_done: int) -> tuple[int, int, dict]:
+    """SIGKILL the launcher's child whose command line has ``needle`` once ``n_done`` tasks are
+    done (and the mission is not); returns (its pid, the tasks done then, {"b": latest board})."""
+    seen: dict = {}
+    node = graph.node("crash_observer")
+    node.create_subscription(String, topics.BOARD, lambda m: seen.update(b=board_from_msg(m, state=False)),
+                             topics.BOARD_QOS)
+    graph.spin_until(lambda: launcher.poll() is not None or ("b" in seen and seen["b"].n_done >= n_done), 60,
+                     f"{n_done} tasks done")
+    assert launcher.poll() is None, "the mission ended before the crash: " + launcher.stderr.read()
+    b = seen["b"]
+    assert b.phase != "done" and b.n_done < b.n_tasks
+    pid = child_pid(launcher, needle)
+    os.kill(pid, signal.SIGKILL)
+    return pid, b.n_done, seen
+
+
+def finish(launcher: subprocess.Popen, timeout: float) -> tuple[int, str, str]:
+    try:
+        so, se = launcher.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(launcher.pid, signal.SIGINT)
+        so, se = launcher.communicate(timeout=30)
+        raise AssertionError(f"hmrta-mission did not end within {timeout:g} s:\n{so}\n{se}")
+    return launcher.returncode, so, se
+
+
+@pytest.fixture
+def launched():
+    made: list[subprocess.Popen] = []
+    yield made
+    for p in made:  # a failed test: never leave a mission behind
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGINT)
+            try:
+                p.communicate(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.communicate()
+
+
+def assert_same_as_offline(result: dict) -> None:
+    ref = json.loads(json.dumps(solve(load_instance(default_instance()), "greedy", seed=0).to_dict()))
+    for k in ("success", "routes", "tasks", "agents", "makespan", "awt", "redundancy"):
+        assert result[k] == ref[k], f"{k}: the mission differs from the offline rollout"
+
+
+def test_killed_sim_robot_is_restarted_resynchronises_and_the_mission_equals_offline(tmp_path, domain, graph,
+                                                                                      launched):
+    launcher, out = launch(tmp_path, domain)
+    launched.append(launcher)
+    pid, done_then, seen = kill_mid_mission(graph, launcher, "hmrta_coordinator.sim_robot", 6)
+    t_kill = time.monotonic()
+    graph.spin_until(lambda: launcher.poll() is not None or any(
+        "hmrta_coordinator.sim_robot" in cmd and p != pid for p, cmd in children(launcher.pid).items()),
+        20, "the restarted sim_robot")
+    t_new = time.monotonic() - t_kill
+    graph.spin_until(lambda: launcher.poll() is not None or seen["b"].n_done > done_then, 30, "progress")
+    print(f"sim_robot killed with {done_then} tasks done; a new one runs {t_new:.2f} s later, the next task is "
+          f"done {time.monotonic() - t_kill:.2f} s after the kill")
+    rc, so, se = finish(launcher, 60)
+    assert rc == 0, so + se
+    assert "sim_robot process died (SIGKILL) at t=" in so and "restarted (1/3)" in so
+    result = json.loads(out.read_text())
+    assert result["success"] and result["undone_tasks"] == [] and result["lost_robots"] == []
+    assert any("sim_robot process died (SIGKILL)" in line for line in result["incidents"])
+    log = (tmp_path / "mission_logs" / "sim_robot.log").read_text()
+    assert "restarted by hmrta-mission" in log and "resuming the mission at t=" in log
+    assert_same_as_offline(result)
+
+
+def test_killed_agent_process_is_restarted_and_the_mission_completes(tmp_path, domain, graph, launched):
+    launcher, out = launch(tmp_path, domain)
+    launched.append(launcher)
+    kill_mid_mission(graph, launcher, "--robots robot_5,robot_6,robot_7,robot_8,robot_9", 6)
+    rc, so, se = finish(launcher, 60)
+    assert rc == 0, so + se
+    assert "agents_001 process died (SIGKILL) at t=" in so
+    result = json.loads(out.read_text())
+    assert result["success"] and result["undone_tasks"] == [] and result["lost_robots"] == []
+    assert any("agents_001 process died (SIGKILL)" in line for line in result["incidents"])
+    assert_same_as_offline(result)
+
+
+def test_killed_board_ends_the_launcher_with_a_partial_result(tmp_path, domain, graph, launched):
+    launcher, out = launch(tmp_path, domain)
+    launched.append(launcher)
+    _, done_then, _ = kill_mid_mission(graph, launcher, "hmrta_coordinator.task_board", 6)
+    t_kill = time.monotonic()
+    rc, so, se = finish(launcher, 30)
+    ended = time.monotonic() - t_kill
+    print(f"board killed with {done_then} tasks done; the launcher ended {ended:.2f} s later")
+    assert rc == 1, so + se
+    assert "the mission did not complete (board process died (SIGKILL) at t=" in se
+    result = json.loads(out.read_text())
+    assert result["success"] is False and result["partial"] is True
+    assert result["failure"].startswith("board process died (SIGKILL) at t=")
+    done = [m for m, t in enumerate(result["tasks"]) if t["finish"] is not None]
+    assert len(done) == result["tasks_done"] >= done_then and len(done) < len(result["tasks"])
+    assert sorted(result["undone_tasks"] + done) == list(range(len(result["tasks"])))
+    assert all(m in {n for r in result["routes"] for n in r} for m in done)  # done tasks are on routes
+    assert ended < 15
