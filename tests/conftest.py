@@ -113,7 +113,7 @@ def _check_rollout(inst, state, trace, sol):
             assert (c >= req[m]).all(), (m, c, req[m])
         else:
             assert ((c > 0) | (req[m] == 0)).all(), (m, c, req[m])
-        # SPEC §3.3: start = latest arrival of the members; finish = start + duration
+        # SPEC §3, rule 3: start = latest arrival of the members; finish = start + duration
         arr = [trace.arrivals[(a, m)] for a in members]
         assert all(t["start"] >= x for x in arr)
         assert t["start"] == max(arr)

@@ -34,7 +34,7 @@ def make(rt, skills, species, tasks, velocity=U, name="hand"):
 
 
 def seed_with_order(n_agents, first):
-    """A seed whose t = 0 decision order starts with `first` (order = seeded shuffle, SPEC §3.4)."""
+    """A seed whose t = 0 decision order starts with `first` (order = seeded shuffle, SPEC §3, rule 4)."""
     for s in range(1000):
         order = list(range(n_agents))
         random.Random(s).shuffle(order)
