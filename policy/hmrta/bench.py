@@ -1,16 +1,26 @@
-"""Benchmarks in the paper's table layout (Tables I-IV), our methods beside the paper's numbers.
+"""Benchmarks: methods side by side on generated rows (the paper's Tables I-IV, the paper's numbers
+beside ours) or on a user's own missions, with paired per-instance comparisons and provenance.
 
-Results are cached per (row, method, instance index) in ``<out>/cache.jsonl`` so an interrupted
-run resumes where it stopped; tables are written as Markdown and JSON.
+Results are cached per (row, method, instance, variant) in ``<out>/cache.jsonl`` so an interrupted
+run resumes where it stopped; tables are written as Markdown, JSON and CSV (:func:`save`). Every
+results file carries its provenance (:func:`provenance`): code version, checkpoint name and hash,
+library versions, CPU, threads, command line and date.
 """
 from __future__ import annotations
 
+import csv
 import functools
 import hashlib
+import io
 import json
 import math
-from dataclasses import dataclass
-from importlib import resources
+import os
+import platform
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from importlib import metadata, resources
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -18,7 +28,7 @@ import numpy as np
 import yaml
 
 from .generators import PAPER_ROWS, ScenarioGenerator, row_name
-from .instance import atomic_write_text
+from .instance import Instance, atomic_write_text
 
 PAPER_NAME = {"greedy": "Greedy", "rl": "RL(g.)", "rl-s10": "RL(s.10)", "cpsat": "CTAS-D"}  # paper counterpart
 DISPLAY_NAME = {"greedy": "Greedy", "greedy-coalition": "Greedy-coalition", "rl": "RL(g.)", "rl-s10": "RL(s.10)",
@@ -27,6 +37,11 @@ DISPLAY_NAME = {"greedy": "Greedy", "greedy-coalition": "Greedy-coalition", "rl"
 TABLE_TITLES = {"SA-BT": "Table I: SA-BT", "SA-AT": "Table II: SA-AT", "MA-AT": "Table III: MA-AT",
                 "MA-AT-large": "Table IV: MA-AT, large"}
 DEFAULT_BENCH_SEED = 1000  # never used by training (stream seed 0) or validation (990001)
+# paired comparisons made when none are asked for, each when both methods are in the table
+DEFAULT_PAIRS = (("rl", "greedy"), ("rl", "greedy-coalition"))
+TIE_TOLERANCE = 1e-9  # relative makespan difference counted as a tie
+CSV_FIELDS = ("table", "row", "kn", "ks", "km", "kb", "method", "n", "success", "makespan_mean", "makespan_std",
+              "awt_mean", "awt_std", "redundancy_mean", "redundancy_std", "compute_seconds", "gap_to_bound_mean")
 
 
 @functools.lru_cache(maxsize=1)
@@ -36,11 +51,15 @@ def paper_tables() -> dict:
 
 @dataclass(frozen=True)
 class Row:
+    """One generated row: ``count`` seeded instances of a scenario at one size."""
+
     table: str  # SA-BT, SA-AT, MA-AT, MA-AT-large
     agents: int
     species: int
     tasks: int
     skills: int
+
+    kind = "generated"
 
     @property
     def scenario(self) -> str:
@@ -50,13 +69,62 @@ class Row:
     def key(self) -> str:
         return row_name(self.table, self.agents, self.species, self.tasks, self.skills)
 
+    @property
+    def size(self) -> list:
+        return [self.agents, self.species, self.tasks, self.skills]
+
     def generator(self) -> ScenarioGenerator:
         return ScenarioGenerator(self.scenario, self.agents, self.species, self.tasks, self.skills)
+
+    def instances(self, count: int, seed: int) -> list[tuple[Any, Instance]]:
+        """(cache identity, instance) pairs: instance i of the seeded set."""
+        return list(enumerate(self.generator().generate(count, seed)))
 
     def paper(self) -> dict | None:
         for r in paper_tables().get(self.table, []):
             if (r["kn"], r["ks"], r["km"], r["kb"]) == (self.agents, self.species, self.tasks, self.skills):
                 return r
+        return None
+
+
+@dataclass(frozen=True)
+class MissionSet:
+    """A row of a user's own missions (instance files, CTAS-D folders), in the given order."""
+
+    name: str
+    files: tuple[Path, ...]
+    loaded: tuple[Instance, ...] = field(default=(), compare=False, repr=False)
+
+    kind = "missions"
+    table = "missions"
+
+    @classmethod
+    def load(cls, name: str, files: Iterable[str | Path]) -> "MissionSet":
+        from .formats import load_instance
+
+        files = tuple(Path(f) for f in files)
+        return cls(name, files, tuple(load_instance(f) for f in files))
+
+    @property
+    def key(self) -> str:
+        return f"missions:{self.name}"
+
+    @property
+    def size(self) -> list:
+        """[agents, species, tasks, skills], each a number or a 'low-high' range."""
+        cols = [[i.n_agents for i in self.loaded], [i.n_species for i in self.loaded],
+                [i.n_tasks for i in self.loaded], [i.skills for i in self.loaded]]
+        return [(min(c) if min(c) == max(c) else f"{min(c)}-{max(c)}") if c else 0 for c in cols]
+
+    def instances(self, count: int, seed: int) -> list[tuple[Any, Instance]]:
+        """(cache identity, instance) pairs; the identity follows the content, not just the name."""
+        out = []
+        for f, inst in zip(self.files, self.loaded):
+            digest = hashlib.sha256(json.dumps(inst.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+            out.append((f"{f.stem}@{digest}", inst))
+        return out
+
+    def paper(self) -> None:
         return None
 
 
@@ -79,26 +147,234 @@ def summarise(results: list[dict]) -> dict:
     }
 
 
+# ---------------------------------------------------------------------------------------------
+# paired comparisons
+# ---------------------------------------------------------------------------------------------
+def t_cdf(t: float, df: int) -> float:
+    """Student's t distribution function P(T <= t) for an integer number of degrees of freedom
+    (closed form, Abramowitz & Stegun 26.7.3-4)."""
+    if df < 1:
+        raise ValueError("df must be >= 1")
+    theta = math.atan(t / math.sqrt(df))
+    s, c = math.sin(theta), math.cos(theta)
+    c2 = c * c
+    if df % 2:  # odd
+        series, coef = 0.0, 1.0
+        for j in range((df - 1) // 2):
+            if j:
+                coef *= 2 * j / (2 * j + 1)
+            series += coef * c2 ** j
+        a = 2 / math.pi * (theta + s * c * series)
+    else:
+        series, coef = 0.0, 1.0
+        for j in range(df // 2):
+            if j:
+                coef *= (2 * j - 1) / (2 * j)
+            series += coef * c2 ** j
+        a = s * series
+    return 0.5 + 0.5 * a
+
+
+def t_quantile(p: float, df: int) -> float:
+    """Inverse of :func:`t_cdf` for 0.5 <= p < 1 (bisection to 1e-12)."""
+    lo, hi = 0.0, 1.0
+    while t_cdf(hi, df) < p:
+        hi *= 2
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if t_cdf(mid, df) < p:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-12:
+            break
+    return 0.5 * (lo + hi)
+
+
+def paired_comparison(a: list[dict], b: list[dict], name_a: str = "a", name_b: str = "b") -> dict:
+    """Per-instance comparison of two methods' results on the same instances (lower makespan wins).
+
+    An instance one method solved and the other did not is a win for the one that solved it; both
+    failing is a tie; otherwise makespans within a relative :data:`TIE_TOLERANCE` tie. The mean
+    difference ``a - b`` (negative: ``a`` shorter) and its 95% t-interval are over the instances
+    both solved (``n_paired``); ``relative`` is that mean over the mean makespan of ``b`` there."""
+    if len(a) != len(b):
+        raise ValueError(f"paired comparison needs the same instances ({len(a)} vs {len(b)} results)")
+    wins = ties = losses = 0
+    diffs, base = [], []
+    for ra, rb in zip(a, b):
+        if ra["success"] and rb["success"]:
+            d = float(ra["makespan"]) - float(rb["makespan"])
+            diffs.append(d)
+            base.append(float(rb["makespan"]))
+            if abs(d) <= TIE_TOLERANCE * max(1.0, abs(float(rb["makespan"]))):
+                ties += 1
+            elif d < 0:
+                wins += 1
+            else:
+                losses += 1
+        elif ra["success"]:
+            wins += 1
+        elif rb["success"]:
+            losses += 1
+        else:
+            ties += 1
+    n = len(diffs)
+    mean = float(np.mean(diffs)) if n else math.nan
+    ci = None
+    if n >= 2:
+        half = t_quantile(0.975, n - 1) * float(np.std(diffs, ddof=1)) / math.sqrt(n)
+        ci = [mean - half, mean + half]
+    mb = float(np.mean(base)) if n else math.nan
+    return {"a": name_a, "b": name_b, "n": len(a), "wins": wins, "ties": ties, "losses": losses,
+            "n_paired": n, "mean_diff": mean, "ci95": ci,
+            "relative": mean / mb if n and mb > 0 else math.nan}
+
+
+def comparison_pairs(methods: list[str], pairs: Iterable[tuple[str, str]] | None) -> list[tuple[str, str]]:
+    """The pairs to compare: the given ones, or :data:`DEFAULT_PAIRS` present among ``methods``."""
+    if pairs is None:
+        return [p for p in DEFAULT_PAIRS if p[0] in methods and p[1] in methods]
+    out = []
+    for a, b in pairs:
+        for m in (a, b):
+            if m not in methods:
+                raise ValueError(f"--compare {a},{b}: {m!r} is not one of the benchmarked methods "
+                                 f"({', '.join(methods)})")
+        if a == b:
+            raise ValueError(f"--compare {a},{b}: expected two different methods")
+        out.append((a, b))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# provenance
+# ---------------------------------------------------------------------------------------------
+def _git(args: list[str], cwd: Path) -> str | None:
+    env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}  # read only: never take the index lock
+    try:
+        r = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, timeout=10, env=env)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return r.stdout.strip() if r.returncode == 0 else None
+
+
+def code_version() -> str:
+    """``git describe --always --dirty`` of the checkout this package runs from (dirty: tracked
+    files modified), or ``hmrta <version>`` for an installed package."""
+    from . import __version__
+
+    here = Path(__file__).resolve().parent
+    if _git(["ls-files", "--error-unmatch", "__init__.py"], here) is None:  # not a tracked checkout
+        return f"hmrta {__version__}"
+    desc = _git(["describe", "--always"], here)
+    if not desc:
+        return f"hmrta {__version__}"
+    dirty = _git(["status", "--porcelain", "--untracked-files=no"], here)
+    return desc + ("-dirty" if dirty else "")
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, val = line.partition(":")
+            if key.strip() in ("model name", "Model", "Hardware") and val.strip():
+                return val.strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def provenance(methods: list[str], solve_opts: dict[str, Any], command: str | None = None) -> dict:
+    """What produced a results file: code version, checkpoint (for rl methods: file name and
+    sha256), library versions, CPU model and cores, torch threads, command line, UTC date."""
+    from . import __version__
+
+    checkpoint = None
+    if any(m.startswith("rl") for m in methods):
+        from .rl.checkpoint_info import DEFAULT_CHECKPOINT, checkpoint_path
+
+        path = checkpoint_path(solve_opts.get("checkpoint"))
+        checkpoint = {"name": path.name, "sha256": file_sha256(path) if path.is_file() else None,
+                      "shipped": path.resolve() == DEFAULT_CHECKPOINT.resolve()}
+    torch_threads = sys.modules["torch"].get_num_threads() if "torch" in sys.modules else None
+    return {
+        "code_version": code_version(),
+        "checkpoint": checkpoint,
+        "versions": {"hmrta": __version__, "python": platform.python_version(), "numpy": _version("numpy"),
+                     "torch": _version("torch"), "ortools": _version("ortools")},
+        "cpu": {"model": cpu_model(), "cores": os.cpu_count()},
+        "torch_threads": torch_threads,
+        "command": command,
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+    }
+
+
 def method_variant(method: str, solve_opts: dict[str, Any]) -> str:
     """What a cached result depends on besides (row, method, instance, seed): the solve options and,
     for the learned policy, the checkpoint's content. A retrained checkpoint or another time limit
     therefore never reuses stale cached results."""
     parts: dict[str, Any] = {"opts": {k: solve_opts[k] for k in sorted(solve_opts)}}
     if method.startswith("rl"):
-        from .rl.inference import checkpoint_path
+        from .rl.checkpoint_info import checkpoint_path
 
         path = checkpoint_path(solve_opts.get("checkpoint"))
         parts["checkpoint"] = hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.exists() else None
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def run_bench(rows: list[Row], methods: list[str], count: int, seed: int, out_dir: Path | None,
+def _options_for(method: str, solve_opts: dict[str, Any]) -> dict[str, Any]:
+    """The shared options this method takes (others are left out, not errors)."""
+    from .methods import options_for
+
+    return options_for(method, solve_opts)
+
+
+# ---------------------------------------------------------------------------------------------
+# the run
+# ---------------------------------------------------------------------------------------------
+def _row_instances(row, count: int, seed: int) -> list[tuple[Any, Instance]]:
+    """A row's (cache identity, instance) pairs: its own ``instances`` or its seeded generator's."""
+    if hasattr(row, "instances"):
+        return row.instances(count, seed)
+    return list(enumerate(row.generator().generate(count, seed)))
+
+
+def _row_size(row) -> list:
+    return list(row.size) if hasattr(row, "size") else [row.agents, row.species, row.tasks, row.skills]
+
+
+def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Path | None,
               solve_opts: dict[str, Any], progress: bool = True, with_bounds: bool = False,
-              log: Callable[[str], None] = print) -> dict:
+              log: Callable[[str], None] = print, compare: Iterable[tuple[str, str]] | None = None,
+              command: str | None = None) -> dict:
+    """Run every method on every row (:class:`Row` or :class:`MissionSet`); returns the summary
+    (see :func:`save`). ``compare``: method pairs for paired comparisons (None: the defaults)."""
     from tqdm import tqdm
 
     from . import methods as M
+    from .deps import require
 
+    pairs = comparison_pairs(methods, compare)
+    for m in methods:  # a missing optional dependency is reported before any work
+        rec = M.get(M.parse(m)[0])
+        for mod in rec.needs:
+            require(mod, f"method {rec.name}")
     cache: dict[tuple, dict] = {}
     cache_path = out_dir / "cache.jsonl" if out_dir else None
     if cache_path and cache_path.exists():
@@ -111,27 +387,30 @@ def run_bench(rows: list[Row], methods: list[str], count: int, seed: int, out_di
         log(f"resuming: {len(cache)} results cached in {cache_path}")
     if out_dir:
         out_dir.mkdir(parents=True, exist_ok=True)
-    total = len(rows) * len(methods) * count
-    bar = tqdm(total=total, desc="bench", disable=not progress, unit="solve")
+    sets = [(row, _row_instances(row, count, seed)) for row in rows]
+    total = sum(len(insts) for _, insts in sets) * len(methods)
+    bar = tqdm(total=total, desc="bench", disable=not progress, unit="solve", file=sys.stderr)
     fh = open(cache_path, "a") if cache_path else None
     summary: dict[str, Any] = {"seed": seed, "count": count, "methods": methods, "rows": []}
-    variants = {m: method_variant(m, solve_opts) for m in methods}
+    opts = {m: _options_for(m, solve_opts) for m in methods}
+    variants = {m: method_variant(m, opts[m]) for m in methods}
     try:
-        for row in rows:
-            insts = row.generator().generate(count, seed)
+        for row, insts in sets:
+            kind = getattr(row, "kind", "generated")
+            row_seed = 0 if kind == "missions" else seed
             bounds = None
             if with_bounds:
                 from .bounds import lower_bounds
 
-                bounds = [lower_bounds(i)["best"] for i in insts]
+                bounds = [lower_bounds(inst)["best"] for _, inst in insts]
             per_method: dict[str, list[dict]] = {}
             for method in methods:
                 res = []
-                for i, inst in enumerate(insts):
-                    key = (row.key, method, i, seed, variants[method])
+                for ident, inst in insts:
+                    key = (row.key, method, ident, row_seed, variants[method])
                     if key not in cache:
-                        sol = M.solve(inst, method, seed=0, **solve_opts)
-                        r = {"row": row.key, "method": method, "index": i, "seed": seed,
+                        sol = M.solve(inst, method, seed=0, **opts[method])
+                        r = {"row": row.key, "method": method, "index": ident, "seed": row_seed,
                              "variant": variants[method], "success": sol.success,
                              "makespan": sol.makespan, "awt": sol.awt, "redundancy": sol.redundancy,
                              "compute_seconds": sol.compute_seconds}
@@ -152,16 +431,32 @@ def run_bench(rows: list[Row], methods: list[str], count: int, seed: int, out_di
                     for res in per_method.values():
                         if res[i]["success"]:
                             res[i]["gap"] = (res[i]["makespan"] - b) / b if b > 0 else 0.0
-            summary["rows"].append({"row": row.key, "table": row.table, "size": [row.agents, row.species, row.tasks,
-                                                                                 row.skills],
-                                    "results": {m: summarise(r) for m, r in per_method.items()}})
+            entry: dict[str, Any] = {
+                "row": row.key, "table": row.table, "kind": kind, "size": _row_size(row),
+                "results": {m: summarise(r) for m, r in per_method.items()},
+                "comparisons": [paired_comparison(per_method[a], per_method[b], a, b) for a, b in pairs],
+                "makespans": {m: [r["makespan"] if r["success"] else None for r in res]
+                              for m, res in per_method.items()},
+            }
+            if kind == "missions":
+                entry["name"] = row.name
+                entry["instances"] = [str(f) for f in row.files]
+            elif not isinstance(row, Row):  # e.g. a mission family: named rows
+                entry["name"] = row.key
+            elif row.paper() is not None:
+                entry["kind"] = "paper"
+            summary["rows"].append(entry)
     finally:
         bar.close()
         if fh:
             fh.close()
+    summary["provenance"] = provenance(methods, solve_opts, command)
     return summary
 
 
+# ---------------------------------------------------------------------------------------------
+# output
+# ---------------------------------------------------------------------------------------------
 def _pm(v: tuple[float, float] | None, nd: int = 2) -> str:
     if v is None or v[0] is None or (isinstance(v[0], float) and math.isnan(v[0])):
         return "—"
@@ -181,57 +476,150 @@ def _paper_vals(p: dict | None, method: str) -> dict | None:
             "redundancy": tuple(red) if red else None}
 
 
-def to_markdown(summary: dict, hardware: str = "") -> str:
-    out = []
+def _title(table: str, rows: list[dict], summary: dict) -> str:
+    """A paper table's title only when every row is a paper row; otherwise what the rows are."""
+    if table == "missions":
+        n = sum(next(iter(r["results"].values()))["n"] for r in rows) if rows and rows[0]["results"] else 0
+        return f"Missions ({n} instances)"
+    per = f"{summary['count']} instances per row, seed {summary['seed']}"
+    if table in TABLE_TITLES and all(r.get("kind") == "paper" for r in rows):
+        return f"{TABLE_TITLES[table]} ({per})"
+    if table in TABLE_TITLES:
+        scenario = "MA-AT" if table == "MA-AT-large" else table
+        return f"{scenario} scenario, generated rows ({per})"
+    return f"{table} ({per})"
+
+
+def provenance_markdown(prov: dict | None) -> list[str]:
+    if not prov:
+        return []
+    v = prov.get("versions") or {}
+    libs = ", ".join(f"{k} {v[k]}" for k in ("hmrta", "python", "numpy", "torch", "ortools") if v.get(k))
+    cpu = prov.get("cpu") or {}
+    lines = [f"- command: `{prov.get('command') or 'hmrta bench'}`",
+             f"- date (UTC): {prov.get('date')}",
+             f"- code: {prov.get('code_version')}"]
+    ck = prov.get("checkpoint")
+    if ck:
+        lines.append(f"- checkpoint: {ck['name']}{' (shipped)' if ck.get('shipped') else ''}, "
+                     f"sha256 {ck.get('sha256') or 'missing'}")
+    lines.append(f"- software: {libs}")
+    threads = prov.get("torch_threads")
+    lines.append(f"- machine: {cpu.get('model')}, {cpu.get('cores')} cores"
+                 + (f"; torch threads {threads}" if threads is not None else ""))
+    return lines + [""]
+
+
+def _signed(v: float, nd: int = 2) -> str:
+    return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:+.{nd}f}"
+
+
+def comparisons_markdown(rows: list[dict]) -> list[str]:
+    comps = [(r, c) for r in rows for c in r.get("comparisons") or []]
+    if not comps:
+        return []
+    out = ["Paired comparisons per instance (makespan of A minus B; a win is a shorter makespan, or A "
+           "solved an instance B failed; interval: 95% t-interval of the mean difference):", "",
+           "| row | A vs B | wins / ties / losses | mean difference | 95% interval | relative |",
+           "|---|---|---|---|---|---|"]
+    for r, c in comps:
+        ci = c.get("ci95")
+        rel = c.get("relative")
+        out.append(f"| {_row_label(r)} | {DISPLAY_NAME.get(c['a'], c['a'])} vs {DISPLAY_NAME.get(c['b'], c['b'])} | "
+                   f"{c['wins']} / {c['ties']} / {c['losses']} | {_signed(c['mean_diff'])} | "
+                   + (f"[{ci[0]:+.2f}, {ci[1]:+.2f}]" if ci and ci[0] is not None else "—") + " | "
+                   + ("—" if rel is None or (isinstance(rel, float) and math.isnan(rel)) else f"{rel * 100:+.1f}%")
+                   + " |")
+    return out + [""]
+
+
+def _row_label(r: dict) -> str:
+    return r.get("name") or ", ".join(map(str, r["size"]))
+
+
+def _name_column(table: str) -> str:
+    from .families import FAMILIES_TABLE
+
+    return {"missions": "missions", FAMILIES_TABLE: "family"}.get(table, "row")
+
+
+def to_markdown(summary: dict) -> str:
+    out = provenance_markdown(summary.get("provenance"))
     rows_by_table: dict[str, list[dict]] = {}
     for r in summary["rows"]:
         rows_by_table.setdefault(r["table"], []).append(r)
     for table, rows in rows_by_table.items():
-        show_red = table.startswith("MA-AT")
+        show_red = table.startswith("MA-AT") or table == "missions"
         show_gap = any(res.get("gap_to_bound") for r in rows for res in r["results"].values())
-        out.append(f"### {TABLE_TITLES.get(table, table)} ({summary['count']} instances per row, seed {summary['seed']})")
+        show_paper = any(r.get("kind") == "paper" for r in rows)
+        out.append(f"### {_title(table, rows, summary)}")
         out.append("")
-        head = ["kn, ks, km, kb", "method", "success", "makespan", "AWT"]
+        named = any(r.get("name") for r in rows)
+        head = ([_name_column(table)] if named else []) + ["kn, ks, km, kb", "method", "success", "makespan", "AWT"]
         if show_red:
             head.append("redundancy")
         head.append("compute s")
         if show_gap:
             head.append("gap to bound")
-        head += ["paper success", "paper makespan", "paper AWT"] + (["paper redundancy"] if show_red else []) + ["paper compute s"]
+        if show_paper:
+            head += ["paper success", "paper makespan", "paper AWT"] + (["paper redundancy"] if show_red else []) \
+                + ["paper compute s"]
         out.append("| " + " | ".join(head) + " |")
         out.append("|" + "---|" * len(head))
         for r in rows:
-            size = ", ".join(map(str, r["size"]))
-            paper = Row(table, *r["size"]).paper()
+            paper = Row(table, *r["size"]).paper() if r.get("kind") == "paper" else None
             for method, res in r["results"].items():
-                pv = _paper_vals(paper, method)
-                cells = [size, DISPLAY_NAME.get(method, method),
-                         f"{res['success'] * 100:.0f}%", _pm(res["makespan"]), _pm(res["awt"])]
+                cells = ([r.get("name") or ""] if named else []) + [
+                    ", ".join(map(str, r["size"])), DISPLAY_NAME.get(method, method),
+                    f"{res['success'] * 100:.0f}%", _pm(res["makespan"]), _pm(res["awt"])]
                 if show_red:
                     cells.append(_pm(res["redundancy"], 3))
                 cells.append(f"{res['compute_seconds']:.3f}")
                 if show_gap:
                     g = res.get("gap_to_bound")
                     cells.append(f"{g[0] * 100:.1f}%" if g else "—")
-                if pv:
-                    cells += [f"{pv['success'] * 100:.0f}%", _pm(pv["makespan"]), _pm(pv["awt"])]
-                    if show_red:
-                        cells.append(_pm(pv["redundancy"], 3))
-                    cells.append(f"{pv['compute_seconds']}" if pv["compute_seconds"] is not None else "—")
-                else:
-                    cells += ["—"] * (4 + show_red)
+                if show_paper:
+                    pv = _paper_vals(paper, method)
+                    if pv:
+                        cells += [f"{pv['success'] * 100:.0f}%", _pm(pv["makespan"]), _pm(pv["awt"])]
+                        if show_red:
+                            cells.append(_pm(pv["redundancy"], 3))
+                        cells.append(f"{pv['compute_seconds']}" if pv["compute_seconds"] is not None else "—")
+                    else:
+                        cells += ["—"] * (4 + show_red)
                 out.append("| " + " | ".join(cells) + " |")
         out.append("")
-    if hardware:
-        out.append(hardware)
+        out += comparisons_markdown(rows)
     return "\n".join(out) + "\n"
 
 
-def save(summary: dict, markdown: str, json_path: Path | None, md_path: Path | None) -> None:
-    if json_path:
-        atomic_write_text(json_path, json.dumps(clean(summary), indent=1) + "\n")
-    if md_path:
-        atomic_write_text(md_path, markdown)
+def to_csv(summary: dict) -> str:
+    """One line per (row, method) with the figures of the JSON summary (columns :data:`CSV_FIELDS`)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_FIELDS)
+
+    def num(v):
+        return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else repr(float(v))
+
+    for r in summary["rows"]:
+        for method, res in r["results"].items():
+            gap = res.get("gap_to_bound")
+            w.writerow([r["table"], r["row"], *r["size"], method, res["n"], num(res["success"]),
+                        num(res["makespan"][0]), num(res["makespan"][1]), num(res["awt"][0]), num(res["awt"][1]),
+                        num(res["redundancy"][0]), num(res["redundancy"][1]), num(res["compute_seconds"]),
+                        num(gap[0]) if gap else ""])
+    return buf.getvalue()
+
+
+def save(summary: dict, out_dir: Path) -> list[Path]:
+    """Write ``results.json``, ``results.md`` and ``results.csv`` into ``out_dir`` (atomically)."""
+    out_dir = Path(out_dir)
+    paths = [out_dir / "results.json", out_dir / "results.md", out_dir / "results.csv"]
+    atomic_write_text(paths[0], json.dumps(clean(summary), indent=1) + "\n")
+    atomic_write_text(paths[1], to_markdown(summary))
+    atomic_write_text(paths[2], to_csv(summary))
+    return paths
 
 
 def clean(o: Any) -> Any:

@@ -205,5 +205,6 @@ def format_report(rep: dict) -> str:
         if s["makespan"] is None:
             lines.append(f"  {s['method']}: failed")
         else:
-            lines.append(f"  {s['method']}: makespan {s['makespan']:.3f}, gap to best bound {100 * s['gap']:.1f}%")
+            gap = "no gap (makespan 0)" if s["gap"] is None else f"gap to best bound {100 * s['gap']:.1f}%"
+            lines.append(f"  {s['method']}: makespan {s['makespan']:.3f}, {gap}")
     return "\n".join(lines)

@@ -1,17 +1,25 @@
-"""bench: resumable per-instance cache that never serves results of another checkpoint or option."""
+"""bench: resumable cache, paired comparisons, provenance, CSV beside JSON and Markdown, titles."""
 from __future__ import annotations
 
+import csv
+import hashlib
+import io
 import json
+import math
 import shutil
 
-from hmrta.bench import Row, method_variant, run_bench
-from hmrta.rl.inference import DEFAULT_CHECKPOINT
+import pytest
 
-ROW = Row("MA-AT", 6, 2, 8, 3)
+from hmrta.bench import (Row, comparison_pairs, method_variant, paired_comparison, provenance, run_bench, save,
+                         t_cdf, t_quantile, to_markdown)
+from hmrta.rl.checkpoint_info import DEFAULT_CHECKPOINT
+
+ROW = Row("MA-AT", 6, 2, 8, 3)  # not a paper row
+PAPER_ROW = Row("MA-AT", 9, 3, 20, 3)
 
 
-def _bench(out, opts):
-    return run_bench([ROW], ["greedy"], 2, 5, out, opts, progress=False, log=lambda s: None)
+def _bench(out, methods=("greedy",), rows=(ROW,), count=2, **kw):
+    return run_bench(list(rows), list(methods), count, 5, out, {}, progress=False, log=lambda s: None, **kw)
 
 
 def _makespans(summary):
@@ -19,15 +27,17 @@ def _makespans(summary):
 
 
 def test_cache_is_reused_only_for_the_same_variant(tmp_path):
-    first = _bench(tmp_path, {})
+    first = _bench(tmp_path)
     lines = (tmp_path / "cache.jsonl").read_text().splitlines()
     assert len(lines) == 2
     # tamper with the cached makespans: a resumed run must serve them (it does not recompute) ...
     tampered = [json.loads(x) | {"makespan": 1000.0} for x in lines]
     (tmp_path / "cache.jsonl").write_text("".join(json.dumps(r) + "\n" for r in tampered))
-    assert _makespans(_bench(tmp_path, {})) == 1000.0
-    # ... but other solve options are another variant: recomputed, the true figures come back
-    assert _makespans(_bench(tmp_path, {"time_limit": 3.0})) == _makespans(first)
+    assert _makespans(_bench(tmp_path)) == 1000.0
+    # ... but results of another variant (other options or checkpoint) are never served
+    stale = [r | {"variant": "0" * 16} for r in tampered]
+    (tmp_path / "cache.jsonl").write_text("".join(json.dumps(r) + "\n" for r in stale))
+    assert _makespans(_bench(tmp_path)) == _makespans(first)
 
 
 def test_rl_variant_follows_the_checkpoint_content(tmp_path):
@@ -37,4 +47,95 @@ def test_rl_variant_follows_the_checkpoint_content(tmp_path):
     assert v1 == method_variant("rl", {"checkpoint": str(a)})
     a.write_bytes(a.read_bytes() + b"\0")  # retrained / replaced weights
     assert method_variant("rl", {"checkpoint": str(a)}) != v1
-    assert method_variant("greedy", {}) != method_variant("greedy", {"time_limit": 1.0})
+    assert method_variant("cpsat", {"time_limit": 2.0}) != method_variant("cpsat", {"time_limit": 1.0})
+
+
+def test_t_quantiles_match_the_tables():
+    # two-sided 95% critical values of Student's t (any statistics table)
+    for df, t in ((1, 12.7062), (2, 4.3027), (3, 3.1824), (9, 2.2622), (10, 2.2281), (49, 2.0096)):
+        assert t_quantile(0.975, df) == pytest.approx(t, abs=1e-4)
+    assert t_cdf(0.0, 7) == 0.5 and t_cdf(-1.5, 4) == pytest.approx(1 - t_cdf(1.5, 4))
+    assert t_cdf(1.0, 1) == pytest.approx(0.75)  # Cauchy: 1/2 + atan(1)/pi
+
+
+def _res(ms):
+    return [{"success": m is not None, "makespan": m if m is not None else math.nan} for m in ms]
+
+
+def test_paired_comparison_by_hand():
+    a = _res([10.0, 12.0, 9.0, 15.0, 20.0, None, None])
+    b = _res([11.0, 12.0, 10.0, 13.0, None, 5.0, None])
+    c = paired_comparison(a, b, "x", "y")
+    # per instance: win, tie, win, loss, win (only x solved), loss (only y solved), tie (both failed)
+    assert (c["wins"], c["ties"], c["losses"]) == (3, 2, 2)
+    assert (c["a"], c["b"], c["n"], c["n_paired"]) == ("x", "y", 7, 4)
+    # differences over the 4 instances both solved: -1, 0, -1, +2 -> mean 0, sample sd sqrt(2)
+    assert c["mean_diff"] == pytest.approx(0.0)
+    half = 3.182446305 * math.sqrt(2.0) / 2.0  # t(0.975, 3) * sd / sqrt(n)
+    assert c["ci95"] == pytest.approx([-half, half], abs=1e-6)
+    assert c["relative"] == pytest.approx(0.0)
+    d = paired_comparison(_res([10.0, 11.0]), _res([12.0, 12.0]))
+    assert d["mean_diff"] == pytest.approx(-1.5) and d["relative"] == pytest.approx(-1.5 / 12.0)
+    # differences -2, -1: sample sd sqrt(0.5), half width t(0.975, 1) * sqrt(0.5) / sqrt(2) = 12.7062 / 2
+    assert d["ci95"] == pytest.approx([-1.5 - 6.3531, -1.5 + 6.3531], abs=1e-3)
+    assert paired_comparison(_res([1.0]), _res([2.0]))["ci95"] is None  # one pair: no interval
+
+
+def test_default_and_explicit_comparison_pairs():
+    assert comparison_pairs(["greedy", "rl", "greedy-coalition"], None) == [("rl", "greedy"),
+                                                                            ("rl", "greedy-coalition")]
+    assert comparison_pairs(["greedy", "greedy-coalition"], None) == []
+    assert comparison_pairs(["greedy", "random"], [("random", "greedy")]) == [("random", "greedy")]
+    with pytest.raises(ValueError, match="'rl' is not one of the benchmarked methods"):
+        comparison_pairs(["greedy"], [("rl", "greedy")])
+
+
+def test_comparisons_in_the_summary_match_the_per_instance_results(tmp_path):
+    s = _bench(None, methods=("greedy", "random"), count=4, compare=[("random", "greedy")])
+    row = s["rows"][0]
+    (c,) = row["comparisons"]
+    ms = row["makespans"]
+    diffs = [r - g for r, g in zip(ms["random"], ms["greedy"])]
+    assert c["mean_diff"] == pytest.approx(sum(diffs) / 4)
+    assert c["wins"] == sum(d < 0 for d in diffs) and c["losses"] == sum(d > 0 for d in diffs)
+    md = to_markdown(s)
+    assert f"| random vs Greedy | {c['wins']} / {c['ties']} / {c['losses']} | {c['mean_diff']:+.2f} |" in md
+
+
+def test_provenance_keys_and_checkpoint_hash():
+    p = provenance(["greedy", "rl"], {}, command="hmrta bench x")
+    assert p["checkpoint"]["name"] == DEFAULT_CHECKPOINT.name and p["checkpoint"]["shipped"] is True
+    assert p["checkpoint"]["sha256"] == hashlib.sha256(DEFAULT_CHECKPOINT.read_bytes()).hexdigest()
+    assert p["code_version"] and p["command"] == "hmrta bench x"
+    assert set(p["versions"]) >= {"hmrta", "torch", "ortools", "numpy"} and p["versions"]["numpy"]
+    assert p["cpu"]["model"] and p["cpu"]["cores"] >= 1
+    assert "torch_threads" in p and p["date"].endswith("Z")
+    assert provenance(["greedy"], {})["checkpoint"] is None  # no rl method: no checkpoint
+
+
+def test_results_files_csv_agrees_with_json_and_markdown_shows_provenance(tmp_path):
+    s = _bench(tmp_path, methods=("greedy", "greedy-coalition"), rows=(ROW, PAPER_ROW), command="hmrta bench t")
+    paths = save(s, tmp_path)
+    assert [p.name for p in paths] == ["results.json", "results.md", "results.csv"]
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert data["provenance"]["command"] == "hmrta bench t" and data["provenance"]["code_version"]
+    lines = list(csv.DictReader(io.StringIO((tmp_path / "results.csv").read_text())))
+    assert len(lines) == 2 * 2  # one line per row x method
+    for line in lines:
+        row = next(r for r in data["rows"] if r["row"] == line["row"])
+        res = row["results"][line["method"]]
+        assert [int(line[k]) for k in ("kn", "ks", "km", "kb")] == row["size"]
+        assert float(line["makespan_mean"]) == res["makespan"][0]
+        assert float(line["awt_std"]) == res["awt"][1]
+        assert float(line["success"]) == res["success"] and int(line["n"]) == res["n"] == 2
+    md = (tmp_path / "results.md").read_text()
+    assert md.startswith("- command: `hmrta bench t`")
+    assert f"- code: {data['provenance']['code_version']}" in md and "- machine: " in md
+
+
+def test_only_paper_rows_get_the_paper_title():
+    generated = to_markdown(_bench(None, count=1))
+    assert "Table III" not in generated and "### MA-AT scenario, generated rows (1 instances per row" in generated
+    assert "paper makespan" not in generated
+    paper = to_markdown(_bench(None, rows=(PAPER_ROW,), count=1))
+    assert "### Table III: MA-AT (1 instances per row, seed 5)" in paper and "paper makespan" in paper

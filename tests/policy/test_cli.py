@@ -1,0 +1,254 @@
+"""The hmrta command line: bench on a user's missions, one --out spelling, help text, convert's robot
+mapping, evaluate/bound on folders, missing optional dependencies, progress bars."""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hmrta.cli import SolveProgress, build_parser, main
+from hmrta.formats import load_instance
+
+DATA = Path(__file__).parent / "data"
+CTAS = DATA / "ctas_small"
+EXAMPLE = DATA / "example.yaml"
+
+
+def _missions(tmp_path, n=2) -> Path:
+    folder = tmp_path / "fleet"
+    assert main(["generate", "--scenario", "MA-AT", "--agents", "6", "--species", "2", "--tasks", "6",
+                 "--skills", "3", "--count", str(n), "--seed", "3", "--out", str(folder)]) == 0
+    return folder
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# bench on the user's own missions
+# ---------------------------------------------------------------------------------------------
+def test_bench_on_a_folder_and_a_ctas_folder(tmp_path, capsys):
+    from hmrta.methods import solve
+
+    folder = _missions(tmp_path)
+    out = tmp_path / "res"
+    argv = ["bench", str(folder), str(CTAS), "--methods", "greedy,greedy-coalition",
+            "--compare", "greedy-coalition,greedy", "--out", str(out), "--no-progress"]
+    capsys.readouterr()
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    data = json.loads((out / "results.json").read_text())
+    assert [(r["name"], r["kind"], r["results"]["greedy"]["n"]) for r in data["rows"]] == [
+        ("fleet", "missions", 2), ("ctas_small", "missions", 1)]
+    assert data["provenance"]["command"] == "hmrta " + " ".join(argv)
+    # the figures are those of solving each mission
+    files = sorted(folder.glob("*.yaml"))
+    assert data["rows"][0]["makespans"]["greedy"] == [solve(load_instance(f), "greedy").makespan for f in files]
+    assert data["rows"][1]["makespans"]["greedy-coalition"] == [
+        solve(load_instance(CTAS), "greedy-coalition").makespan]
+    assert [(c["a"], c["b"], c["n"]) for c in data["rows"][0]["comparisons"]] == [("greedy-coalition", "greedy", 2)]
+    md = (out / "results.md").read_text()
+    assert md + "\n" == printed
+    assert "### Missions (3 instances)" in md and "Table" not in md and "paper" not in md
+    assert "| fleet | 6, 2, 6, 3 | Greedy | 100% |" in md and "| ctas_small | 5, 3, 3, 3 | Greedy |" in md
+    assert "| fleet | Greedy-coalition vs Greedy |" in md
+    rows = list(csv.DictReader(io.StringIO((out / "results.csv").read_text())))
+    assert [(r["row"], r["method"]) for r in rows] == [
+        ("missions:fleet", "greedy"), ("missions:fleet", "greedy-coalition"),
+        ("missions:ctas_small", "greedy"), ("missions:ctas_small", "greedy-coalition")]
+
+
+def test_bench_json_output_and_user_errors(tmp_path, capsys):
+    folder = _missions(tmp_path, 1)
+    capsys.readouterr()
+    assert main(["bench", str(folder), "--methods", "greedy", "--json", "--no-progress"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["rows"][0]["name"] == "fleet" and "provenance" in data
+    for argv, msg in (
+        (["bench", str(folder), "--methods", "greedy", "--compare", "rl,greedy"], "'rl' is not one of"),
+        (["bench", str(folder), "--methods", "greedy", "--compare", "greedy"], "expected two methods A,B"),
+        (["bench", str(folder), "--suite", "paper"], "not both INSTANCE and --suite"),
+        (["bench", str(folder), "--out", str(tmp_path / "r.json")], "expected a folder"),
+        (["bench", str(tmp_path / "nope.yaml")], "nope.yaml: no such file"),
+    ):
+        assert main(argv) == 2, argv
+        assert msg in _one_error_line(capsys)
+
+
+# ---------------------------------------------------------------------------------------------
+# one CLI language
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("argv", [
+    ["convert", str(CTAS), "-o", "x.yaml"],
+    ["convert", str(CTAS), "--output", "x.yaml"],
+    ["bench", "--suite", "paper", "--out-dir", "x"],
+    ["bench", "--suite", "paper", "--markdown", "x.md"],
+])
+def test_old_output_spellings_are_gone(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    capsys.readouterr()
+
+
+def _parsers(p: argparse.ArgumentParser, name: str = "hmrta"):
+    yield name, p
+    for a in p._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for sub_name, sub in a.choices.items():
+                yield from _parsers(sub, f"{name} {sub_name}")
+
+
+def test_help_shows_each_default_once_and_never_none():
+    parsers = list(_parsers(build_parser()))
+    assert {n for n, _ in parsers} >= {"hmrta solve", "hmrta bench", "hmrta convert", "hmrta evaluate",
+                                       "hmrta bound", "hmrta train", "hmrta render", "hmrta demo"}
+    for name, p in parsers:
+        fmt = p._get_formatter()
+        for a in p._actions:
+            if not a.help or a.help == argparse.SUPPRESS:
+                continue
+            text = fmt._expand_help(a)
+            assert "(default: None)" not in text, (name, a.dest, text)
+            if text != a.help % {**vars(a), "prog": p.prog}:  # the formatter appended "(default: X)" ...
+                assert "default" not in a.help.lower(), (name, a.dest, text)  # ... and the help has none
+        assert "(default: None)" not in " ".join(p.format_help().split()), name
+    bench = dict(parsers)["hmrta bench"]
+    assert "(default: 50)" in " ".join(bench.format_help().split())  # real defaults still shown
+
+
+# ---------------------------------------------------------------------------------------------
+# convert writes the robot id mapping
+# ---------------------------------------------------------------------------------------------
+def test_convert_writes_the_robot_mapping(tmp_path, capsys):
+    out = tmp_path / "ctas.yaml"
+    assert main(["convert", str(CTAS), "--out", str(out)]) == 0
+    mp = tmp_path / "ctas.mapping.json"
+    assert f"wrote {mp}" in capsys.readouterr().out
+    mapping = json.loads(mp.read_text())
+    # robots 0, 2 / 1, 4 share pose and skills; robot 3 only the pose: species-major renumbering
+    assert mapping["robot_to_agent"] == {"0": 0, "2": 1, "1": 2, "4": 3, "3": 4}
+    assert mapping["agent_to_robot"] == ["0", "2", "1", "4", "3"]
+    inst = load_instance(out)  # the instance file itself stays a plain hmrta-instance/1
+    raw = json.loads((CTAS / "config.json").read_text())["robots"]
+    for robot, agent in mapping["robot_to_agent"].items():
+        r = raw[robot]
+        assert list(inst.depots[agent]) == [r["pose"]["x"], r["pose"]["y"]]
+        assert list(inst.traits[agent]) == [r["skillset"][str(k)] for k in range(inst.skills)]
+    # an hmrta instance has no other robot ids: no mapping
+    assert main(["convert", str(EXAMPLE), "--out", str(tmp_path / "ex.yaml")]) == 0
+    assert "mapping" not in capsys.readouterr().out and not (tmp_path / "ex.mapping.json").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# evaluate and bound accept folders
+# ---------------------------------------------------------------------------------------------
+def test_evaluate_and_bound_accept_folders(tmp_path, capsys):
+    folder = _missions(tmp_path)
+    sols = tmp_path / "sols"
+    assert main(["solve", str(folder), "--method", "greedy", "--out", str(sols), "--no-progress"]) == 0
+    capsys.readouterr()
+    solved = {p.stem: json.loads(p.read_text()) for p in sols.glob("*.json")}
+    assert len(solved) == 2
+    assert main(["evaluate", str(folder), str(sols), "--json"]) == 0
+    evaluated = json.loads(capsys.readouterr().out)
+    assert [e["makespan"] for e in evaluated] == [solved[f.stem]["makespan"] for f in sorted(folder.glob("*.yaml"))]
+    assert main(["bound", str(folder), str(sols), "--json"]) == 0
+    reports = json.loads(capsys.readouterr().out)
+    assert [r["instance"] for r in reports] == sorted(solved)
+    for r in reports:
+        (s,) = r["solutions"]
+        assert s["makespan"] == solved[r["instance"]]["makespan"] and s["gap"] >= 0
+        assert r["best"] <= s["makespan"]
+    # a single instance still takes a folder of solutions, and prints a text report
+    one = sorted(folder.glob("*.yaml"))[0]
+    assert main(["bound", str(one), str(sols)]) == 0
+    assert f"greedy: makespan {solved[one.stem]['makespan']:.3f}" in capsys.readouterr().out
+    # errors name the file
+    assert main(["evaluate", str(folder), str(sols / f"{one.stem}.json")]) == 2
+    assert "expected a folder of <instance stem>.json routes" in _one_error_line(capsys)
+    (sols / f"{one.stem}.json").unlink()
+    assert main(["evaluate", str(folder), str(sols)]) == 2
+    assert f"{sols / one.stem}.json: no such file" in _one_error_line(capsys)
+    assert main(["bound", str(folder), str(sols)]) == 2
+    assert f"{sols / one.stem}.json: no such file" in _one_error_line(capsys)
+
+
+# ---------------------------------------------------------------------------------------------
+# missing optional dependencies
+# ---------------------------------------------------------------------------------------------
+def test_missing_torch_is_a_one_line_error_naming_the_extra(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "torch", None)  # as if torch were not installed
+    for argv in (["solve", str(EXAMPLE), "--method", "rl"],
+                 ["solve", str(EXAMPLE), "--method", "rl-s4"],
+                 ["bench", str(EXAMPLE), "--methods", "greedy,rl-lookahead", "--no-progress"],
+                 ["train", "--run-dir", str(tmp_path / "run")]):
+        assert main(argv) == 2, argv
+        line = _one_error_line(capsys)
+        assert "torch" in line and "pip install 'hmrta[rl]'" in line, line
+
+
+def test_missing_ortools_is_a_one_line_error_naming_the_extra(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "ortools", None)
+    for argv in (["solve", str(CTAS), "--method", "cpsat"], ["bound", str(CTAS), "--time-limit", "1"]):
+        assert main(argv) == 2, argv
+        line = _one_error_line(capsys)
+        assert "ortools" in line and "pip install 'hmrta[cpsat]'" in line, line
+
+
+# ---------------------------------------------------------------------------------------------
+# progress
+# ---------------------------------------------------------------------------------------------
+def test_solve_progress_bar(monkeypatch, capsys):
+    monkeypatch.setattr(SolveProgress, "DELAY", 0.0)
+    with SolveProgress("rl-lookahead x") as prog:
+        for k in range(4):
+            prog(k, 3, "task", f"{2 * k} decisions")
+        assert prog.bar.n == 3  # never past the total
+        shown = str(prog.bar)
+    assert "rl-lookahead x" in shown and "3/3" in shown and "6 decisions" in shown
+    assert "rl-lookahead x" in capsys.readouterr().err  # on stderr
+    with SolveProgress("cpsat x") as prog:  # time bars advance between the solver's calls
+        prog(0.0, 30.0, "s", "heuristic")
+        time.sleep(1.2)
+        assert 0.5 <= prog.bar.n < 30
+    with SolveProgress("off", enabled=False) as prog:
+        prog(1, 2, "task")
+        assert prog.bar is None
+    capsys.readouterr()
+
+
+def test_solvers_report_progress():
+    from hmrta.methods import solve
+
+    inst = load_instance(CTAS)
+    calls = []
+    sol = solve(inst, "rl-lookahead", progress=lambda *a: calls.append(a))
+    assert sol.success and calls
+    assert all(unit == "task" and total == inst.n_tasks for _, total, unit, _ in calls)
+    assert [c[0] for c in calls] == sorted(c[0] for c in calls) and calls[-1][0] == inst.n_tasks
+    calls.clear()
+    sol = solve(inst, "cpsat", time_limit=1.0, progress=lambda *a: calls.append(a))
+    assert sol.success and calls[0][3].startswith("heuristic") and "makespan" in calls[-1][3]
+    assert all(unit == "s" and total == 1.0 for _, total, unit, _ in calls)
+    assert [c[0] for c in calls] == sorted(c[0] for c in calls)
+
+
+def test_progress_per_instance_whenever_there_are_several(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(SolveProgress, "DELAY", 0.0)
+    folder = _missions(tmp_path)
+    capsys.readouterr()
+    assert main(["solve", str(folder), "--method", "greedy"]) == 0
+    err = capsys.readouterr().err
+    assert "solve" in err and "2/2" in err and "instance" in err
+    assert main(["solve", str(folder), "--method", "greedy", "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""
