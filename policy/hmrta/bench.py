@@ -319,6 +319,9 @@ def provenance(methods: list[str], solve_opts: dict[str, Any], command: str | No
         "versions": {"hmrta": __version__, "python": platform.python_version(), "numpy": _version("numpy"),
                      "torch": _version("torch"), "ortools": _version("ortools")},
         "cpu": {"model": cpu_model(), "cores": os.cpu_count()},
+        # load averages (1, 5, 15 min) when the file was written: compute times are only as
+        # comparable as the machine was quiet
+        "load_average": [round(x, 2) for x in os.getloadavg()] if hasattr(os, "getloadavg") else None,
         "torch_threads": torch_threads,
         "command": command,
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
@@ -505,8 +508,10 @@ def provenance_markdown(prov: dict | None) -> list[str]:
                      f"sha256 {ck.get('sha256') or 'missing'}")
     lines.append(f"- software: {libs}")
     threads = prov.get("torch_threads")
+    load = prov.get("load_average")
     lines.append(f"- machine: {cpu.get('model')}, {cpu.get('cores')} cores"
-                 + (f"; torch threads {threads}" if threads is not None else ""))
+                 + (f"; torch threads {threads}" if threads is not None else "")
+                 + (f"; load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1 / 5 / 15 min)" if load else ""))
     return lines + [""]
 
 

@@ -108,7 +108,7 @@ def test_provenance_keys_and_checkpoint_hash():
     assert p["checkpoint"]["sha256"] == hashlib.sha256(DEFAULT_CHECKPOINT.read_bytes()).hexdigest()
     assert p["code_version"] and p["command"] == "hmrta bench x"
     assert set(p["versions"]) >= {"hmrta", "torch", "ortools", "numpy"} and p["versions"]["numpy"]
-    assert p["cpu"]["model"] and p["cpu"]["cores"] >= 1
+    assert p["cpu"]["model"] and p["cpu"]["cores"] >= 1 and len(p["load_average"]) == 3
     assert "torch_threads" in p and p["date"].endswith("Z")
     assert provenance(["greedy"], {})["checkpoint"] is None  # no rl method: no checkpoint
 
