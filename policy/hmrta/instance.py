@@ -1,11 +1,12 @@
-"""Mission instances (SPEC §1): the `hmrta-instance/1` YAML format, validation and import.
+"""Mission instances (SPEC §1): the `hmrta-instance/1` format and its validation.
 
 An :class:`Instance` is immutable. Agent ids are species-major: all agents of species 0, then
 species 1, ... Task ids are 0-based positions in ``tasks``. Derived numpy arrays (per agent traits,
 depots, task locations, ...) are computed once and cached on the instance.
 
-Every loader problem raises :class:`InstanceError` with a one-line message that names the file,
-the field (with task / species index) and what was expected.
+Every validation problem raises :class:`InstanceError` with a one-line message that names the
+file, the field (with task / species index) and what was expected. Files are read by
+:func:`hmrta.formats.load_instance` (YAML or a CTAS-D config.json).
 """
 from __future__ import annotations
 
@@ -17,11 +18,17 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-import yaml
+
+from .reading import short
 
 FORMAT = "hmrta-instance/1"
 REQUIREMENT_TYPES = ("additive", "binary")
 DEFAULT_VELOCITY = 0.2
+MAX_AGENTS = 10_000  # most agents a mission may have (all species together)
+# traits, requirements and durations at most MAX_VALUE, velocity in [MIN_VELOCITY, MAX_VALUE]: every
+# time and capability sum of a mission then stays finite (and far from float overflow)
+MAX_VALUE = 1e9
+MIN_VELOCITY = 1e-9
 
 
 class InstanceError(ValueError):
@@ -40,6 +47,7 @@ class Task:
     location: tuple[float, float]
     requirements: tuple[float, ...]
     duration: float
+    release: float = 0.0  # when the task becomes known (0: at mission start; docs/semantics.md, events)
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,12 +60,16 @@ class Instance:
     species: tuple[Species, ...]
     tasks: tuple[Task, ...]
     name: str = "instance"
+    # robots added during a mission (MissionState.add_agent): the species of each, ids after the
+    # species-major block; timed external events of a scenario (hmrta.scenario), applied by MissionState
+    added_agents: tuple[int, ...] = ()
+    events: tuple[dict, ...] = ()
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ---- sizes -------------------------------------------------------------------------------
     @property
     def n_agents(self) -> int:
-        return sum(s.count for s in self.species)
+        return sum(s.count for s in self.species) + len(self.added_agents)
 
     @property
     def n_tasks(self) -> int:
@@ -74,7 +86,8 @@ class Instance:
     # ---- derived arrays (read-only) ----------------------------------------------------------
     @cached_property
     def agent_species(self) -> np.ndarray:  # [agents] int
-        return _ro(np.repeat(np.arange(self.n_species), [s.count for s in self.species]))
+        base = np.repeat(np.arange(self.n_species), [s.count for s in self.species])
+        return _ro(np.concatenate([base, np.array(self.added_agents, dtype=base.dtype)]))
 
     @cached_property
     def species_traits(self) -> np.ndarray:  # [species, skills]
@@ -104,6 +117,15 @@ class Instance:
     def durations(self) -> np.ndarray:  # [tasks]
         return _ro(np.array([t.duration for t in self.tasks], dtype=np.float64))
 
+    @cached_property
+    def releases(self) -> np.ndarray:  # [tasks] release times (0: known at mission start)
+        return _ro(np.array([t.release for t in self.tasks], dtype=np.float64))
+
+    @property
+    def dynamic(self) -> bool:
+        """True when tasks are released over time or timed events are scheduled (a scenario)."""
+        return bool(self.events) or any(t.release > 0 for t in self.tasks)
+
     def travel_time(self, a: Sequence[float], b: Sequence[float]) -> float:
         return math.hypot(a[0] - b[0], a[1] - b[1]) / self.velocity
 
@@ -124,6 +146,7 @@ class Instance:
                     "location": [_num(v) for v in t.location],
                     "requirements": [_num(v) for v in t.requirements],
                     "duration": _num(t.duration),
+                    **({"release": _num(t.release)} if t.release else {}),
                 }
                 for t in self.tasks
             ],
@@ -148,7 +171,8 @@ class Instance:
         for t in d["tasks"]:
             lines.append(
                 f"  - {{location: {_fmt_list(t['location'])}, requirements: {_fmt_list(t['requirements'])}, "
-                f"duration: {_fmt(t['duration'])}}}"
+                f"duration: {_fmt(t['duration'])}"
+                + (f", release: {_fmt(t['release'])}" if "release" in t else "") + "}"
             )
         return "\n".join(lines) + "\n"
 
@@ -216,6 +240,7 @@ _TOP_KEYS = {"format", "name", "requirement_type", "velocity", "skills", "specie
 _REQUIRED_TOP = {"format", "requirement_type", "velocity", "skills", "species", "tasks"}
 _SPECIES_KEYS = {"traits", "count", "depot"}
 _TASK_KEYS = {"location", "requirements", "duration"}
+_TASK_OPTIONAL = {"release"}
 
 
 def _err(where: str, msg: str) -> InstanceError:
@@ -224,25 +249,30 @@ def _err(where: str, msg: str) -> InstanceError:
 
 def _number(v: Any, where: str) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise _err(where, f"expected a number, got {v!r}")
-    f = float(v)
+        raise _err(where, f"expected a number, got {short(v)}")
+    try:
+        f = float(v)
+    except OverflowError:  # an integer beyond the float range
+        f = math.inf
     if math.isnan(f) or math.isinf(f):
-        raise _err(where, f"expected a finite number, got {v!r}")
+        raise _err(where, f"expected a finite number, got {short(v)}")
     return f
 
 
 def _vector(v: Any, n: int, where: str, *, unit: bool = False, nonneg: bool = True) -> tuple[float, ...]:
     if not isinstance(v, list):
-        raise _err(where, f"expected a list of {n} numbers, got {v!r}")
+        raise _err(where, f"expected a list of {n} numbers, got {short(v)}")
     if len(v) != n:
         raise _err(where, f"expected {n} values, got {len(v)}")
     out = []
     for i, x in enumerate(v):
         f = _number(x, f"{where}[{i}]")
         if nonneg and f < 0:
-            raise _err(f"{where}[{i}]", f"expected a value >= 0, got {x!r}")
+            raise _err(f"{where}[{i}]", f"expected a value >= 0, got {short(x)}")
+        if f > MAX_VALUE:
+            raise _err(f"{where}[{i}]", f"expected a value <= {MAX_VALUE:g}, got {short(x)}")
         if unit and not 0.0 <= f <= 1.0:
-            raise _err(f"{where}[{i}]", f"expected a coordinate in the unit square [0, 1], got {x!r}")
+            raise _err(f"{where}[{i}]", f"expected a coordinate in the unit square [0, 1], got {short(x)}")
         out.append(f)
     return tuple(out)
 
@@ -250,9 +280,9 @@ def _vector(v: Any, n: int, where: str, *, unit: bool = False, nonneg: bool = Tr
 def _keys(d: Any, allowed: set[str], required: set[str], where: str) -> dict:
     if not isinstance(d, dict):
         raise _err(where, f"expected a mapping with keys {sorted(required)}, got {type(d).__name__}")
-    unknown = sorted(set(map(str, d)) - allowed)
+    unknown = sorted({k if isinstance(k, str) else short(k) for k in d} - allowed)
     if unknown:
-        raise _err(where, f"unknown key {unknown[0]!r} (expected one of {sorted(allowed)})")
+        raise _err(where, f"unknown key {short(unknown[0])} (expected one of {sorted(allowed)})")
     missing = sorted(required - set(d))
     if missing:
         raise _err(where, f"missing key {missing[0]!r}")
@@ -263,19 +293,23 @@ def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
     """Validate a parsed `hmrta-instance/1` mapping and build an Instance."""
     d = _keys(d, _TOP_KEYS, _REQUIRED_TOP, source)
     if d["format"] != FORMAT:
-        raise _err(f"{source}: format", f"expected {FORMAT!r}, got {d['format']!r}")
+        raise _err(f"{source}: format", f"expected {FORMAT!r}, got {short(d['format'])}")
     rt = d["requirement_type"]
-    if rt not in REQUIREMENT_TYPES:
-        raise _err(f"{source}: requirement_type", f"expected 'additive' or 'binary', got {rt!r}")
+    if not isinstance(rt, str) or rt not in REQUIREMENT_TYPES:
+        raise _err(f"{source}: requirement_type", f"expected 'additive' or 'binary', got {short(rt)}")
     vel = _number(d["velocity"], f"{source}: velocity")
     if vel <= 0:
-        raise _err(f"{source}: velocity", f"expected a positive number, got {d['velocity']!r}")
+        raise _err(f"{source}: velocity", f"expected a positive number, got {short(d['velocity'])}")
+    if not MIN_VELOCITY <= vel <= MAX_VALUE:
+        raise _err(f"{source}: velocity", f"expected a number in [{MIN_VELOCITY:g}, {MAX_VALUE:g}], "
+                                          f"got {short(d['velocity'])}")
     k = d["skills"]
     if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-        raise _err(f"{source}: skills", f"expected a positive integer, got {k!r}")
+        raise _err(f"{source}: skills", f"expected a positive integer, got {short(k)}")
     name = d.get("name", Path(source).stem if source != "<data>" else "instance")
-    if not isinstance(name, (str, int, float)):
-        raise _err(f"{source}: name", f"expected a string, got {name!r}")
+    if isinstance(name, bool) or not isinstance(name, (str, int, float)):
+        raise _err(f"{source}: name", f"expected a string, got {short(name)}")
+    name = text_field(name, f"{source}: name")
     if not isinstance(d["species"], list) or not d["species"]:
         raise _err(f"{source}: species", "expected a non-empty list of species")
     if not isinstance(d["tasks"], list):
@@ -288,74 +322,44 @@ def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
         if not any(traits):
             raise _err(f"{w}.traits", "expected at least one non-zero trait (all zero)")
         c = s["count"]
-        if isinstance(c, bool) or not isinstance(c, int) or c < 1:
-            raise _err(f"{w}.count", f"expected a positive integer, got {c!r}")
+        if isinstance(c, bool) or not isinstance(c, int) or not 1 <= c <= MAX_AGENTS:
+            raise _err(f"{w}.count", f"expected a positive integer (at most {MAX_AGENTS}), got {short(c)}")
         depot = _vector(s["depot"], 2, f"{w}.depot", unit=True)
         species.append(Species(traits, c, depot))  # type: ignore[arg-type]
+    if sum(s.count for s in species) > MAX_AGENTS:
+        raise _err(f"{source}: species", f"{sum(s.count for s in species)} agents in all; at most {MAX_AGENTS}")
     tasks = []
     for m, t in enumerate(d["tasks"]):
         w = f"{source}: tasks[{m}]"
-        t = _keys(t, _TASK_KEYS, _TASK_KEYS, w)
+        t = _keys(t, _TASK_KEYS | _TASK_OPTIONAL, _TASK_KEYS, w)
         loc = _vector(t["location"], 2, f"{w}.location", unit=True)
         req = _vector(t["requirements"], k, f"{w}.requirements")
         if not any(req):
             raise _err(f"{w}.requirements", "expected at least one non-zero requirement (all zero)")
         dur = _number(t["duration"], f"{w}.duration")
-        if dur < 0:
-            raise _err(f"{w}.duration", f"expected a value >= 0, got {t['duration']!r}")
-        tasks.append(Task(loc, req, dur))  # type: ignore[arg-type]
-    inst = Instance(rt, vel, k, tuple(species), tuple(tasks), str(name))
+        if not 0 <= dur <= MAX_VALUE:
+            raise _err(f"{w}.duration", f"expected a value >= 0 and <= {MAX_VALUE:g}, got {short(t['duration'])}")
+        rel = _number(t.get("release", 0), f"{w}.release")
+        if not 0 <= rel <= MAX_VALUE:
+            raise _err(f"{w}.release", f"expected a time >= 0 and <= {MAX_VALUE:g}, got {short(t['release'])}")
+        tasks.append(Task(loc, req, dur, rel))  # type: ignore[arg-type]
+    inst = Instance(rt, vel, k, tuple(species), tuple(tasks), name)
     why = inst.infeasibility()
     if why:
         raise InstanceError(f"{source}: {why}")
     return inst
 
 
-class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that rejects a key written twice in one mapping (the last would silently win)."""
-
-
-def _no_duplicates(loader: yaml.SafeLoader, node: yaml.MappingNode, deep: bool = False):
-    seen: dict = {}
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=deep)
-        if key in seen:
-            raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {key!r} (first on line {seen[key] + 1})", key_node.start_mark)
-        seen[key] = key_node.start_mark.line
-    return loader.construct_mapping(node, deep)
-
-
-_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _no_duplicates)
-
-
-def load_instance(path: str | Path) -> Instance:
-    """Load an `hmrta-instance/1` YAML file, or a CTAS-D-family ``config.json`` (SPEC §6)."""
-    p = Path(path)
-    if p.is_dir():
-        cfg = p / "config.json"
-        if not cfg.exists():
-            raise InstanceError(f"{p}: is a folder without a config.json")
-        p = cfg
+def text_field(v: Any, where: str) -> str:
+    """A name-like field as text: numbers become their text; text that cannot be written as UTF-8
+    (lone surrogates, e.g. from a YAML escape) is an error naming the field."""
     try:
-        text = p.read_text()
-    except FileNotFoundError:
-        raise InstanceError(f"{p}: no such file") from None
-    except OSError as e:
-        raise InstanceError(f"{p}: cannot read ({e.strerror})") from None
-    if p.suffix.lower() == ".json":
-        from .ctas import instance_from_ctas_config
-
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise InstanceError(f"{p}:{e.lineno}: invalid JSON ({e.msg})") from None
-        return instance_from_ctas_config(data, source=str(p))
+        t = v if isinstance(v, str) else str(v)
+    except ValueError:  # an integer too long to write out
+        raise _err(where, f"expected a string, got {short(v)}") from None
     try:
-        data = yaml.load(text, Loader=_StrictLoader)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        line = f":{mark.line + 1}" if mark is not None else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise InstanceError(f"{p}{line}: invalid YAML ({problem})") from None
-    return instance_from_dict(data, source=str(p))
+        t.encode("utf-8")
+    except UnicodeEncodeError as e:
+        raise _err(where, f"expected text, got an invalid character at position {e.start} "
+                          f"(lone surrogate {t[e.start]!a})") from None
+    return t

@@ -13,6 +13,7 @@ leaves a task at its finish, arrives after the travel time and waits until the t
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from .instance import Instance
-from .solution import Solution
+from .solution import Solution, check_solution
 
 # pastel skill colours (tasks) so they do not read as the saturated species colours (routes)
 SKILL_COLORS = ["#fbb4ae", "#b3cde3", "#ccebc5", "#decbe4", "#fed9a6", "#ffffcc", "#e5d8bd", "#fddaec"]
@@ -180,7 +181,8 @@ def _draw_gantt(ax, inst: Instance, sol: Solution, colors: list, timeline) -> No
         ax.text(sol.makespan, A - 0.4, f"makespan {sol.makespan:.2f} ", fontsize=7, va="bottom", ha="right")
     ax.set_xlabel("time")
     ax.set_ylim(-0.7, A - 0.1)
-    ax.set_xlim(0, max(sol.makespan if math.isfinite(sol.makespan) else 0, 1e-6) * 1.03)
+    end = max((seg["t1"] for segs in timeline for seg in segs), default=0.0)  # the last drawn time
+    ax.set_xlim(0, max(sol.makespan if math.isfinite(sol.makespan) else 0, end, 1e-6) * 1.03)
     ax.set_title("Gantt: per agent travel / wait / work (task id)")
     ax.grid(axis="x", alpha=0.3)
     ax.legend(handles=[Patch(color="grey", alpha=0.3, label="travel"),
@@ -214,25 +216,26 @@ def _figure(inst: Instance, sol: Solution):
 
 
 def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool = False,
-           frames: int = 80, fps: int = 10, dpi: int = 110) -> list[Path]:
+           frames: int = 80, fps: int = 10, dpi: int = 110, source: str = "solution") -> list[Path]:
     """Write the map + Gantt figure to ``out_path`` (format from its suffix, e.g. .png/.svg/.pdf).
     With ``gif=True`` also write an animation beside it (``out_path`` with suffix .gif; if
-    ``out_path`` itself ends in .gif only the animation is written). Returns the written paths."""
+    ``out_path`` itself ends in .gif only the animation is written). Returns the written paths.
+    A solution that does not belong to the instance (name, agent and task counts, species, task
+    ids) raises :class:`~hmrta.solution.SolutionError` naming ``source``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    if len(solution.routes) != inst.n_agents or len(solution.tasks) != inst.n_tasks:
-        raise ValueError(f"solution does not match the instance: {len(solution.routes)} routes / "
-                         f"{len(solution.tasks)} tasks, expected {inst.n_agents} / {inst.n_tasks}")
+    check_solution(inst, solution, source)
     out = Path(out_path)
     if out.parent and not out.parent.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
     written = []
     if out.suffix.lower() != ".gif":
         fig, *_ = _figure(inst, solution)
-        fig.savefig(out, dpi=dpi)
+        with _atomic(out) as tmp:
+            fig.savefig(tmp, dpi=dpi)
         plt.close(fig)
         written.append(out)
     if gif or out.suffix.lower() == ".gif":
@@ -240,6 +243,18 @@ def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool =
         _animate(inst, solution, g, frames, fps)
         written.append(g)
     return written
+
+
+@contextlib.contextmanager
+def _atomic(path: Path):
+    """A temporary path beside ``path`` (same suffix, so the image format is the same), renamed
+    onto ``path`` once written: never a half-written image."""
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        yield tmp
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _animate(inst: Instance, sol: Solution, path: Path, frames: int, fps: int) -> None:
@@ -270,5 +285,6 @@ def _animate(inst: Instance, sol: Solution, path: Path, frames: int, fps: int) -
         return dots, cursor, clock, ring
 
     anim = FuncAnimation(fig, frame, frames=frames, blit=False)
-    anim.save(str(path), writer=PillowWriter(fps=fps), dpi=60)
+    with _atomic(path) as tmp:
+        anim.save(str(tmp), writer=PillowWriter(fps=fps), dpi=60)
     plt.close(fig)

@@ -14,7 +14,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .instance import Instance, atomic_write_text
+from .instance import Instance, atomic_write_text, text_field
+from .reading import finite, parse_json, read_text, short
 
 FORMAT = "hmrta-solution/1"
 ETA = 10.0  # redundancy of an unsatisfied task (paper Eq. 2)
@@ -22,6 +23,11 @@ ETA = 10.0  # redundancy of an unsatisfied task (paper Eq. 2)
 
 class RouteError(ValueError):
     """Invalid routes for route evaluation (uncovered task, unknown id, unsatisfied, cyclic wait)."""
+
+
+class SolutionError(ValueError):
+    """An invalid `hmrta-solution/1` file, or one that does not belong to the instance (a user error;
+    one line naming the file and the field)."""
 
 
 @dataclass
@@ -62,14 +68,10 @@ class Solution:
         atomic_write_text(Path(path), json.dumps(self.to_dict(), indent=1) + "\n")
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Solution":
-        known = {"format", "instance", "method", "seed", "success", "makespan", "awt", "redundancy",
-                 "compute_seconds", "routes", "tasks", "agents"}
-        return cls(
-            d["instance"], d["method"], d["seed"], d["success"], _nan(d["makespan"]), _nan(d["awt"]),
-            _nan(d["redundancy"]), d["compute_seconds"], d["routes"], d["tasks"], d["agents"],
-            {k: v for k, v in d.items() if k not in known},
-        )
+    def from_dict(cls, d: Any, source: str = "<data>") -> "Solution":
+        """Validate a parsed `hmrta-solution/1` mapping (types, and routes / members / agents
+        consistent with one another); raises :class:`SolutionError` naming the field."""
+        return _solution_from_dict(d, source)
 
     def summary(self) -> str:
         if not self.success:
@@ -84,6 +86,153 @@ def _f(v: float) -> float | None:
 
 def _nan(v: Any) -> float:
     return math.nan if v is None else float(v)
+
+
+# ---------------------------------------------------------------------------------------------
+# reading and checking solution files
+# ---------------------------------------------------------------------------------------------
+MAX_TIME = 1e15  # latest time a solution file may carry (instances keep every time far below it)
+_KNOWN = ("format", "instance", "method", "seed", "success", "makespan", "awt", "redundancy",
+          "compute_seconds", "routes", "tasks", "agents")
+_TASK_KEYS = ("start", "finish", "members")
+_AGENT_KEYS = ("species", "return_time")
+
+
+def _serr(where: str, msg: str) -> SolutionError:
+    return SolutionError(f"{where}: {msg}")
+
+
+def _int(v: Any, where: str, lo: int = 0) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise _serr(where, f"expected an integer >= {lo}, got {short(v)}")
+    return v
+
+
+def _time(v: Any, where: str, hi: float = MAX_TIME) -> float:
+    """A number in [0, hi], or null (NaN: not done / failed)."""
+    if v is None:
+        return math.nan
+    if not finite(v) or not 0 <= v <= hi:
+        raise _serr(where, f"expected a number in [0, {hi:g}] or null, got {short(v)}")
+    return float(v)
+
+
+def _fields(v: Any, keys: tuple[str, ...], where: str, extra: bool = False) -> dict:
+    if not isinstance(v, dict):
+        raise _serr(where, f"expected an object with keys {list(keys)}, got {short(v)}")
+    for k in keys:
+        if k not in v:
+            raise _serr(where, f"missing key {k!r}")
+    if not extra:
+        for k in v:
+            if k not in keys:
+                raise _serr(where, f"unknown key {short(k)} (expected one of {list(keys)})")
+    return v
+
+
+def _list(v: Any, where: str) -> list:
+    if not isinstance(v, list):
+        raise _serr(where, f"expected a list, got {short(v)}")
+    return v
+
+
+def _solution_from_dict(d: Any, source: str) -> Solution:
+    d = _fields(d, _KNOWN, source, extra=True)
+    if d["format"] != FORMAT:
+        raise _serr(f"{source}: format", f"expected {FORMAT!r}, got {short(d['format'])}")
+    texts = {}
+    for k in ("instance", "method"):
+        if not isinstance(d[k], str):
+            raise _serr(f"{source}: {k}", f"expected a string, got {short(d[k])}")
+        texts[k] = text_field(d[k], f"{source}: {k}")
+    seed = d["seed"]
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed.bit_length() > 64:
+        raise _serr(f"{source}: seed", f"expected an integer, got {short(seed)}")
+    if not isinstance(d["success"], bool):
+        raise _serr(f"{source}: success", f"expected true or false, got {short(d['success'])}")
+    metrics = [_time(d[k], f"{source}: {k}") for k in ("makespan", "awt", "redundancy")]
+    cs = d["compute_seconds"]
+    if not finite(cs) or cs < 0:
+        raise _serr(f"{source}: compute_seconds", f"expected a number >= 0, got {short(cs)}")
+    agents = []
+    for a, info in enumerate(_list(d["agents"], f"{source}: agents")):
+        w = f"{source}: agents[{a}]"
+        info = _fields(info, _AGENT_KEYS, w)
+        agents.append({"species": _int(info["species"], f"{w}.species"),
+                       "return_time": _time(info["return_time"], f"{w}.return_time")})
+    A = len(agents)
+    raw_tasks = _list(d["tasks"], f"{source}: tasks")
+    M = len(raw_tasks)
+    tasks = []
+    for m, t in enumerate(raw_tasks):
+        w = f"{source}: tasks[{m}]"
+        t = _fields(t, _TASK_KEYS, w)
+        members = _list(t["members"], f"{w}.members")
+        for i, a in enumerate(members):
+            if isinstance(a, bool) or not isinstance(a, int) or not 0 <= a < A:
+                raise _serr(f"{w}.members[{i}]", f"unknown agent id {short(a)} (expected 0..{A - 1}: "
+                                                 f"the file lists {A} agents)")
+        start, finish = _time(t["start"], f"{w}.start"), _time(t["finish"], f"{w}.finish")
+        if math.isnan(start) != math.isnan(finish) or finish < start:
+            raise _serr(f"{w}.finish", f"expected a finish >= the start ({short(t['start'])}), got {short(t['finish'])}")
+        if d["success"] and math.isnan(start):
+            raise _serr(f"{w}.start", "expected a time: the solution succeeded, so every task was done")
+        tasks.append({"start": start, "finish": finish, "members": list(members)})
+    routes = _list(d["routes"], f"{source}: routes")
+    if len(routes) != A:
+        raise _serr(f"{source}: routes", f"expected one route per agent ({A} agents listed), got {len(routes)}")
+    for a, r in enumerate(routes):
+        for i, m in enumerate(_list(r, f"{source}: routes[{a}]")):
+            if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m < M:
+                raise _serr(f"{source}: routes[{a}][{i}]", f"unknown task id {short(m)} (expected 0..{M - 1}: "
+                                                          f"the file lists {M} tasks)")
+    extra = {k: v for k, v in d.items() if k not in _KNOWN}
+    for k in ("failure", "status"):
+        if extra.get(k) is not None and not isinstance(extra[k], str):
+            raise _serr(f"{source}: {k}", f"expected a string, got {short(extra[k])}")
+    if extra.get("lower_bound") is not None:
+        _time(extra["lower_bound"], f"{source}: lower_bound")
+    if d["success"]:
+        if math.isnan(metrics[0]):
+            raise _serr(f"{source}: makespan", "expected a number: the solution succeeded")
+        last = max([t["finish"] for t in tasks] + [a["return_time"] for a in agents if not math.isnan(a["return_time"])],
+                   default=0.0)
+        if metrics[0] < last * (1 - 1e-9) - 1e-9:
+            raise _serr(f"{source}: makespan", f"expected at least the last finish or return time ({last:g}), "
+                                               f"got {short(d['makespan'])}")
+    return Solution(texts["instance"], texts["method"], seed, d["success"], *metrics, float(cs),
+                    [list(r) for r in routes], tasks, agents, extra)
+
+
+def read_solution(path: str | Path) -> Solution:
+    """Read and validate an `hmrta-solution/1` JSON file (SolutionError naming file and field)."""
+    return Solution.from_dict(parse_json(read_text(path, SolutionError), str(path), SolutionError), str(path))
+
+
+def check_solution(inst: Instance, sol: Solution, source: str = "solution") -> None:
+    """Refuse a solution that does not belong to the instance: another instance name, other agent
+    or task counts, or agents of other species."""
+    if sol.instance and sol.instance != inst.name:
+        raise _serr(source, f"solution does not match the instance: it is for instance {short(sol.instance)}, "
+                            f"not {short(inst.name)}")
+    if len(sol.agents) != inst.n_agents or len(sol.routes) != inst.n_agents or len(sol.tasks) != inst.n_tasks:
+        raise _serr(source, f"solution does not match the instance {short(inst.name)}: {len(sol.routes)} routes / "
+                            f"{len(sol.tasks)} tasks, expected {inst.n_agents} / {inst.n_tasks}")
+    for a, info in enumerate(sol.agents):
+        if info["species"] != int(inst.agent_species[a]):
+            raise _serr(f"{source}: agents[{a}].species", f"solution does not match the instance "
+                        f"{short(inst.name)}: species {info['species']}, the instance's agent {a} is of "
+                        f"species {int(inst.agent_species[a])}")
+    for a, r in enumerate(sol.routes):
+        for i, m in enumerate(r):
+            if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m < inst.n_tasks:
+                raise _serr(f"{source}: routes[{a}][{i}]", f"unknown task id {short(m)} "
+                                                          f"(expected 0..{inst.n_tasks - 1})")
+
+
+def read_routes(inst: Instance, path: str | Path) -> list[list[int]]:
+    """Read a routes JSON file (any object with a 'routes' key) and check it against the instance."""
+    return parse_routes(inst, parse_json(read_text(path, RouteError), str(path), RouteError), str(path))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -134,6 +283,8 @@ def solution_from_state(state, method: str, seed: int, compute_seconds: float) -
         extra["failure"] = state.failure
     if int(state.depot_stops.sum()):
         extra["depot_stops"] = [int(x) for x in state.depot_stops]
+    if state.log or state.M > state.base[0] or bool((state.release > 0).any()):
+        extra["dynamic"] = dynamic_metrics(state)
     return Solution(
         inst.name, method, int(seed), ok,
         float(ret.max()) if ok and len(ret) else (0.0 if ok else math.nan),
@@ -142,6 +293,31 @@ def solution_from_state(state, method: str, seed: int, compute_seconds: float) -
         compute_seconds,
         [list(map(int, r)) for r in state.routes], tasks, agents, extra,
     )
+
+
+def dynamic_metrics(state) -> dict[str, Any]:
+    """Metrics of a mission with events (docs/semantics.md, "Events during a mission"): per-task
+    release and response time (finish - release; null for a task not done), their mean and max
+    over done tasks, and the tasks lost: cancelled by the operator, closed as unsatisfiable after a
+    robot loss, and additions rejected (no robot left with a skill). ``events`` lists the external
+    events as applied (or rejected, with the reason)."""
+    from .core import CANCELLED, DONE
+
+    done = state.status == DONE
+    resp = np.where(done, state.finish - state.release, np.nan)  # [M]
+    r = resp[done]
+    by_op = state.by_operator & (state.status == CANCELLED)
+    return {
+        "release": [float(x) for x in state.release],
+        "response": [_f(float(x)) for x in resp],
+        "mean_response": float(r.mean()) if len(r) else None,
+        "max_response": float(r.max()) if len(r) else None,
+        "names": list(state.names),
+        "tasks_lost": {"cancelled": int(by_op.sum()),
+                       "unsatisfiable": int(((state.status == CANCELLED) & ~state.by_operator).sum()),
+                       "rejected": sum(1 for e in state.log if e.get("type") == "add_task" and "rejected" in e)},
+        "events": state.log,
+    }
 
 
 # ---------------------------------------------------------------------------------------------
@@ -158,11 +334,11 @@ def parse_routes(inst: Instance, data: Any, source: str = "routes") -> list[list
     out = []
     for a, r in enumerate(routes):
         if not isinstance(r, list):
-            raise RouteError(f"{source}: routes[{a}]: expected a list of task ids, got {r!r}")
+            raise RouteError(f"{source}: routes[{a}]: expected a list of task ids, got {short(r)}")
         seen = set()
         for i, m in enumerate(r):
             if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m < M:
-                raise RouteError(f"{source}: routes[{a}][{i}]: unknown task id {m!r} (expected 0..{M - 1})")
+                raise RouteError(f"{source}: routes[{a}][{i}]: unknown task id {short(m)} (expected 0..{M - 1})")
             if m in seen:
                 raise RouteError(f"{source}: routes[{a}]: agent {a} visits task {m} twice")
             seen.add(m)

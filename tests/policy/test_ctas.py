@@ -7,7 +7,8 @@ import pytest
 
 from hmrta.baselines import GREEDY_RULES, Greedy
 from hmrta.ctas import instance_from_ctas_config
-from hmrta.instance import InstanceError, load_instance
+from hmrta.formats import load_instance
+from hmrta.instance import InstanceError
 from hmrta.sim import simulate
 
 
@@ -88,7 +89,14 @@ def _mut(cfg, path, value=None, delete=False):
     (("tasks", "2", "pos", "y"), None, True, "tasks['2'].pos: missing key 'y'"),
     (("tasks", "0", "skillset", "3"), 1, False, "skill index 3 outside 0..2"),
     (("tasks", "0", "skillset", "1"), "x", False, "expected a number"),
-    (("tasks", "1", "pos", "x"), 1.5, False, "tasks[1].location[0]"),  # outside the unit square
+    (("tasks", "1", "pos", "x"), 1.5, False, "tasks['1'].pos.x: expected a coordinate in the unit square"),
+    (("robots", "3", "pose", "y"), -0.5, False, "robots['3'].pose.y: expected a coordinate in the unit square"),
+    (("robots", "3", "pose", "y"), [0.5], False, "robots['3'].pose.y: expected a number, got [0.5]"),
+    (("robots", "4", "skillset"), {"1": 0}, False, "robots['4'].skillset: expected at least one non-zero"),
+    (("tasks", "0", "skillset", "0"), -2, False, "tasks['0'].skillset['0']: expected a value in [0, 1e+09]"),
+    (("tasks", "0", "duration"), "long", False, "tasks['0'].duration: expected a number, got 'long'"),
+    (("setup", "velocity"), 1e-300, False, "setup.velocity: expected a value in [1e-09, 1e+09]"),
+    (("setup", "num_skills"), 10**12, False, "setup.num_skills: expected a positive integer (at most 10000)"),
     (("tasks", "2", "skillset", "1"), 4, False, "task 2 is infeasible"),  # team has 3 of skill 1
 ])
 def test_config_errors(cfg, tmp_path, path, value, delete, expect):
@@ -116,3 +124,12 @@ def test_invalid_json_names_line(tmp_path):
     with pytest.raises(InstanceError) as ei:
         load_instance(p)
     assert str(ei.value).startswith(f"{p}:3: invalid JSON")
+
+
+def test_two_keys_for_one_index(cfg, tmp_path):
+    cfg["tasks"]["02"] = cfg["tasks"]["2"]
+    cfg["setup"]["tasks"] = 4
+    p = tmp_path / "config.json"
+    p.write_text(json.dumps(cfg))
+    with pytest.raises(InstanceError, match=r"tasks: keys '02' and '2' are the same index|tasks: keys '2' and '02'"):
+        load_instance(p)

@@ -6,12 +6,14 @@ the task / species index) and what was expected.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
 import yaml
 
-from hmrta.instance import Instance, InstanceError, Species, Task, instance_from_dict, load_instance
+from hmrta.formats import load_instance
+from hmrta.instance import Instance, InstanceError, Species, Task, instance_from_dict
 
 NAN, INF = float("nan"), float("inf")
 
@@ -241,10 +243,50 @@ def test_example_fixture_file(data_dir):
 
 
 def test_duplicate_yaml_key_is_rejected_with_its_line(tmp_path):
-    from hmrta.instance import InstanceError, load_instance
-
     p = tmp_path / "dup.yaml"
     p.write_text("format: hmrta-instance/1\nrequirement_type: additive\nvelocity: 0.2\nvelocity: 0.3\nskills: 1\n"
                  "species: [{traits: [1], count: 1, depot: [0, 0]}]\ntasks: []\n")
     with pytest.raises(InstanceError, match=r"dup.yaml:4: .*duplicate key 'velocity' \(first on line 3\)"):
         load_instance(p)
+
+
+def test_format_dispatch_sits_above_instance_and_ctas():
+    """hmrta.formats dispatches by format; hmrta.instance imports neither hmrta.ctas nor
+    hmrta.formats (not even in a function), hmrta.ctas never imports hmrta.formats: no import
+    cycle between the three."""
+    import ast
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import hmrta
+
+    def imports(name, module_level_only=False):
+        tree = ast.parse((Path(hmrta.__file__).parent / f"{name}.py").read_text())
+        nodes = tree.body if module_level_only else list(ast.walk(tree))
+        return {n.module for n in nodes if isinstance(n, ast.ImportFrom) and n.module}
+
+    assert not {"ctas", "formats"} & imports("instance")
+    assert "formats" not in imports("ctas") and "instance" in imports("ctas")
+    assert {"instance", "ctas"} <= imports("formats", module_level_only=True)
+    out = subprocess.run([sys.executable, "-c", "import sys, hmrta.instance, hmrta.ctas; "
+                          "print(sorted(m for m in sys.modules if m in ('hmrta.formats', 'hmrta.cli')))"],
+                         capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_value_limits_keep_every_time_finite(valid_dict):
+    from hmrta.instance import MAX_AGENTS
+
+    for path, value, expect in [
+        (("velocity",), 1e-300, "velocity: expected a number in [1e-09, 1e+09]"),
+        (("tasks", 0, "duration"), 1e308, "tasks[0].duration: expected a value >= 0 and <= 1e+09"),
+        (("species", 0, "traits"), [1e300, 0, 1], "species[0].traits[0]: expected a value <= 1e+09"),
+        (("species", 0, "count"), MAX_AGENTS + 1, f"species[0].count: expected a positive integer (at most {MAX_AGENTS})"),
+        (("tasks", 1, "duration"), 10**400, "tasks[1].duration: expected a finite number, got <an integer of"),
+        (("name",), "\ud800", "name: expected text, got an invalid character at position 0"),
+    ]:
+        d = yaml.safe_load(yaml.safe_dump(valid_dict))
+        _set(path, value)(d)
+        with pytest.raises(InstanceError, match=re.escape(expect)):
+            instance_from_dict(d, "m.yaml")

@@ -267,7 +267,7 @@ def test_cli_keys_create(tmp_path, capsys):
     assert err.startswith("hmrta: error: keys create:") and "--force" in err and "\n" not in err
     assert (out / "keys.json").read_bytes() == before
     inst = Path(__file__).resolve().parents[2] / "policy" / "hmrta" / "data" / "example.yaml"
-    from hmrta.instance import load_instance
+    from hmrta.formats import load_instance
 
     A = load_instance(inst).n_agents
     assert main(["keys", "create", "--instance", str(inst), "--out", str(out), "--force"]) == 0

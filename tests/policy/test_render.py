@@ -1,6 +1,11 @@
 """Rendering: a PNG with map + Gantt, and an animated GIF; timelines consistent with the solution."""
 from __future__ import annotations
 
+import contextlib
+import io
+import json
+import re
+
 import pytest
 
 pytest.importorskip("matplotlib")
@@ -35,6 +40,7 @@ def test_gif(tmp_path, case):
         assert im.format == "GIF" and im.n_frames == 6
     only = render(inst, sol, tmp_path / "anim.gif", frames=3)
     assert only == [tmp_path / "anim.gif"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["anim.gif", "fig.gif", "fig.png"]  # no temp files
 
 
 def test_timeline_matches_solution(case):
@@ -60,9 +66,49 @@ def test_failed_solution_and_mismatch(tmp_path, case):
     failed = Solution(inst.name, "x", 0, False, float("nan"), float("nan"), float("nan"), 0.0,
                       [[] for _ in range(inst.n_agents)],
                       [{"start": float("nan"), "finish": float("nan"), "members": []} for _ in range(inst.n_tasks)],
-                      [{"species": 0, "return_time": float("nan")} for _ in range(inst.n_agents)],
+                      [{"species": int(s), "return_time": float("nan")} for s in inst.agent_species],
                       {"failure": "deadlock"})
     assert render(inst, failed, tmp_path / "f.png")[0].exists()
     other = ScenarioGenerator("MA-AT", 15, 5, 8, 5).instance(4, 0)
     with pytest.raises(ValueError, match="does not match"):
         render(other, sol, tmp_path / "g.png")
+
+
+def _foreign(sol, **change):
+    d = json.loads(json.dumps(sol.to_dict()))
+    for k, v in change.items():
+        d[k] = v(d) if callable(v) else v
+    return d
+
+
+@pytest.mark.parametrize("change,expect", [
+    ({"instance": "another"}, "it is for instance 'another', not"),
+    ({"tasks": lambda d: d["tasks"][:-1], "routes": lambda d: [[m for m in r if m < len(d["tasks"]) - 1]
+                                                                for r in d["routes"]]},
+     "9 routes / 7 tasks, expected 9 / 8"),
+    ({"agents": lambda d: d["agents"][:-1], "routes": lambda d: d["routes"][:-1],
+      "tasks": lambda d: [{**t, "members": [a for a in t["members"] if a < 8]} for t in d["tasks"]]},
+     "8 routes / 8 tasks, expected 9 / 8"),
+    ({"agents": lambda d: [{**a, "species": (a["species"] + 1) % 3} for a in d["agents"]]},
+     "agents[0].species: solution does not match the instance"),
+])
+def test_render_refuses_a_solution_of_another_instance(tmp_path, case, change, expect):
+    """A solution that does not belong to the instance is refused (one line naming the solution
+    file and what differs), by render() and by `hmrta render`, and no image is written."""
+    from hmrta.cli import main
+    from hmrta.solution import SolutionError
+
+    inst, sol = case
+    p = tmp_path / "sol.json"
+    p.write_text(json.dumps(_foreign(sol, **change)))
+    bad = Solution.from_dict(json.loads(p.read_text()), str(p))
+    with pytest.raises(SolutionError, match=re.escape(expect)):
+        render(inst, bad, tmp_path / "x.png", source=str(p))
+    ip = tmp_path / "inst.yaml"
+    inst.save(ip)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert main(["render", str(ip), str(p), "--out", str(tmp_path / "y.png")]) == 2
+    lines = err.getvalue().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"hmrta: error: {p}") and expect in lines[0], lines
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "y.png").exists()

@@ -18,7 +18,8 @@ from referencing import Registry, Resource
 from hmrta.baselines import GREEDY_RULES, CoalitionGreedy, Greedy, RandomPolicy
 from hmrta.core import STATE_FORMAT, MissionState, Rules, SnapshotError, parse_rules
 from hmrta.generators import ScenarioGenerator
-from hmrta.instance import InstanceError, instance_from_dict, load_instance
+from hmrta.formats import load_instance
+from hmrta.instance import InstanceError, instance_from_dict
 from hmrta.methods import solve
 from hmrta.sim import simulate
 from hmrta.solution import Solution, evaluate_routes

@@ -150,3 +150,78 @@ def test_failed_solution_serialises_nan_as_null():
     back = Solution.from_dict(d)
     assert math.isnan(back.makespan) and back.extra == {"failure": "deadlock: no agent can move"}
     assert "FAILED (deadlock" in back.summary()
+
+
+# ---- reading solution files ------------------------------------------------------------------
+def _sol_dict():
+    return json.loads(json.dumps(evaluate_routes(INST, [[0], [0, 1]], method="m", seed=3).to_dict()))
+
+
+def _edit(**kv):
+    def f(d):
+        for k, v in kv.items():
+            obj, *rest = k.split("__")
+            target = d
+            keys = [obj] + rest
+            for key in keys[:-1]:
+                target = target[int(key) if key.isdigit() else key]
+            last = keys[-1]
+            target[int(last) if last.isdigit() else last] = v
+        return d
+    return f
+
+
+@pytest.mark.parametrize("edit,expect", [
+    (_edit(format="hmrta-solution/2"), "format: expected 'hmrta-solution/1'"),
+    (_edit(makespan="17"), "makespan: expected a number in [0, 1e+15] or null, got '17'"),
+    (_edit(makespan=-1), "makespan: expected a number in [0, 1e+15] or null"),
+    (_edit(makespan=3.0), "makespan: expected at least the last finish or return time (17)"),
+    (_edit(success="yes"), "success: expected true or false"),
+    (_edit(seed=1.5), "seed: expected an integer"),
+    (_edit(method=["x"]), "method: expected a string"),
+    (_edit(routes=[[0]]), "routes: expected one route per agent (2 agents listed), got 1"),
+    (_edit(routes__1__1=2), "routes[1][1]: unknown task id 2 (expected 0..1: the file lists 2 tasks)"),
+    (_edit(tasks__0__members=[0, 5]), "tasks[0].members[1]: unknown agent id 5"),
+    (_edit(tasks__0__start=None), "tasks[0].finish: expected a finish >= the start"),
+    (_edit(tasks__1__finish=0.5), "tasks[1].finish: expected a finish >= the start"),
+    (_edit(tasks__0__extra=1), "tasks[0]: unknown key 'extra'"),
+    (_edit(agents__1__species=-1), "agents[1].species: expected an integer >= 0"),
+    (_edit(lower_bound="3"), "lower_bound: expected a number in [0, 1e+15] or null"),
+    (_edit(status=7), "status: expected a string"),
+    (lambda d: [d], "expected an object with keys"),
+    (lambda d: {k: v for k, v in d.items() if k != "agents"}, "missing key 'agents'"),
+])
+def test_solution_files_are_validated(tmp_path, edit, expect):
+    from hmrta.solution import SolutionError, read_solution
+
+    p = tmp_path / "s.json"
+    p.write_text(json.dumps(edit(_sol_dict())))
+    with pytest.raises(SolutionError) as ei:
+        read_solution(p)
+    msg = str(ei.value)
+    assert msg.startswith(f"{p}: ") and "\n" not in msg and expect in msg, msg
+
+
+def test_solution_file_extra_keys_are_kept(tmp_path):
+    from hmrta.solution import read_solution
+
+    d = _sol_dict()
+    d.update(lower_bound=12.5, status="OPTIMAL", note={"anything": [1, 2]})
+    p = tmp_path / "s.json"
+    p.write_text(json.dumps(d))
+    sol = read_solution(p)
+    assert sol.extra == {"lower_bound": 12.5, "status": "OPTIMAL", "note": {"anything": [1, 2]}}
+    assert sol.to_dict() == d
+
+
+def test_routes_file_reader(tmp_path):
+    from hmrta.solution import read_routes
+
+    p = tmp_path / "r.json"
+    p.write_bytes(b'{"routes": [[0], [0, 1]]}')
+    assert read_routes(INST, p) == [[0], [0, 1]]
+    p.write_bytes(b'{"routes": [[0], [0, \xff1]]}')
+    with pytest.raises(RouteError, match=r"r.json: not UTF-8 text \(byte offset 21\)"):
+        read_routes(INST, p)
+    with pytest.raises(RouteError, match="is a folder, expected a file"):
+        read_routes(INST, tmp_path)

@@ -8,7 +8,7 @@ from pathlib import Path
 from rclpy.parameter import Parameter
 
 from hmrta.baselines import GREEDY_RULES, RANDOM_RULES
-from hmrta.instance import load_instance
+from hmrta.formats import load_instance
 from hmrta_agent.agent_node import AgentNode, Host
 from hmrta_msgs_py.codec import Mission, mission_from_msg, mission_to_msg
 

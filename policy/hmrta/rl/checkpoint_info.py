@@ -79,13 +79,13 @@ def read_config(checkpoint: str | Path | None = None) -> dict:
 
 def checkpoint_rules(checkpoint: str | Path | None = None):
     """The state-machine rules the checkpoint's policy was trained under and must run under."""
-    from ..core import Rules
+    from ..core import Rules, parse_rules
 
     path = checkpoint_path(checkpoint)
     rules = read_config(path).get("rules", {})
     if not isinstance(rules, dict):
-        raise CheckpointError(f"{path}: rules: expected a mapping, got {type(rules).__name__}")
-    try:
-        return Rules.from_dict(rules)
-    except (ValueError, TypeError) as e:
-        raise CheckpointError(f"{path}: rules.{e}") from None
+        raise CheckpointError(f"{path}: config.rules: expected a mapping, got {type(rules).__name__}")
+    try:  # configs name only the rules they set; the strict reader checks the rest (as load_policy does)
+        return parse_rules({**Rules().to_dict(), **rules}, "config.rules")
+    except ValueError as e:
+        raise CheckpointError(f"{path}: {e}") from None

@@ -1,7 +1,7 @@
 """Inference with a trained policy: RL(g.) (argmax, one rollout) and RL(s.N) (N sampled rollouts
 run as one batch, best makespan kept) and RL-lookahead (one-step lookahead over the policy's own
-greedy continuations at every decision: slower, better). Registers ``rl``, ``rl-sample`` and
-``rl-lookahead``.
+greedy continuations at every decision: slower, better): the entry points of the methods ``rl``,
+``rl-sample`` and ``rl-lookahead`` in :data:`hmrta.methods.METHODS`.
 
 The shipped checkpoint (``hmrta/checkpoints/default.pt``) loads by default; ``HMRTA_CHECKPOINT``
 or the ``checkpoint`` option selects another. Loaded models are cached and shared read-only (many
@@ -9,29 +9,24 @@ agents in one process use one copy of the weights).
 """
 from __future__ import annotations
 
-import os
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Callable
 
 import torch
 
-from .. import methods
-from ..core import MissionState, Rules
+from ..core import IN_PROGRESS, MissionState, Rules
+from ..errors import MethodError
 from ..instance import Instance
 from ..solution import Solution, solution_from_state
 from .features import batch_observations
+from .checkpoint_info import DEFAULT_CHECKPOINT, CheckpointError, checkpoint_path  # noqa: F401 (re-exported)
 from .model import ModelConfig, PolicyNet
 from .rollout import action_costs, best_action, rollout
 
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "default.pt"
 _CACHE: dict[str, "LoadedPolicy"] = {}
 _LOCK = threading.Lock()
-
-
-class CheckpointError(ValueError):
-    """Missing, unreadable or incompatible checkpoint (a user error)."""
 
 
 class LoadedPolicy:
@@ -40,43 +35,48 @@ class LoadedPolicy:
         self.rules = Rules.from_dict(config.get("rules", {}))
 
 
-def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
-    return Path(checkpoint or os.environ.get("HMRTA_CHECKPOINT") or DEFAULT_CHECKPOINT)
-
-
 def load_policy(checkpoint: str | Path | None = None) -> LoadedPolicy:
-    """Load (once per process) a checkpoint; raises CheckpointError with a clear message."""
+    """Load (once per process) a checkpoint; raises CheckpointError with a clear message.
+
+    The file is unpickled weights-only (it cannot run code); its model config, rules and weights
+    (names, shapes, finite values) are checked before the network is built from them."""
+    from ..core import parse_rules
+    from .checkpoint_file import check_shapes, load_checkpoint, weights
+
     path = checkpoint_path(checkpoint)
     key = str(path.resolve())
     with _LOCK:
         if key in _CACHE:
             return _CACHE[key]
-        if not path.exists():
-            raise CheckpointError(f"{path}: no such checkpoint (train one with `hmrta train`)")
+        ck = load_checkpoint(path)
+        config = ck.get("config")
+        if not isinstance(config, dict):
+            raise CheckpointError(f"{path}: config: expected a mapping (the training config), got "
+                                  f"{type(config).__name__}")
         try:
-            ck = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as e:  # corrupt / not a torch file
-            raise CheckpointError(f"{path}: not a readable hmrta checkpoint ({type(e).__name__}: {e})") from None
-        if not isinstance(ck, dict) or "model" not in ck or "config" not in ck:
-            raise CheckpointError(f"{path}: not an hmrta checkpoint (expected keys 'model' and 'config')")
-        try:
-            cfg = ModelConfig(**ck["config"]["model"])
-        except TypeError as e:
-            raise CheckpointError(f"{path}: model config does not match this hmrta version ({e})") from None
+            cfg = ModelConfig.from_dict(config.get("model"), "config.model")
+            rules = config.get("rules", {})
+            if not isinstance(rules, dict):
+                raise ValueError(f"config.rules: expected a mapping, got {type(rules).__name__}")
+            parse_rules({**Rules().to_dict(), **rules}, "config.rules")
+        except ValueError as e:
+            raise CheckpointError(f"{path}: {e}") from None
+        # a training checkpoint with averaged weights (train.ema) is scored, and so used, by those
+        which = "ema" if ck.get("ema") is not None else "model"
+        sd = weights(ck, which, path)
+        with torch.device("meta"):  # the network's shapes, without allocating it
+            check_shapes(PolicyNet(cfg), sd, path, which)
         model = PolicyNet(cfg)
-        try:  # a training checkpoint with averaged weights (train.ema) is scored, and so used, by those
-            model.load_state_dict(ck.get("ema") or ck["model"])
-        except RuntimeError as e:
-            first = str(e).strip().splitlines()[0]
-            raise CheckpointError(f"{path}: weights do not match the network ({first})") from None
+        try:
+            model.load_state_dict(sd)
+        except RuntimeError as e:  # e.g. a dtype that cannot be copied
+            first = (str(e).strip().splitlines() or [""])[0]
+            raise CheckpointError(f"{path}: {which}: weights do not match the network ({first})") from None
         model.eval()
         for p in model.parameters():
             p.requires_grad_(False)
         meta = {k: ck.get(k) for k in ("code_version", "iteration", "episodes", "best_val", "greedy_val", "summary")}
-        try:
-            lp = LoadedPolicy(model, ck["config"], str(path), meta)
-        except ValueError as e:  # e.g. rules.max_open out of range
-            raise CheckpointError(f"{path}: rules.{e}") from None
+        lp = LoadedPolicy(model, config, str(path), meta)
         _CACHE[key] = lp
         return lp
 
@@ -85,10 +85,10 @@ def _check(inst: Instance) -> None:
     from .features import K_MAX
 
     if inst.skills > K_MAX:
-        raise methods.MethodError(f"the learned policy handles at most {K_MAX} skills; {inst.name} has {inst.skills}")
+        raise MethodError(f"the learned policy handles at most {K_MAX} skills; {inst.name} has {inst.skills}")
 
 
-def solve_rl(inst: Instance, seed: int = 0, checkpoint: str | None = None, **_: Any) -> Solution:
+def solve_rl(inst: Instance, seed: int = 0, checkpoint: str | None = None) -> Solution:
     _check(inst)
     pol = load_policy(checkpoint)
     t0 = time.perf_counter()
@@ -97,11 +97,10 @@ def solve_rl(inst: Instance, seed: int = 0, checkpoint: str | None = None, **_: 
     return solution_from_state(state, "rl", seed, time.perf_counter() - t0)
 
 
-def solve_rl_sample(inst: Instance, seed: int = 0, samples: int = 10, checkpoint: str | None = None,
-                    **_: Any) -> Solution:
+def solve_rl_sample(inst: Instance, seed: int = 0, samples: int = 10, checkpoint: str | None = None) -> Solution:
     _check(inst)
     if samples < 1:
-        raise methods.MethodError(f"samples: expected a positive integer, got {samples}")
+        raise MethodError(f"samples: expected a positive integer, got {samples}")
     pol = load_policy(checkpoint)
     t0 = time.perf_counter()
     states = [MissionState(inst, seed=seed + k, rules=pol.rules) for k in range(samples)]
@@ -138,13 +137,20 @@ def lookahead_step(model: torch.nn.Module, states: list[MissionState], t_max: fl
         s.step(n)
 
 
-def solve_rl_lookahead(inst: Instance, seed: int = 0, checkpoint: str | None = None, **_: Any) -> Solution:
+def solve_rl_lookahead(inst: Instance, seed: int = 0, checkpoint: str | None = None,
+                       progress: Callable[..., None] | None = None) -> Solution:
+    """``progress(done, total, unit, note)``, if given, is called after every decision with the
+    number of tasks started (unit "task") out of all tasks."""
     _check(inst)
     pol = load_policy(checkpoint)
     t0 = time.perf_counter()
     state = MissionState(inst, seed=seed, rules=pol.rules)
+    decisions = 0
     while not state.done:
         lookahead_step(pol.model, [state])
+        decisions += 1
+        if progress is not None:
+            progress(int((state.status >= IN_PROGRESS).sum()), inst.n_tasks, "task", f"{decisions} decisions")
     return solution_from_state(state, "rl-lookahead", seed, time.perf_counter() - t0)
 
 
@@ -167,9 +173,12 @@ class RLDecider:
             return int(nodes[0][row])
 
 
-def rl_decider(sample: bool = False, seed: int = 0, checkpoint: str | None = None, **_: Any):
-    pol = load_policy(checkpoint)
-    return RLDecider(pol, sample, seed), pol.rules
+def rl_decider(seed: int = 0, checkpoint: str | None = None) -> RLDecider:
+    return RLDecider(load_policy(checkpoint), False, seed)
+
+
+def sample_decider(seed: int = 0, checkpoint: str | None = None) -> RLDecider:
+    return RLDecider(load_policy(checkpoint), True, seed)
 
 
 class LookaheadDecider:
@@ -184,11 +193,5 @@ class LookaheadDecider:
         return lookahead_choices(self.pol.model, [state])[0]
 
 
-def lookahead_decider(checkpoint: str | None = None, **_: Any):
-    pol = load_policy(checkpoint)
-    return LookaheadDecider(pol), pol.rules
-
-
-methods.register("rl", solve_rl)
-methods.register("rl-sample", solve_rl_sample)
-methods.register("rl-lookahead", solve_rl_lookahead)
+def lookahead_decider(seed: int = 0, checkpoint: str | None = None) -> LookaheadDecider:
+    return LookaheadDecider(load_policy(checkpoint))

@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..reading import short
 from .features import AGENT_FEATURES, K_MAX, TASK_FEATURES
 
 TASK_POS = slice(2 * K_MAX, 2 * K_MAX + 2)  # task rows: position relative to the decider
@@ -33,6 +34,38 @@ class ModelConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: object, where: str = "model") -> "ModelConfig":
+        """A validated config (from a training config or a checkpoint): every value of the right
+        type and range. Raises ValueError("<where>.<key>: expected ...") naming the key."""
+        if not isinstance(d, dict):
+            raise ValueError(f"{where}: expected a mapping, got {type(d).__name__}")
+        fields = cls.__dataclass_fields__
+        for k in d:
+            if k not in fields:
+                raise ValueError(f"{where}: unknown key {short(k)} (expected one of {sorted(fields)})")
+        c = cls(**d)
+
+        def whole(k: str, lo: int, hi: int) -> None:
+            v = getattr(c, k)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{where}.{k}: expected an integer in [{lo}, {hi}], got {short(v)}")
+
+        whole("d_model", 1, 4096)
+        whole("heads", 1, 64)
+        if c.d_model % c.heads:
+            raise ValueError(f"{where}.heads: expected a divisor of d_model ({c.d_model}), got {c.heads}")
+        whole("ff_hidden", 1, 16384)
+        for k, want in (("task_features", TASK_FEATURES), ("agent_features", AGENT_FEATURES)):
+            if type(getattr(c, k)) is not int or getattr(c, k) != want:
+                raise ValueError(f"{where}.{k}: expected {want} (the observation of this hmrta version), "
+                                 f"got {short(getattr(c, k))}")
+        if isinstance(c.clip, bool) or not isinstance(c.clip, (int, float)) or not 0 < c.clip <= 1e4:
+            raise ValueError(f"{where}.clip: expected a number in (0, 10000], got {short(c.clip)}")
+        if not isinstance(c.travel_bias, bool):
+            raise ValueError(f"{where}.travel_bias: expected true or false, got {short(c.travel_bias)}")
+        return c
 
 
 class Block(nn.Module):

@@ -52,10 +52,13 @@ import torch
 import yaml
 
 from ..baselines import BASELINES
-from ..core import MissionState, Rules
+from ..core import MissionState, Rules, parse_rules
 from ..generators import ScenarioGenerator, TrainingGenerator
 from ..instance import atomic_write_text
-from .features import collate, observe
+from ..reading import finite, read_yaml, short
+from .checkpoint_file import check_optimizer, check_shapes, counter, load_checkpoint, weights
+from .checkpoint_info import CheckpointError
+from .features import K_MAX, collate, observe
 from .model import ZERO_INIT_PARAMS, ModelConfig, PolicyNet
 from .rollout import action_costs, best_action, returns, rollout
 
@@ -119,49 +122,169 @@ def _check_keys(raw: dict, ref: dict, path: Path, where: str) -> None:
     """Reject misspelt keys in every section (a silently ignored option is a wrong experiment)."""
     for k, v in raw.items():
         if k not in ref:
-            raise ValueError(f"{path}: unknown key {where + k!r} (expected one of {sorted(ref)})")
+            raise ValueError(f"{path}: unknown key {short(where + (k if isinstance(k, str) else short(k)))} "
+                             f"(expected one of {sorted(ref)})")
         if isinstance(ref[k], dict):
             if not isinstance(v, dict):
                 raise ValueError(f"{path}: {where + k}: expected a mapping, got {type(v).__name__}")
             _check_keys(v, ref[k], path, f"{where}{k}.")
 
 
-def load_config(path: str | Path) -> dict:
-    p = Path(path)
+# value checks of every config key (section.key -> check); each returns an error text or None
+def _integer(lo: int, hi: int | None = None) -> Callable[[Any], str | None]:
+    def check(v: Any) -> str | None:
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo or (hi is not None and v > hi):
+            return f"expected an integer >= {lo}" + (f" and <= {hi}" if hi is not None else "")
+        return None
+    return check
+
+
+def _number(lo: float, hi: float = math.inf, *, lo_open: bool = False, hi_open: bool = True,
+            text: str | None = None) -> Callable[[Any], str | None]:
+    def check(v: Any) -> str | None:
+        ok = finite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+        if ok:
+            return None
+        if text:
+            return text
+        lo_s, hi_s = ("(" if lo_open else "[") + f"{lo:g}", f"{hi:g}" + (")" if hi_open else "]")
+        return f"expected a number in {lo_s}, {hi_s}"
+    return check
+
+
+def _boolean(v: Any) -> str | None:
+    return None if isinstance(v, bool) else "expected true or false"
+
+
+def _range(lo: int) -> Callable[[Any], str | None]:
+    def check(v: Any) -> str | None:
+        if (not isinstance(v, (list, tuple)) or len(v) != 2 or _integer(lo)(v[0]) or _integer(lo)(v[1])
+                or v[0] > v[1]):
+            return f"expected [low, high]: two integers with {lo} <= low <= high"
+        return None
+    return check
+
+
+def _optional(check: Callable[[Any], str | None]) -> Callable[[Any], str | None]:
+    def opt(v: Any) -> str | None:
+        err = check(v)
+        return None if v is None or err is None else err + " (or null)"
+    return opt
+
+
+def _name(v: Any) -> str | None:
+    if not isinstance(v, str) or not v or len(v) > 100 or not all(c.isalnum() or c in "._+-" for c in v) \
+            or v.startswith("."):
+        return "expected a run name: letters, digits, '.', '_', '+' or '-' (it names the run folder)"
+    return None
+
+
+def _curriculum(v: Any) -> str | None:
+    if not isinstance(v, list):
+        return "expected a list of {until: ITERATION, tasks: [low, high]} stages"
+    for i, stage in enumerate(v):
+        if not isinstance(stage, dict) or set(stage) - {"until", "tasks"} or "tasks" not in stage:
+            return f"stage {i}: expected {{until: ITERATION, tasks: [low, high]}}, got {short(stage)}"
+        if _optional(_integer(0))(stage.get("until")) or _range(1)(stage["tasks"]):
+            return f"stage {i}: expected until an integer >= 0 (or null) and tasks [low, high] >= 1, " \
+                   f"got {short(stage)}"
+    return None
+
+
+def _rows(v: Any) -> str | None:
+    if not isinstance(v, list) or not v:
+        return "expected a non-empty list of [agents, species, tasks, skills, count] rows"
+    for i, row in enumerate(v):
+        if not isinstance(row, list) or len(row) != 5 or any(_integer(1)(x) for x in row):
+            return f"row {i}: expected [agents, species, tasks, skills, count], five integers >= 1, got {short(row)}"
+        a, sp, m, k, n = row
+        if k > K_MAX:
+            return f"row {i}: skills {k}: the policy handles at most {K_MAX}"
+        try:
+            ScenarioGenerator("MA-AT", a, sp, m, k)
+        except ValueError as e:
+            return f"row {i}: {e}"
+    return None
+
+
+_CHECKS: dict[str, Callable[[Any], str | None]] = {
+    "name": _name, "seed": _integer(0, 2**63 - 1),
+    "train.iterations": _integer(0), "train.max_minutes": _optional(_number(0, lo_open=True)),
+    "train.instances_per_iter": _integer(1), "train.rollouts": _integer(1),
+    "train.lr": _number(0, lo_open=True), "train.lr_decay": _number(0, 1, lo_open=True, hi_open=False),
+    "train.lr_decay_every": _integer(1), "train.grad_clip": _number(0, lo_open=True),
+    "train.t_max": _number(0, lo_open=True), "train.rescore_chunk": _integer(1),
+    "train.rescore_fraction": _number(0, 1, lo_open=True, hi_open=False),
+    "train.temperature": _number(0, lo_open=True), "train.entropy_coef": _number(0), "train.amp": _boolean,
+    "train.ema": _number(0, 1, text="expected a decay in [0, 1)"),
+    "train.distribution.tasks": _range(1), "train.distribution.species": _range(1),
+    "train.distribution.per_species": _range(1), "train.distribution.skills": _integer(1, K_MAX),
+    "train.curriculum": _curriculum,
+    "train.sil.coef": _number(0), "train.sil.steps": _integer(0), "train.sil.batch": _integer(1),
+    "train.sil.buffer": _integer(1),
+    "distill.iterations": _integer(0), "distill.instances_per_iter": _integer(1),
+    "distill.snapshot_prob": _number(0, 1, hi_open=False), "distill.steps": _integer(0),
+    "distill.batch": _integer(1), "distill.buffer": _integer(1), "distill.lr": _number(0, lo_open=True),
+    "distill.tau": _number(0), "distill.tasks": _optional(_range(1)),
+    "pretrain.iterations": _integer(0), "pretrain.instances_per_iter": _integer(1),
+    "pretrain.lr": _number(0, lo_open=True), "pretrain.epochs": _integer(0), "pretrain.batch": _integer(1),
+    "pretrain.dagger": _number(0, 1, hi_open=False, text="expected a share in [0, 1]"),
+    "pretrain.tau": _number(0), "pretrain.samples": _integer(0),
+    "pretrain.temperature": _number(0, lo_open=True),
+    "validation.every": _integer(1), "validation.seed": _integer(0, 2**63 - 1), "validation.rows": _rows,
+    "checkpoint.every": _integer(1),
+}
+
+
+def check_config(cfg: dict, where: str = "config") -> None:
+    """Every value of a resolved config of the right type and range (ValueError naming the key)."""
+    def get(key: str) -> Any:
+        v: Any = cfg
+        for part in key.split("."):
+            v = v[part]
+        return v
+
+    for key, check in _CHECKS.items():
+        v = get(key)
+        err = check(v)
+        if err:
+            raise ValueError(f"{where}: {key}: {err}" + ("" if " got " in err else f", got {short(v)}"))
     try:
-        raw = yaml.safe_load(p.read_text()) or {}
-    except FileNotFoundError:
-        raise ValueError(f"{p}: no such config file") from None
-    except yaml.YAMLError as e:
-        raise ValueError(f"{p}: invalid YAML ({e})") from None
-    if not isinstance(raw, dict):
-        raise ValueError(f"{p}: expected a mapping")
-    _check_keys(raw, DEFAULTS, p, "")
-    if raw.get("version", CONFIG_VERSION) != CONFIG_VERSION:
-        raise ValueError(f"{p}: version: expected {CONFIG_VERSION}, got {raw['version']!r}")
-    cfg = deep_update(DEFAULTS, raw)
-    try:
+        ModelConfig.from_dict(cfg["model"])
         rules_from(cfg)
     except ValueError as e:
-        raise ValueError(f"{p}: rules.{e}") from None
-    if cfg["pretrain"]["teacher"] not in TEACHERS:
-        raise ValueError(f"{p}: pretrain.teacher: expected one of {', '.join(TEACHERS)}, "
-                         f"got {cfg['pretrain']['teacher']!r}")
-    if not 0.0 <= float(cfg["pretrain"]["dagger"]) <= 1.0:
-        raise ValueError(f"{p}: pretrain.dagger: expected a share in [0, 1], got {cfg['pretrain']['dagger']!r}")
-    if not 0.0 <= float(cfg["train"]["ema"]) < 1.0:
-        raise ValueError(f"{p}: train.ema: expected a decay in [0, 1), got {cfg['train']['ema']!r}")
-    if cfg["pretrain"]["tau"] > 0 and not hasattr(TEACHERS[cfg["pretrain"]["teacher"]], "estimates"):
-        raise ValueError(f"{p}: pretrain.tau: soft targets need a teacher with start estimates "
-                         f"(greedy-coalition), not {cfg['pretrain']['teacher']!r}")
-    if int(cfg["pretrain"]["samples"]) < 0 or float(cfg["pretrain"]["temperature"]) <= 0:
-        raise ValueError(f"{p}: pretrain.samples must be >= 0 and pretrain.temperature > 0, got "
-                         f"{cfg['pretrain']['samples']!r} and {cfg['pretrain']['temperature']!r}")
-    if cfg["pretrain"]["samples"] and cfg["pretrain"]["tau"] > 0:
-        raise ValueError(f"{p}: pretrain.samples needs hard targets (pretrain.tau: 0)")
-    if cfg["distill"]["teacher"] not in ("policy", *TEACHERS):
-        raise ValueError(f"{p}: distill.teacher: expected one of policy, {', '.join(TEACHERS)}, "
-                         f"got {cfg['distill']['teacher']!r}")
+        raise ValueError(f"{where}: {e}") from None
+    dist = cfg["train"]["distribution"]
+    if dist["species"][1] > 2 ** dist["skills"] - 1:
+        raise ValueError(f"{where}: train.distribution.species: at most {2 ** dist['skills'] - 1} species "
+                         f"have distinct trait vectors with {dist['skills']} skills, got {short(dist['species'])}")
+    p = cfg["pretrain"]
+    if not isinstance(p["teacher"], str) or p["teacher"] not in TEACHERS:
+        raise ValueError(f"{where}: pretrain.teacher: expected one of {', '.join(TEACHERS)}, got {short(p['teacher'])}")
+    if p["tau"] > 0 and not hasattr(TEACHERS[p["teacher"]], "estimates"):
+        raise ValueError(f"{where}: pretrain.tau: soft targets need a teacher with start estimates "
+                         f"(greedy-coalition), not {p['teacher']!r}")
+    if p["samples"] and p["tau"] > 0:
+        raise ValueError(f"{where}: pretrain.samples needs hard targets (pretrain.tau: 0)")
+    t = cfg["distill"]["teacher"]
+    if not isinstance(t, str) or t not in ("policy", *TEACHERS):
+        raise ValueError(f"{where}: distill.teacher: expected one of policy, {', '.join(TEACHERS)}, got {short(t)}")
+
+
+def load_config(path: str | Path) -> dict:
+    """Read and validate a training config (YAML): unknown keys, values of the wrong type or range
+    and inconsistent options are a ValueError (an InputError for an unreadable file) that names
+    the file and the key."""
+    p = Path(path)
+    raw = read_yaml(p) or {}
+    if not isinstance(raw, dict):
+        raise ValueError(f"{p}: expected a mapping, got {type(raw).__name__}")
+    _check_keys(raw, DEFAULTS, p, "")
+    version = raw.get("version", CONFIG_VERSION)
+    if type(version) is not int or version != CONFIG_VERSION:
+        raise ValueError(f"{p}: version: expected {CONFIG_VERSION}, got {short(raw['version'])}")
+    cfg = deep_update(DEFAULTS, raw)
+    check_config(cfg, str(p))
     return cfg
 
 
@@ -178,8 +301,10 @@ def code_version() -> str:
 
 
 def rules_from(cfg: dict) -> Rules:
-    """State-machine rules of a config (the same in training and at inference)."""
-    return Rules.from_dict(cfg["rules"])
+    """State-machine rules of a config (the same in training and at inference). A config names
+    only some rules (max_open, safety); the others take their defaults. Raises ValueError naming
+    the rule (``rules.<key>: ...``) for a value of the wrong type or range."""
+    return parse_rules({**Rules().to_dict(), **cfg["rules"]}, "rules")
 
 
 def validation_set(cfg: dict) -> list:
@@ -248,28 +373,57 @@ class Trainer:
         """Restore a checkpoint (model, optimiser, averaged weights, counters, RNG streams, best
         validation). ``reseed``: keep this trainer's fresh RNG streams (from the config's seed) and
         its unset validation scores instead, for a second, independent continuation of the same
-        checkpoint (possibly under other rules or another validation set)."""
-        ck = torch.load(path, map_location=self.device, weights_only=False)
-        missing, unexpected = self.model.load_state_dict(ck["model"], strict=False)
-        added = bool(missing) and set(missing) <= ZERO_INIT_PARAMS  # e.g. from before model.travel_bias
-        if unexpected or (missing and not added):
-            raise RuntimeError(f"{path}: weights do not match the network (missing {missing}, unexpected {unexpected})")
-        self.ema = ck.get("ema") if self.cfg["train"]["ema"] > 0 and not added else None
+        checkpoint (possibly under other rules or another validation set).
+
+        The file is unpickled weights-only (it cannot run code); anything missing, mistyped or not
+        fitting this network is a CheckpointError naming the file and the field, raised before the
+        trainer is changed."""
+        ck = load_checkpoint(path, map_location=self.device)
+        sd = weights(ck, "model", path)
+        check_shapes(self.model, sd, path, "model", optional=ZERO_INIT_PARAMS)
+        added = any(n not in sd for n in ZERO_INIT_PARAMS & set(self.model.state_dict()))  # e.g. travel_bias
+        ema = weights(ck, "ema", path, required=False)
+        if ema is not None and not added:
+            check_shapes(self.model, ema, path, "ema")
+        counters = {k: counter(ck, k, path) for k in
+                    ("iteration", "pretrain_done", "distill_done", "episodes", "decisions")}
+        best_val, greedy_val = ck.get("best_val", math.inf), ck.get("greedy_val")
+        for k, v in (("best_val", best_val), ("greedy_val", greedy_val)):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or v != v):  # v != v: NaN
+                raise CheckpointError(f"{path}: {k}: expected a number, got {short(v)}")
         if "optimizer" in ck and not added:
-            self.opt.load_state_dict(ck["optimizer"])
-        self.iteration = ck.get("iteration", 0)
-        self.pretrain_done = ck.get("pretrain_done", 0)
-        self.distill_done = ck.get("distill_done", 0)
-        self.episodes = ck.get("episodes", 0)
-        self.decisions = ck.get("decisions", 0)
+            check_optimizer(ck["optimizer"], self.opt, path)
+        model_before = copy.deepcopy(self.model.state_dict())
+        opt_before = copy.deepcopy(self.opt.state_dict())
+        try:
+            self.model.load_state_dict(sd, strict=False)
+            if "optimizer" in ck and not added:
+                self.opt.load_state_dict(ck["optimizer"])
+            rng = None
+            if not reseed and "np_rng" in ck:  # random streams continue the checkpoint's run
+                rng = (ck["np_rng"], *(t.cpu() if isinstance(t, torch.Tensor) else t  # (loaded onto self.device)
+                                       for t in (ck["torch_gen"], ck["torch_rng"])), ck["py_rng"])
+                # each state is tried on a throw-away generator before any stream is replaced
+                np.random.default_rng().bit_generator.state = rng[0]
+                torch.Generator().set_state(rng[1])
+                torch.Generator().set_state(rng[2])  # the global CPU generator's state has the same layout
+                random.Random().setstate(rng[3])
+        except (ValueError, TypeError, KeyError, RuntimeError, AttributeError, IndexError, OverflowError) as e:
+            self.model.load_state_dict(model_before)
+            self.opt.load_state_dict(opt_before)
+            first = (str(e).strip().splitlines() or [""])[0][:200]
+            raise CheckpointError(f"{path}: not a resumable training checkpoint ({type(e).__name__}: {first})") from None
+        self.ema = ema if self.cfg["train"]["ema"] > 0 and not added else None
+        for k, v in counters.items():
+            setattr(self, k, v)
         if not reseed:  # validation scores and random streams continue the checkpoint's run
-            self.best_val = ck.get("best_val", math.inf)
-            self.greedy_val = ck.get("greedy_val")
-            if "np_rng" in ck:
-                self.np_rng.bit_generator.state = ck["np_rng"]
-                self.torch_gen.set_state(ck["torch_gen"])
-                torch.set_rng_state(ck["torch_rng"])
-                random.setstate(ck["py_rng"])
+            self.best_val = best_val
+            self.greedy_val = greedy_val
+            if rng is not None:
+                self.np_rng.bit_generator.state = rng[0]
+                self.torch_gen.set_state(rng[1])
+                torch.set_rng_state(rng[2])
+                random.setstate(rng[3])
 
     def export(self, path: Path, summary: dict | None = None) -> None:
         """Small inference checkpoint: weights + resolved config + code version + summary."""

@@ -1,0 +1,48 @@
+"""Instance files by format (SPEC §1, §6): an `hmrta-instance/1` YAML file, a CTAS-D-family
+``config.json`` (or the folder holding it), or an `hmrta-scenario/1` file (a mission plus timed
+events).
+
+This module sits above :mod:`hmrta.instance` (the format and its validation), :mod:`hmrta.ctas`
+(the CTAS-D import) and :mod:`hmrta.scenario` (the events), so that none of those imports another
+format's module; the mission a scenario names by path is loaded here and handed to the scenario
+parser. Files are read
+with :mod:`hmrta.reading` (regular files only, UTF-8, safe YAML, bounded JSON depth); every
+problem is an :class:`~hmrta.instance.InstanceError` naming the file (and the field).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from .ctas import instance_from_ctas_config
+from .instance import Instance, InstanceError, instance_from_dict
+from .reading import parse_json, parse_yaml, read_text
+from .scenario import is_scenario, scenario_from_dict
+
+
+def load_instance(path: str | Path) -> Instance:
+    """Load an `hmrta-instance/1` YAML file, a CTAS-D-family ``config.json`` (SPEC §6: a ``.json``
+    file, or a folder that holds a ``config.json``), or an `hmrta-scenario/1` file."""
+    return _load(path, scenarios=True)
+
+
+def _load_mission(path: Path) -> Instance:
+    """The mission a scenario names by path: an instance file or CTAS-D config, never a scenario."""
+    return _load(path, scenarios=False)
+
+
+def _load(path: str | Path, scenarios: bool) -> Instance:
+    p = Path(path)
+    if p.is_dir():
+        cfg = p / "config.json"
+        if not cfg.exists():
+            raise InstanceError(f"{p}: is a folder without a config.json")
+        p = cfg
+    text = read_text(p, InstanceError)
+    if p.suffix.lower() == ".json":
+        return instance_from_ctas_config(parse_json(text, str(p), InstanceError), source=str(p))
+    data = parse_yaml(text, str(p), InstanceError)
+    if is_scenario(data):  # a mission with timed events (hmrta-scenario/1)
+        if not scenarios:
+            raise InstanceError(f"{p}: expected a mission (hmrta-instance/1), got a scenario")
+        return scenario_from_dict(data, str(p), text, load_mission=_load_mission)
+    return instance_from_dict(data, source=str(p))
