@@ -12,6 +12,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -24,5 +25,7 @@ setup(
         "sim_robot = hmrta_coordinator.sim_robot:main",
         "mission = hmrta_coordinator.mission:entry",
         "hmrta-mission = hmrta_coordinator.mission:entry",
+        "hmrta-task = hmrta_coordinator.task_cli:entry",
+        "recorder = hmrta_coordinator.recorder:main",
     ]},
 )

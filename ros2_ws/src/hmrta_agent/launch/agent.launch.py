@@ -5,31 +5,32 @@
 The agent joins the mission it hears on /hmrta/mission (its name must be one of the mission's
 robots), decides when the board gives it the turn, and sends its robot's goals as
 geometry_msgs/PoseStamped on ``goal_topic`` (a Nav2 bt_navigator's ``goal_pose`` takes them as is).
+Every parameter of ``agent_node`` is a launch argument of the same name. For several robots, use
+``hmrta_coordinator fleet.launch.py`` with a fleet file.
 """
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
-from launch_ros.parameter_descriptions import ParameterValue
 
-from hmrta import methods
+from hmrta_msgs_py import params as P
 
+PARAMS = P.node_parameters("agent_node")
 ARGS = {
     "robot": ("robot_0", "robot name in the mission (also the node's namespace)"),
     "goal_topic": ("goal_pose", "where to send the robot's goals (relative: in the robot's namespace)"),
-    "method": ("greedy", methods.help_text(methods.live_methods())),
-    **{o.name: ("" if o.default is None else str(o.default), o.help) for o in methods.live_options().values()},
-    "seed": ("0", "seed (sampled decoding)"),
+    **{p.name: (p.text(), p.help) for p in PARAMS if p.name != "robot"},
 }
-METHOD_PARAMS = ["method", *methods.live_options()]
+OPTIONS = {p.name for p in P.method_parameters()} - {"method"}
+
+
+def _agent(context):
+    arg = {k: LaunchConfiguration(k).perform(context) for k in ARGS}
+    params = {p.name: p.parse(arg[p.name]) for p in PARAMS if not (p.name in OPTIONS and arg[p.name] == "")}
+    return [Node(package="hmrta_agent", executable="agent_node", name="agent", namespace=arg["robot"],
+                 output="screen", parameters=[params], remappings=[("goal_pose", arg["goal_topic"])])]
 
 
 def generate_launch_description():
-    c = {k: LaunchConfiguration(k) for k in ARGS}
-    agent = Node(package="hmrta_agent", executable="agent_node", name="agent", namespace=c["robot"], output="screen",
-                 parameters=[{**{k: ParameterValue(c[k], value_type=str)
-                                 for k in ("robot", *METHOD_PARAMS)},
-                              "seed": ParameterValue(c["seed"], value_type=int)}],
-                 remappings=[("goal_pose", c["goal_topic"])])
     return LaunchDescription([DeclareLaunchArgument(k, default_value=v, description=d) for k, (v, d) in ARGS.items()]
-                             + [agent])
+                             + [OpaqueFunction(function=_agent)])

@@ -1,58 +1,52 @@
 """Launch a whole HMRTA mission on a ROS 2 install: the task board, the simulated robots and one
-agent node per robot (own process, namespace /robot_<i>). The launch ends when the board does.
+agent node per simulated robot (own process, namespace /<robot>). The launch ends when the board
+does.
 
     ros2 launch hmrta_coordinator mission.launch.py instance:=/path/mission.yaml seed:=1 \\
         output:=/tmp/mission.json method:=greedy time_scale:=5.0
 
-``instance`` defaults to the built-in example mission. For a real fleet, list the robots that
-are not simulated in ``external`` (comma-separated) and remap their topics (see docs/ros.md).
+Every parameter of ``task_board`` and ``sim_robot`` is a launch argument of the same name
+(``ros2 launch hmrta_coordinator mission.launch.py --show-args``); ``seed``, ``method`` and its
+options, ``keystore`` and ``exit_on_done`` also go to the agents. ``instance`` defaults to the
+built-in example mission.
+
+Real robots: list them in ``external`` (comma-separated) or in a fleet file (``fleet:=FILE.yaml``,
+whose robots are external and whose pose topics the board reads); they get no simulation and no
+agent here: start their agents with ``fleet.launch.py`` (or ``hmrta_agent agent.launch.py``) next
+to them. ``remaps`` adds board remappings (``/robot_1/pose:=/tb3_1/pose``). See docs/ros.md.
 """
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction, Shutdown
-from launch.substitutions import LaunchConfiguration
+from launch.actions import OpaqueFunction
 from launch_ros.actions import Node
 
-from hmrta import methods
+from hmrta_coordinator import launching as L
 
-ARGS = {
-    "instance": ("", "mission file (hmrta-instance/1 YAML or CTAS-D config.json); empty: the example"),
-    "seed": ("0", "episode seed (decision order)"),
-    "method": ("greedy", methods.help_text(methods.live_methods())),
-    **{o.name: ("" if o.default is None else str(o.default), o.help) for o in methods.live_options().values()},
-    "output": ("mission.json", "where the task board writes the hmrta-solution/1 JSON"),
-    "time_scale": ("0.0", "sim seconds per wall second (0: as fast as possible)"),
-    "external": ("", "comma-separated robots driven outside (not simulated)"),
-    "heartbeat_timeout": ("5.0", "wall seconds before a silent robot is declared lost"),
-}
+ARGS = {**L.args_of("task_board", "sim_robot"), **L.EXTRA_ARGS}
+AGENT_PARAMS = ("seed", "exit_on_done", "keystore", "method", *(p.name for p in L.P.method_parameters()))
 
 
 def _nodes(context):
-    from pathlib import Path
-
-    import hmrta
     from hmrta.formats import load_instance
 
-    arg = {k: LaunchConfiguration(k).perform(context) for k in ARGS}
-    instance = arg["instance"] or str(Path(hmrta.__file__).resolve().parent / "data" / "example.yaml")
-    inst = load_instance(instance)
-    robots = [f"robot_{a}" for a in range(inst.n_agents)]
-    external = [r.strip() for r in arg["external"].split(",") if r.strip()]
-    common = {"seed": int(arg["seed"]), "method": arg["method"],
-              **{k: o.type(arg[k]) for k, o in methods.live_options().items() if arg[k] != ""}}
-    board = Node(package="hmrta_coordinator", executable="task_board", name="task_board", output="screen",
-                 parameters=[{"instance": instance, "output": arg["output"], "robot_names": robots,
-                              "heartbeat_timeout": float(arg["heartbeat_timeout"]), **common}],
-                 on_exit=Shutdown(reason="mission finished"))
-    sim_params = {"time_scale": float(arg["time_scale"])}
-    if external:
-        sim_params["external"] = external
+    arg = L.values(context, ARGS)
+    arg["instance"] = L.instance_path(arg["instance"])
+    inst = load_instance(arg["instance"])
+    robots = L.P.by_name(L.P.TASK_BOARD)["robot_names"].parse(arg["robot_names"]) or \
+        [f"robot_{a}" for a in range(inst.n_agents)]
+    fleet = L.load_fleet(arg["fleet"]) if arg["fleet"] else []
+    external = L.P.by_name(L.P.SIM_ROBOT)["external"].parse(arg["external"]) + [r.name for r in fleet]
+    unknown = sorted(set(external) - set(robots))
+    if unknown:
+        raise ValueError(f"external: {', '.join(unknown)} not among the mission's robots ({', '.join(robots[:5])}...)")
+    board = L.board_node(arg, robots, L.board_remaps(fleet) + L.parse_remaps(arg["remaps"]))
+    sim_params = L.node_values("sim_robot", {**arg, "external": ",".join(dict.fromkeys(external))})
     sim = Node(package="hmrta_coordinator", executable="sim_robot", name="sim_robot", output="screen",
                parameters=[sim_params])
-    agents = [Node(package="hmrta_agent", executable="agent_node", name="agent", namespace=r, output="log",
-                   parameters=[{"robot": r, **common}]) for r in robots]
+    common = L.node_values("agent_node", arg, only=AGENT_PARAMS)
+    agents = [L.agent_node(L.FleetRobot(r, "/" + r, f"/{r}/pose"), common, output="log")
+              for r in robots if r not in external]
     return [board, sim, *agents]
 
 
 def generate_launch_description():
-    return LaunchDescription([DeclareLaunchArgument(k, default_value=v, description=d) for k, (v, d) in ARGS.items()]
-                             + [OpaqueFunction(function=_nodes)])
+    return LaunchDescription(L.declare(ARGS) + [OpaqueFunction(function=_nodes)])

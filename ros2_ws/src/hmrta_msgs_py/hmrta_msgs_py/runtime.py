@@ -63,6 +63,27 @@ def method_parameters_help() -> str:
     return "\n".join(lines)
 
 
+def parameters_help(params) -> str:
+    """One line per ROS parameter (:class:`hmrta_msgs_py.params.Param`): name, type, default, meaning."""
+    return "\n".join(f"  {p.name} ({p.type}, default {p.default!r}): {p.help}" for p in params)
+
+
+def help_requested(argv: list[str], prog: str, description: str, params) -> None:
+    """If ``argv`` asks for help (``-h`` / ``--help`` before any ``--ros-args``), print the usage,
+    ``description`` and the node's ROS parameters, and exit 0; else return. Call it first thing
+    in ``main()``: it starts nothing."""
+    args = list(argv[1:])
+    if "--ros-args" in args:
+        args = args[:args.index("--ros-args")]
+    if not any(a in ("-h", "--help") for a in args):
+        return
+    print(f"usage: {prog} [-h] [--ros-args -p NAME:=VALUE ... -r FROM:=TO ...]\n")
+    print(description.strip() + "\n")
+    print("ROS parameters (--ros-args -p NAME:=VALUE):")
+    print(parameters_help(params))
+    raise SystemExit(0)
+
+
 def make_executor():
     """The events executor when this rclpy has it (much lower latency with many nodes in one
     process), else the single-threaded executor. ``HMRTA_EXECUTOR=single`` forces the latter."""

@@ -1,0 +1,130 @@
+"""The ROS parameters of every HMRTA node, in one table per node: name, type, default, meaning.
+
+``--help`` of each executable prints its table, the launch files expose one launch argument per
+entry, and the tests check each table against the parameters its node really declares. The
+method parameters (``method`` and every live method option) come from the method table
+:data:`hmrta.methods.METHODS`. Importing this module needs neither rclpy nor launch.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+# ROS parameter types as ``ros2 param describe`` names them
+STRING, INTEGER, DOUBLE, BOOL, STRING_ARRAY = "string", "integer", "double", "bool", "string_array"
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    type: str  # one of STRING, INTEGER, DOUBLE, BOOL, STRING_ARRAY
+    default: Any
+    help: str
+
+    def parse(self, text: str) -> Any:
+        """A launch argument's text as this parameter's value; ValueError naming the parameter."""
+        t = text.strip()
+        try:
+            if self.type == BOOL:
+                if t.lower() in ("true", "1", "yes", "on"):
+                    return True
+                if t.lower() in ("false", "0", "no", "off"):
+                    return False
+                raise ValueError
+            if self.type == INTEGER:
+                return int(t)
+            if self.type == DOUBLE:
+                return float(t)
+            if self.type == STRING_ARRAY:
+                items = (s.strip().strip("'\"") for s in t.strip("[]").split(","))
+                return [s for s in items if s]
+            return text
+        except ValueError:
+            raise ValueError(f"{self.name}: expected {self.type}, got {text!r}") from None
+
+    def text(self) -> str:
+        """The default as launch-argument text."""
+        if self.type == BOOL:
+            return "true" if self.default else "false"
+        if self.type == STRING_ARRAY:
+            return ",".join(self.default)
+        return str(self.default)
+
+
+TASK_BOARD: tuple[Param, ...] = (
+    Param("instance", STRING, "", "mission file (hmrta-instance/1 YAML or CTAS-D config.json); required"),
+    Param("seed", INTEGER, 0, "episode seed (decision order)"),
+    Param("output", STRING, "", "where to write the hmrta-solution/1 JSON (empty: only /hmrta/result)"),
+    Param("robot_names", STRING_ARRAY, [], "robot names in the mission's agent order (empty: robot_<i>)"),
+    Param("frame_id", STRING, "map", "frame of goals, poses and markers"),
+    Param("scale", DOUBLE, 1.0, "metres per mission unit (positions on the wire = mission coordinates x scale)"),
+    Param("wait_for_robots", BOOL, True, "start the mission only once every robot's agent and pose are up"),
+    Param("startup_timeout", DOUBLE, 120.0, "wall seconds to wait for the robots at start (0: forever)"),
+    Param("heartbeat_timeout", DOUBLE, 5.0, "wall seconds before a silent robot is dropped"),
+    Param("decision_timeout", DOUBLE, 30.0, "wall seconds an agent has to answer its turn before it is dropped"),
+    Param("arrival_tolerance", DOUBLE, 1e-3, "distance from its goal within which a robot counts as arrived"),
+    Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
+    Param("marker_period", DOUBLE, 0.5, "wall seconds between /hmrta/markers updates"),
+    Param("progress_period", DOUBLE, 5.0, "wall seconds between progress log lines"),
+    Param("real_time_departures", BOOL, False, "no back-dated departures (real robots cannot leave in the past)"),
+    Param("keystore", STRING, "", "mission keystore folder (or its keys.json); empty: no authentication"),
+    Param("journal", STRING, "", "JSON-lines journal of the board, replayed when it exists (empty: none)"),
+    Param("rejection_rate", DOUBLE, 200.0, "logged and published rejections per second, at most"),
+    Param("queue_depth", INTEGER, 2000, "receive queue depth (messages) of choices and heartbeats"),
+)
+
+SIM_ROBOT: tuple[Param, ...] = (
+    Param("robots", STRING_ARRAY, [], "robots to simulate (empty: every mission robot not in external)"),
+    Param("external", STRING_ARRAY, [], "robots driven outside (real robots): not simulated"),
+    Param("time_scale", DOUBLE, 0.0, "sim seconds per wall second (0: as fast as possible)"),
+    Param("rate", DOUBLE, 20.0, "pose and clock updates per wall second while paced (time_scale > 0)"),
+    Param("heartbeat_period", DOUBLE, 1.0, "wall seconds between pose and clock heartbeats"),
+    Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
+)
+
+AGENT_NODE: tuple[Param, ...] = (
+    Param("robot", STRING, "", "robot name in the mission (empty: the last part of the node's namespace)"),
+    Param("index", INTEGER, -1, "the robot's agent index in the mission (-1: from its name)"),
+    Param("species", INTEGER, -1, "the robot's species, checked against the mission (-1: no check)"),
+    Param("seed", INTEGER, 0, "seed of sampled decisions"),
+    Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
+    Param("keystore", STRING, "", "mission keystore folder: sign with the hosted robots' keys (empty: unsigned)"),
+    Param("key_file", STRING, "", "one robot's key file (robots/<robot>.key.json) to sign with"),
+)
+
+RECORDER: tuple[Param, ...] = (
+    Param("output", STRING, "", "MCAP file to write (empty: hmrta_<date>_<time>.mcap in the working folder)"),
+    Param("robots", STRING_ARRAY, [], "robots whose goal_pose and pose topics to record (empty: the mission's robots)"),
+    Param("topics", STRING_ARRAY, [], "further topics to record (any message type installed here)"),
+    Param("markers", BOOL, False, "also record /hmrta/markers (RViz markers; large)"),
+    Param("discovery_period", DOUBLE, 1.0, "wall seconds between looks for new topics to record"),
+    Param("compression", STRING, "zstd", "chunk compression: zstd, lz4 or none"),
+)
+
+NODES: dict[str, tuple[Param, ...]] = {"task_board": TASK_BOARD, "sim_robot": SIM_ROBOT, "agent_node": AGENT_NODE,
+                                       "recorder": RECORDER}
+METHOD_NODES = ("task_board", "agent_node")  # nodes that also declare the method parameters
+
+_TYPES = {str: STRING, int: INTEGER, float: DOUBLE, bool: BOOL}
+
+
+def method_parameters() -> tuple[Param, ...]:
+    """``method`` and every live method option, as declared by
+    :func:`hmrta_msgs_py.runtime.declare_method_parameters` (ROS has no None: '' / 0)."""
+    from hmrta.methods import help_text, live_methods, live_options
+
+    out = [Param("method", STRING, "greedy", help_text(live_methods()) + "; rl-sN = rl-sample with N samples")]
+    for o in live_options().values():
+        default = o.default if o.default is not None else {str: "", int: 0, float: 0.0}[o.type]
+        out.append(Param(o.name, _TYPES[o.type], default, o.help))
+    return tuple(out)
+
+
+def node_parameters(node: str) -> tuple[Param, ...]:
+    """Every parameter ``node`` (task_board, sim_robot, agent_node, recorder) declares."""
+    table = NODES[node]
+    return table + method_parameters() if node in METHOD_NODES else table
+
+
+def by_name(params: tuple[Param, ...]) -> dict[str, Param]:
+    return {p.name: p for p in params}

@@ -1,0 +1,153 @@
+"""Every executable's ``--help``: exits 0 at once, starts nothing, lists the node's ROS parameters;
+and each node's parameter table (``hmrta_msgs_py.params``) is what the node really declares."""
+from __future__ import annotations
+
+import ast
+import os
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hmrta_msgs_py import params as P
+
+ROOT = Path(__file__).resolve().parents[2]
+SRC = ROOT / "ros2_ws" / "src"
+BIN = Path(sys.executable).parent
+NODE_SOURCES = {
+    "task_board": SRC / "hmrta_coordinator" / "hmrta_coordinator" / "task_board.py",
+    "sim_robot": SRC / "hmrta_coordinator" / "hmrta_coordinator" / "sim_robot.py",
+    "agent_node": SRC / "hmrta_agent" / "hmrta_agent" / "agent_node.py",
+}
+_AST_TYPES = {bool: P.BOOL, int: P.INTEGER, float: P.DOUBLE, str: P.STRING}
+
+
+def declared_parameters(source: Path) -> dict[str, tuple[str, object]]:
+    """name -> (type, default) of every parameter a node source declares: ``declare_parameter(
+    "name", default)`` calls (also through an alias such as ``P = self.declare_parameter``) and
+    the method parameters when it calls ``declare_method_parameters``."""
+    tree = ast.parse(source.read_text(), str(source))
+    aliases = {t.id for n in ast.walk(tree) if isinstance(n, ast.Assign)
+               and isinstance(n.value, ast.Attribute) and n.value.attr == "declare_parameter"
+               for t in n.targets if isinstance(t, ast.Name)}
+    out: dict[str, tuple[str, object]] = {}
+    for n in ast.walk(tree):
+        if not isinstance(n, ast.Call):
+            continue
+        f = n.func
+        fname = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
+        if fname == "declare_parameters":
+            raise AssertionError(f"{source.name}: declare_parameters(...) is not understood by this test")
+        if fname == "declare_method_parameters":
+            out.update({p.name: (p.type, p.default) for p in P.method_parameters()})
+        if not (fname == "declare_parameter" or (isinstance(f, ast.Name) and f.id in aliases)):
+            continue
+        assert n.args and isinstance(n.args[0], ast.Constant), f"{source.name}:{n.lineno}: parameter name not a literal"
+        name, default = n.args[0].value, n.args[1] if len(n.args) > 1 else None
+        if isinstance(default, ast.Attribute) and default.attr == "STRING_ARRAY":
+            out[name] = (P.STRING_ARRAY, [])
+        else:
+            try:
+                value = ast.literal_eval(default)
+            except ValueError:
+                raise AssertionError(f"{source.name}:{n.lineno}: default of {name!r} is not a literal") from None
+            out[name] = (_AST_TYPES[type(value)], value)
+    return out
+
+
+@pytest.mark.parametrize("node", sorted(NODE_SOURCES))
+def test_parameter_table_matches_the_node(node):
+    declared = declared_parameters(NODE_SOURCES[node])
+    table = {p.name: (p.type, p.default) for p in P.node_parameters(node)}
+    assert len(table) == len(P.node_parameters(node)), f"{node}: a parameter is listed twice"
+    missing, extra = sorted(set(declared) - set(table)), sorted(set(table) - set(declared))
+    assert not missing, f"{node} declares {missing} but hmrta_msgs_py/params.py does not list them"
+    assert not extra, f"hmrta_msgs_py/params.py lists {extra} but {node} does not declare them"
+    for name, (typ, default) in declared.items():
+        assert table[name] == (typ, default), f"{node}.{name}: declared {typ} {default!r}, table {table[name]}"
+        assert P.by_name(P.node_parameters(node))[name].help, f"{node}.{name}: no meaning in the table"
+
+
+def test_declared_parameters_sees_every_kind():
+    """The AST reader finds literal, aliased, array and method declarations."""
+    board = declared_parameters(NODE_SOURCES["task_board"])
+    assert board["robot_names"] == (P.STRING_ARRAY, []) and board["scale"] == (P.DOUBLE, 1.0)
+    assert board["method"] == (P.STRING, "greedy") and "checkpoint" in board
+    assert declared_parameters(NODE_SOURCES["agent_node"])["robot"] == (P.STRING, "")
+    assert "method" not in declared_parameters(NODE_SOURCES["sim_robot"])
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(random.randint(200, 232)))
+    return env
+
+
+def _help(exe: str, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(BIN / exe), "--help", *extra], capture_output=True, text=True, timeout=60, env=_env())
+
+
+@pytest.mark.parametrize("exe,node", [("task_board", "task_board"), ("sim_robot", "sim_robot"),
+                                      ("agent_node", "agent_node"), ("mission", None), ("hmrta-mission", None)])
+def test_help_lists_parameters_and_exits_0(exe, node):
+    out = _help(exe)
+    assert out.returncode == 0, f"{exe} --help exited {out.returncode}: {out.stderr[-2000:]}"
+    text = out.stdout
+    assert text.startswith("usage: "), text[:200]
+    prog = text.split()[1]
+    assert f"{prog}: {prog}" not in text + out.stderr, f"{exe} --help repeats its name"
+    if node is None:
+        assert "--method" in text and "--out" in text
+        return
+    assert "ROS parameters" in text
+    for p in P.node_parameters(node):
+        assert f"\n  {p.name} ({p.type}, default {p.default!r}): " in text, f"{exe} --help lacks {p.name}"
+
+
+def test_help_before_ros_args():
+    out = _help("task_board", "--ros-args", "-p", "seed:=1")
+    assert out.returncode == 0 and "instance (string" in out.stdout
+
+
+@pytest.mark.parametrize("module", ["hmrta_coordinator.task_board", "hmrta_coordinator.sim_robot"])
+def test_help_starts_no_rclpy(module, monkeypatch, capsys):
+    import importlib
+
+    import rclpy
+
+    def boom(*a, **k):
+        raise AssertionError("--help started rclpy")
+
+    monkeypatch.setattr(rclpy, "init", boom)
+    mod = importlib.import_module(module)
+    with pytest.raises(SystemExit) as e:
+        mod.main([module.rsplit(".", 1)[1], "-h"])
+    assert e.value.code == 0 and "ROS parameters" in capsys.readouterr().out
+
+
+def test_help_requested_ignores_ros_args_and_other_flags():
+    from hmrta_msgs_py.runtime import help_requested
+
+    help_requested(["x", "--ros-args", "-p", "a:=--help"], "x", "d", ())  # returns: not a help request
+    help_requested(["x"], "x", "d", ())
+    with pytest.raises(SystemExit) as e:
+        help_requested(["x", "-h"], "x", "d", P.SIM_ROBOT)
+    assert e.value.code == 0
+
+
+@pytest.mark.parametrize("param,text,value", [
+    (P.Param("a", P.BOOL, True, "h"), "false", False), (P.Param("a", P.BOOL, True, "h"), "True", True),
+    (P.Param("a", P.INTEGER, 0, "h"), "7", 7), (P.Param("a", P.DOUBLE, 0.0, "h"), "0.25", 0.25),
+    (P.Param("a", P.STRING_ARRAY, [], "h"), "robot_1, robot_2", ["robot_1", "robot_2"]),
+    (P.Param("a", P.STRING_ARRAY, [], "h"), "['robot_1']", ["robot_1"]),
+    (P.Param("a", P.STRING_ARRAY, [], "h"), "", []), (P.Param("a", P.STRING, "", "h"), " x ", " x "),
+])
+def test_param_parse(param, text, value):
+    assert param.parse(text) == value
+
+
+@pytest.mark.parametrize("typ,text", [(P.BOOL, "maybe"), (P.INTEGER, "1.5"), (P.DOUBLE, "fast")])
+def test_param_parse_rejects(typ, text):
+    with pytest.raises(ValueError, match=r"^a: expected"):
+        P.Param("a", typ, None, "h").parse(text)
