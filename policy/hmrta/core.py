@@ -31,6 +31,7 @@ docs/semantics.md):
 from __future__ import annotations
 
 import copy
+import dataclasses
 import heapq
 import math
 import numbers
@@ -40,14 +41,21 @@ from typing import Any
 
 import numpy as np
 
-from .instance import Instance
+from .instance import MAX_VALUE, Instance, Species, Task
 
 # agent modes (LOST: removed from the mission by drop_agent, e.g. a robot that stopped reporting)
 FREE, TASK, HOME, WAIT, LOST = 0, 1, 2, 3, 4
 MODE_NAMES = ("free", "task", "home", "wait", "lost")
-# task status (CANCELLED: no longer satisfiable after drop_agent)
-EMPTY, OPEN, IN_PROGRESS, DONE, CANCELLED = 0, 1, 2, 3, 4
-STATUS_NAMES = ("empty", "open", "in_progress", "done", "cancelled")
+# task status (CANCELLED: called off by the operator (cancel_task) or no longer satisfiable after a
+# robot loss; UNRELEASED: an instance task whose release time lies ahead, hidden from every policy)
+EMPTY, OPEN, IN_PROGRESS, DONE, CANCELLED, UNRELEASED = 0, 1, 2, 3, 4, 5
+STATUS_NAMES = ("empty", "open", "in_progress", "done", "cancelled", "unreleased")
+EVENT_TYPES = ("add_task", "cancel_task", "add_agent", "drop_agent", "release")
+
+
+class EventRejected(ValueError):
+    """An event the mission cannot take (an infeasible task, an unknown or finished task, a bad
+    robot, a time before the mission clock); ``str(e)`` is the one-line reason."""
 
 
 def team_cap(inst: Instance) -> int:
@@ -57,7 +65,7 @@ def team_cap(inst: Instance) -> int:
     (docs/semantics.md): the best fixed cap grows with A / c, from 1 on SA-AT (A / c ~ 3) to 6 on
     MA-AT (50,5,50,5) (A / c ~ 26), and this rule is within 2.5% of the best fixed cap on every
     row tried."""
-    req = np.asarray(inst.requirements, dtype=np.float64)  # [M, K]
+    req = np.asarray(inst.requirements, dtype=np.float64)[inst.releases <= 0]  # [M0, K] tasks known at start
     traits = np.asarray(inst.traits, dtype=np.float64)  # [A, K]
     c = float((req.sum(1) / max(traits.sum(1).mean(), 1e-9)).mean()) if len(req) else 0.0
     return max(1, int(round(inst.n_agents / (2 * c)))) if c > 0 else 1
@@ -134,6 +142,93 @@ def _short(v: Any, n: int = 60) -> str:
     return r if len(r) <= n else r[: n - 3] + "..."
 
 
+# ---------------------------------------------------------------------------------------------
+# event records (MissionState.log, apply_event)
+# ---------------------------------------------------------------------------------------------
+def _num_ok(v: Any) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def _vector(v: Any, n: int, where: str) -> tuple[float, ...]:
+    if not isinstance(v, (list, tuple)) or len(v) != n or not all(_num_ok(x) for x in v):
+        raise EventRejected(f"{where}: expected a list of {n} finite numbers, got {_short(v)}")
+    out = tuple(float(x) for x in v)
+    if any(x < 0 or x > MAX_VALUE for x in out):
+        raise EventRejected(f"{where}: expected values in [0, {MAX_VALUE:g}], got {_short(v)}")
+    return out
+
+
+def _unit_point(v: Any, where: str) -> tuple[float, float]:
+    if not isinstance(v, (list, tuple)) or len(v) != 2 or not all(_num_ok(x) and 0 <= x <= 1 for x in v):
+        raise EventRejected(f"{where}: expected [x, y] in the unit square, got {_short(v)}")
+    return float(v[0]), float(v[1])
+
+
+def _task_record(task: Task, K: int) -> dict[str, Any]:
+    return {"location": [float(x) for x in task.location], "requirements": [float(x) for x in task.requirements],
+            "duration": float(task.duration)}
+
+
+def _task_from_record(d: Any, K: int, requirement_type: str = "additive") -> Task:
+    if not isinstance(d, dict):
+        raise EventRejected(f"new task: expected a mapping with location, requirements, duration, got {_short(d)}")
+    for k in ("location", "requirements", "duration"):
+        if k not in d:
+            raise EventRejected(f"new task: missing field {k!r}")
+    loc = _unit_point(d["location"], "new task: location")
+    req = _vector(d["requirements"], K, "new task: requirements")
+    if not any(req):
+        raise EventRejected("new task: requirements: expected at least one non-zero requirement (all zero)")
+    dur = d["duration"]
+    if not _num_ok(dur) or not 0 <= dur <= MAX_VALUE:
+        raise EventRejected(f"new task: duration: expected a number in [0, {MAX_VALUE:g}], got {_short(dur)}")
+    return Task(loc, req, float(dur))
+
+
+def _check_record(rec: Any) -> None:
+    """Shape of an external event record (values are checked when it is applied)."""
+    if not isinstance(rec, dict) or rec.get("type") not in EVENT_TYPES:
+        raise EventRejected(f"event: expected a mapping with type one of {', '.join(EVENT_TYPES)}, got {_short(rec)}")
+    if not _num_ok(rec.get("t")):
+        raise EventRejected(f"event {rec['type']}: t: expected a finite number, got {_short(rec.get('t'))}")
+    kind = rec["type"]
+    if kind == "cancel_task" and not (("task" in rec) ^ ("name" in rec)):
+        raise EventRejected("event cancel_task: expected exactly one of task (an id) and name (a client id)")
+    if kind == "add_task" and "task" not in rec:
+        raise EventRejected("event add_task: missing field 'task'")
+    if kind == "drop_agent" and "agent" not in rec:
+        raise EventRejected("event drop_agent: missing field 'agent'")
+
+
+def apply_event(state: "MissionState", record: dict) -> Any:
+    """Replay one event record on ``state`` (a journal, a test). Records are those of
+    :attr:`MissionState.log` (``add_task``, ``cancel_task``, ``add_agent``, ``drop_agent``; outcome
+    fields such as ``id`` are ignored) and ``{"type": "choice", "agent": a, "node": n}`` for a
+    decision. Returns what the matching method returns; raises EventRejected (the state unchanged)
+    or ValueError for a choice that does not fit the pending decision."""
+    kind = record.get("type") if isinstance(record, dict) else None
+    if kind == "choice":
+        a, node = record.get("agent"), record.get("node")
+        if state.agent is None or a != state.agent:
+            raise ValueError(f"choice of agent {a!r}: the pending decider is {state.agent}")
+        if not _is_int(node, 0, None):
+            raise ValueError(f"choice of agent {a}: node: expected an integer >= 0, got {_short(node)}")
+        state.step(node)
+        return node
+    t = record.get("t")
+    if kind == "add_task":
+        task = _task_from_record(record.get("task"), state.K, state.inst.requirement_type)
+        return state.add_task(task, t, record.get("name"))
+    if kind == "cancel_task":
+        return state.cancel_task(record["name"] if "name" in record else record.get("task"), t)
+    if kind == "add_agent":
+        return state.add_agent(record.get("species"), record.get("traits"), record.get("position"), t)
+    if kind == "drop_agent":
+        return state.drop_agent(record.get("agent"), t)
+    raise EventRejected(f"event: unknown type {_short(kind)} (expected choice, add_task, cancel_task, "
+                        f"add_agent or drop_agent)")
+
+
 class MissionState:
     """Exact event-driven state of one mission (SPEC §3). See the module docstring."""
 
@@ -155,6 +250,18 @@ class MissionState:
         self.start = np.full(M, np.nan)  # [M]
         self.finish = np.full(M, np.nan)  # [M]
         self.held = np.zeros((M, K))  # [M, K] capability of the members committed to each task
+        # mission events (docs/semantics.md, "Events during a mission")
+        self.base = (M, A, inst.n_species)  # tasks, agents and species of the instance at mission start
+        self.release = np.array(inst.releases, dtype=np.float64)  # [M] when each task became known
+        self.names: list[str | None] = [None] * M  # client ids of added tasks
+        self.by_operator = np.zeros(M, dtype=bool)  # [M] cancelled by cancel_task (not unsatisfiable)
+        hidden = self.release > 0
+        self.status[hidden] = UNRELEASED
+        self.rem[hidden] = 0.0
+        self.n_hidden = int(hidden.sum())
+        self.pending: list[tuple[float, int, dict]] = []  # timed external events, hidden until applied
+        self._eseq = 0
+        self.log: list[dict] = []  # external events applied (or rejected), in order
         # agents
         self.mode = np.full(A, FREE, dtype=np.int64)  # [A]
         self.target = np.full(A, -1, dtype=np.int64)  # [A] task id or -1 (depot / none)
@@ -184,7 +291,12 @@ class MissionState:
         self.failure: str | None = None
         self.agent: int | None = None
         self._mask: np.ndarray | None = None
-        order = list(range(A))
+        for m in np.flatnonzero(hidden):
+            self._schedule({"type": "release", "t": float(self.release[m]), "task": int(m)})
+        for rec in inst.events:
+            self._schedule(dict(rec))
+        self._externals(0.0)  # events at time 0 come before the first decisions
+        order = list(range(self.A))
         self.rng.shuffle(order)
         self.queue = order[::-1]
         self._advance()
@@ -344,8 +456,8 @@ class MissionState:
         return self.n_open == 0 and not (self.status == EMPTY).any()
 
     def _all_claimed(self) -> bool:
-        """Every task is done, cancelled or in progress (nothing will need a parked agent)."""
-        return self.n_done + self.n_cancelled + int((self.status == IN_PROGRESS).sum()) == self.M
+        """Every known task is done, cancelled or in progress (nothing will need a parked agent)."""
+        return self.n_done + self.n_cancelled + self.n_hidden + int((self.status == IN_PROGRESS).sum()) == self.M
 
     def complete(self, m: int) -> list[int]:
         """One completion: task m finishes; its members become free there. Returns the members."""
@@ -388,21 +500,18 @@ class MissionState:
                 self.mode[a] = WAIT
             # no decider left at this instant
             self._deferred.clear()
-            if self.n_done + self.n_cancelled == self.M:
+            if self.n_done + self.n_cancelled == self.M and not self.pending:
                 self._finish_episode()
                 return
-            if self.events:
-                t = max(self.events[0][0], self.clock)
-                if t > self.rules.t_max:
-                    self._fail(f"time limit {self.rules.t_max} exceeded")
+            te = self.pending[0][0] if self.pending else math.inf  # next external event
+            if self.events and self.events[0][0] <= te:
+                # completions of the next instant, then the external events of that instant
+                if not self._jump(self.events[0][0]):
                     return
-                self.clock = t
-                freed: list[int] = []
-                while self.events and self.events[0][0] <= t:
-                    _, _, m = heapq.heappop(self.events)
-                    freed += sorted(self.complete(m))
-                self._stall = False
-                self._requeue(freed)
+                continue
+            if self.pending and (self._all_claimed() or (self._stall and self._commits == self._stall_commits)):
+                if not self._jump(te):  # nothing to do before the next external event
+                    return
                 continue
             # stall: nothing in progress; offer parked and waiting agents the tasks, depot masked
             if self._stall and self._commits == self._stall_commits:
@@ -411,8 +520,30 @@ class MissionState:
             self._stall, self._stall_commits = True, self._commits
             self._requeue([])
             if not self.queue:
+                if self.pending:
+                    if not self._jump(te):
+                        return
+                    continue
                 self._fail("deadlock: no agent can move")
                 return
+
+    def _jump(self, t: float) -> bool:
+        """Advance the clock to t: the completions due by then, then the external events due by
+        then, in time order; the freed agents, waiting and parked ones are queued. False if t lies
+        beyond ``t_max`` (the episode fails)."""
+        t = max(t, self.clock)
+        if t > self.rules.t_max:
+            self._fail(f"time limit {self.rules.t_max} exceeded")
+            return False
+        self.clock = t
+        freed: list[int] = []
+        while self.events and self.events[0][0] <= t:
+            _, _, m = heapq.heappop(self.events)
+            freed += sorted(self.complete(m))
+        freed += self._externals(t)
+        self._stall = False
+        self._requeue(freed)
+        return True
 
     def _requeue(self, freed: list[int]) -> None:
         self.rng.shuffle(freed)
@@ -428,9 +559,10 @@ class MissionState:
         for a in range(self.A):
             if self.mode[a] in (FREE, WAIT):
                 self.commit(a, 0)
-        self.done, self.success = True, self.n_cancelled == 0
-        if self.n_cancelled:
-            self.failure = f"{self.n_cancelled} task(s) cancelled: no longer satisfiable after robot loss"
+        lost = self.n_cancelled - int(self.by_operator.sum())  # operator cancellations are no failure
+        self.done, self.success = True, lost == 0
+        if lost:
+            self.failure = f"{lost} task(s) cancelled: no longer satisfiable after robot loss"
         self.agent, self._mask = None, None
 
     def _fail(self, why: str) -> None:
@@ -440,8 +572,9 @@ class MissionState:
     # ------------------------------------------------------------------------------------------
     # robot loss (the ROS task board calls this when a robot or its agent stops reporting)
     # ------------------------------------------------------------------------------------------
-    def drop_agent(self, a: int) -> list[int]:
-        """Remove agent a from the mission now (``clock``); returns the tasks this cancels.
+    def drop_agent(self, a: int, now: float | None = None) -> list[int]:
+        """Remove agent a from the mission at ``now`` (default: the clock); returns the tasks this
+        cancels (a later ``now`` schedules the loss and returns []).
 
         * a stops where it is (mode LOST); it leaves the capability pool and the decision queue.
         * its commitment is released: a task it had joined loses it as a member. A task that was
@@ -453,11 +586,19 @@ class MissionState:
           empty and its members freed.
         * the pending decision, if any, is recomputed; freed, waiting and parked agents are
           offered a decision at this instant. The episode then continues as usual and succeeds
-          only if no task was cancelled.
+          only if no task was cancelled as unsatisfiable.
         """
+        if not _is_int(a, 0, self.A):
+            raise EventRejected(f"robot {a!r}: no such robot (0..{self.A - 1})")
         if self.mode[a] == LOST:
             return []
-        now = self.clock
+        out = self._event({"type": "drop_agent", "t": self._when(now), "agent": int(a)})
+        return [] if out is None else out
+
+    def _drop_agent(self, a: int) -> tuple[list[int], list[int]]:
+        """drop_agent without the re-queueing: (cancelled tasks, freed agents)."""
+        if self.mode[a] == LOST:
+            return [], []
         if self.agent is not None:  # the pending decision is recomputed after the change
             self.queue.append(self.agent)
         self.agent, self._mask = None, None
@@ -492,6 +633,78 @@ class MissionState:
             for m in open_ids:
                 freed += self._reset_task(int(m))
                 self.status[m] = EMPTY
+        return cancelled, freed
+
+    # ------------------------------------------------------------------------------------------
+    # mission events: tasks added and cancelled, robots added (docs/semantics.md, "Events during
+    # a mission"). Every event is a plain JSON-able record {"type", "t", ...}; ``log`` keeps the
+    # records of the external events applied or rejected, and :func:`apply_event` replays them.
+    # ------------------------------------------------------------------------------------------
+    def add_task(self, task: Task, now: float | None = None, name: str | None = None) -> int | None:
+        """Add an empty task at ``now`` (default: the clock; a later time schedules it and returns
+        None); its id is the previous number of tasks, its release time ``now``. It is offered at
+        the next decisions: the pending decision is recomputed and parked and waiting robots decide
+        again at once. A task the remaining team cannot satisfy is rejected (EventRejected)."""
+        rec = {"type": "add_task", "t": self._when(now), "task": _task_record(task, self.K)}
+        if name is not None:
+            rec["name"] = str(name)
+        return self._event(rec)
+
+    def cancel_task(self, m: int | str, now: float | None = None) -> list[int] | None:
+        """Cancel task m (an id, or the client id given to :meth:`add_task`) at ``now``; returns
+        the robots it frees (None when scheduled for a later time). An empty, open or unreleased
+        task is closed; a task in progress stops (its coalition is freed; see docs/semantics.md).
+        Freed robots are free where they are at ``now`` (en route: part-way along their leg)
+        and re-plan from there. An unknown, done or cancelled task is rejected (EventRejected)."""
+        rec: dict[str, Any] = {"type": "cancel_task", "t": self._when(now)}
+        rec["name" if isinstance(m, str) else "task"] = m
+        return self._event(rec)
+
+    def add_agent(self, species: int | None = None, traits: Any = None, position: Any = None,
+                  now: float | None = None) -> int | None:
+        """Add a robot at ``now``: of ``species`` (an index) or with a new trait vector ``traits``
+        (then ``position`` is required and becomes its depot). It is free at ``position`` (default:
+        its species' depot) and decides at once. Returns its id (the previous number of robots),
+        or None when scheduled for a later time."""
+        rec: dict[str, Any] = {"type": "add_agent", "t": self._when(now)}
+        if species is not None:
+            rec["species"] = species
+        if traits is not None:
+            rec["traits"] = [float(x) for x in traits]
+        if position is not None:
+            rec["position"] = [float(x) for x in position]
+        return self._event(rec)
+
+    def schedule(self, record: dict) -> None:
+        """Queue an external event record (``t`` >= the clock) to be applied when the mission
+        reaches its time, in time order with the task completions, after the completions of the
+        same instant. Until then it is invisible to every policy."""
+        self._when(record.get("t") if isinstance(record, dict) else None)
+        _check_record(record)
+        self._schedule(dict(record))
+
+    def _when(self, now: Any) -> float:
+        if self.done:
+            raise EventRejected("the mission is over")
+        t = self.clock if now is None else now
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t):
+            raise EventRejected(f"event time: expected a finite number, got {_short(t)}")
+        if t < self.clock:
+            raise EventRejected(f"event time {t} lies before the mission clock {self.clock}")
+        return float(t)
+
+    def _schedule(self, rec: dict) -> None:
+        self._eseq += 1
+        heapq.heappush(self.pending, (float(rec["t"]), self._eseq, rec))
+
+    def _event(self, rec: dict) -> Any:
+        """Apply a record now (t == clock), or schedule it (t > clock)."""
+        _check_record(rec)
+        if rec["t"] > self.clock:
+            self._schedule(rec)
+            return None
+        out, freed = self._apply(rec)  # EventRejected leaves the state unchanged
+        self.log.append({**rec, **self._outcome(rec, out)})
         if not self.done:
             waiting = [b for b in range(self.A) if self.mode[b] == WAIT and b not in self.queue]
             parked = [b for b in range(self.A) if self.mode[b] == HOME and b not in self.queue]
@@ -501,7 +714,187 @@ class MissionState:
             self.queue = order[::-1] + self.queue  # after the deciders already queued
             self._stall = False
             self._advance()
-        return cancelled
+        return out
+
+    @staticmethod
+    def _outcome(rec: dict, out: Any) -> dict:
+        kind = rec["type"]
+        if kind == "add_task":
+            return {"id": out}
+        if kind == "add_agent":
+            return {"id": out}
+        if kind == "drop_agent":
+            return {"cancelled": list(out)}
+        if kind == "cancel_task":
+            return {"freed": list(out)}
+        return {}
+
+    def _externals(self, t: float) -> list[int]:
+        """Apply the scheduled events due by t; returns the agents they free or add."""
+        freed: list[int] = []
+        while self.pending and self.pending[0][0] <= t:
+            _, _, rec = heapq.heappop(self.pending)
+            rec = {**rec, "t": float(self.clock)}
+            try:
+                out, f = self._apply(rec)
+            except EventRejected as e:
+                self.log.append({**rec, "rejected": str(e)})
+                continue
+            if rec["type"] != "release":
+                self.log.append({**rec, **self._outcome(rec, out)})
+            freed += sorted(f)
+        return freed
+
+    def _apply(self, rec: dict) -> tuple[Any, list[int]]:
+        """Apply one event at the clock: (outcome, agents to offer a decision). The pending
+        decision, if any, goes back to the queue first. Raises EventRejected with the state
+        unchanged."""
+        kind = rec["type"]
+        if kind == "drop_agent":
+            a = rec["agent"]
+            if not _is_int(a, 0, self.A):
+                raise EventRejected(f"robot {a!r}: no such robot (0..{self.A - 1})")
+            if self.mode[a] == LOST:
+                raise EventRejected(f"robot {a}: already lost")
+            return self._drop_agent(a)
+        if kind == "release":
+            m = rec["task"]
+            if self.status[m] != UNRELEASED:
+                return None, []  # cancelled before its release
+            self._requeue_pending()
+            self.n_hidden -= 1
+            self.status[m] = EMPTY
+            self.rem[m] = self.req[m]
+            if not self._fits(self.req[m], self.cap[self.mode != LOST].sum(0)):
+                self.status[m] = CANCELLED
+                self.rem[m] = 0.0
+                self.n_cancelled += 1
+            return m, []
+        if kind == "add_task":
+            return self._add_task(rec)
+        if kind == "cancel_task":
+            return self._cancel_task(rec)
+        if kind == "add_agent":
+            return self._add_agent(rec)
+        raise EventRejected(f"unknown event type {kind!r}")
+
+    def _requeue_pending(self) -> None:
+        if self.agent is not None:  # the pending decision is recomputed after the change
+            self.queue.append(self.agent)
+        self.agent, self._mask = None, None
+
+    def _add_task(self, rec: dict) -> tuple[int, list[int]]:
+        task = _task_from_record(rec["task"], self.K, self.inst.requirement_type)
+        name = rec.get("name")
+        if name is not None and name in self.names:
+            raise EventRejected(f"task {name!r}: a task with this id exists already")
+        who = f"task {name!r}" if name is not None else "new task"
+        req = np.array(task.requirements if self.additive else np.array(task.requirements) > 0, dtype=np.float64)
+        team = self.cap[self.mode != LOST].sum(0)  # [K]
+        short_of = np.flatnonzero(req > (team if self.additive else (team > 0)))
+        if len(short_of):
+            k = int(short_of[0])
+            raise EventRejected(f"{who}: no robot left with skill {k}" if team[k] <= 0 else
+                                f"{who}: needs {req[k]:g} of skill {k}, the remaining team has {team[k]:g}")
+        self._requeue_pending()
+        m = self.M
+        t = float(rec["t"])
+        self.inst = dataclasses.replace(self.inst, tasks=self.inst.tasks + (dataclasses.replace(task, release=t),),
+                                        _cache={})
+        self.M += 1
+        self.req = np.vstack([self.req, req[None]])
+        self.rem = np.vstack([self.rem, req[None]])
+        self.held = np.vstack([self.held, np.zeros((1, self.K))])
+        self.status = np.append(self.status, EMPTY)
+        self.members.append([])
+        self.start = np.append(self.start, np.nan)
+        self.finish = np.append(self.finish, np.nan)
+        self.release = np.append(self.release, t)
+        self.names.append(name)
+        self.by_operator = np.append(self.by_operator, False)
+        return m, []
+
+    def _task_id(self, rec: dict) -> int:
+        if "name" in rec:
+            name = rec["name"]
+            if name not in self.names:
+                raise EventRejected(f"task {name!r}: no such task")
+            return self.names.index(name)
+        m = rec["task"]
+        if not _is_int(m, 0, self.M):
+            raise EventRejected(f"task {m!r}: no such task (0..{self.M - 1})")
+        return m
+
+    def _cancel_task(self, rec: dict) -> tuple[list[int], list[int]]:
+        m = self._task_id(rec)
+        who = f"task {rec['name']!r}" if "name" in rec else f"task {m}"
+        st = self.status[m]
+        if st in (DONE, CANCELLED):
+            raise EventRejected(f"{who}: already {STATUS_NAMES[st]}")
+        self._requeue_pending()
+        freed: list[int] = []
+        if st == UNRELEASED:
+            self.n_hidden -= 1
+        elif st == OPEN:
+            freed = self._reset_task(m)
+        elif st == IN_PROGRESS:  # stops: the coalition is freed where it is now
+            self.events = [e for e in self.events if e[2] != m]
+            heapq.heapify(self.events)
+            start = float(self.start[m])
+            for b in self.members[m]:
+                if self.routes[b] and self.routes[b][-1] == m:
+                    self.routes[b].pop()
+                self.wait_total[b] += max(0.0, min(self.clock, start) - self.arrive[b])
+                self._stop(b)
+                self.mode[b], self.target[b] = FREE, -1
+                self.free_since[b] = self.clock
+            freed = list(self.members[m])
+            self.members[m] = []
+            self.held[m] = 0.0
+            self.start[m] = self.finish[m] = np.nan
+        self.status[m] = CANCELLED
+        self.rem[m] = 0.0
+        self.n_cancelled += 1
+        self.by_operator[m] = True
+        return freed, freed
+
+    def _add_agent(self, rec: dict) -> tuple[int, list[int]]:
+        inst, K = self.inst, self.K
+        s, traits, pos = rec.get("species"), rec.get("traits"), rec.get("position")
+        if (s is None) == (traits is None):
+            raise EventRejected("new robot: give exactly one of species and traits")
+        if pos is not None:
+            pos = _unit_point(pos, "new robot: position")
+        if s is not None:
+            if not _is_int(s, 0, inst.n_species):
+                raise EventRejected(f"new robot: species {s!r}: no such species (0..{inst.n_species - 1})")
+            species = inst.species
+        else:
+            tr = _vector(traits, K, "new robot: traits")
+            if not any(tr):
+                raise EventRejected("new robot: traits: expected at least one non-zero trait (all zero)")
+            if pos is None:
+                raise EventRejected("new robot: a robot with new traits needs a position (its depot)")
+            species = inst.species + (Species(tr, 0, pos),)
+            s = len(species) - 1
+        here = np.array(pos if pos is not None else species[s].depot, dtype=np.float64)
+        self._requeue_pending()
+        a = self.A
+        self.inst = dataclasses.replace(inst, species=species, added_agents=inst.added_agents + (s,), _cache={})
+        self.A += 1
+        cap = np.array(self.inst.traits[a] if self.additive else self.inst.traits[a] > 0, dtype=np.float64)
+        self.cap = np.vstack([self.cap, cap[None]])
+        self.mode = np.append(self.mode, FREE)
+        self.target = np.append(self.target, -1)
+        self.from_pos = np.vstack([self.from_pos, here[None]])
+        self.to_pos = np.vstack([self.to_pos, here[None]])
+        for k in ("depart", "arrive", "free_since"):
+            setattr(self, k, np.append(getattr(self, k), self.clock))
+        self.wait_total = np.append(self.wait_total, 0.0)
+        self.routes.append([])
+        self.depot_stops = np.append(self.depot_stops, 0)
+        self.pool = self.pool + cap
+        return a, [a]
 
     def _stop(self, a: int) -> None:
         """Agent a stops where it is now (its current leg is cut short)."""
@@ -575,7 +968,7 @@ class MissionState:
         continues exactly like this one. Per-task and per-agent fields are columns indexed by task
         and agent id; ``queue`` lists the deciders still to come at this instant, next first."""
         version, internal, gauss = self.rng.getstate()
-        return {
+        d = {
             "format": STATE_FORMAT,
             "rules": self.rules.to_dict(),
             "seed": self.seed,
@@ -598,6 +991,9 @@ class MissionState:
                 "start": [None if math.isnan(x) else x for x in self.start.tolist()],
                 "finish": [None if math.isnan(x) else x for x in self.finish.tolist()],
                 "members": [[int(a) for a in mem] for mem in self.members],
+                "release": self.release.tolist(),
+                "names": list(self.names),
+                "cancelled_by_operator": self.by_operator.tolist(),
             },
             "agents": {
                 "mode": [MODE_NAMES[x] for x in self.mode.tolist()],
@@ -612,7 +1008,19 @@ class MissionState:
                 "depot_stops": self.depot_stops.tolist(),
             },
             "rng": {"version": version, "state": list(internal), "gauss_next": gauss},
+            "pending": [copy.deepcopy(rec) for _, _, rec in sorted(self.pending, key=lambda e: e[:2])],
+            "log": copy.deepcopy(self.log),
         }
+        M0, A0, S0 = self.base
+        if self.M > M0 or self.A > A0:  # the mission grew: what the instance file does not hold
+            inst = self.inst
+            d["added"] = {
+                "tasks": [{**_task_record(t, self.K), "release": float(t.release)} for t in inst.tasks[M0:]],
+                "species": [{"traits": [float(x) for x in sp.traits], "depot": [float(x) for x in sp.depot]}
+                            for sp in inst.species[S0:]],
+                "agents": [int(x) for x in inst.added_agents[A0 - (inst.n_agents - len(inst.added_agents)):]],
+            }
+        return d
 
     @classmethod
     def from_snapshot(cls, inst: Instance, d: Any) -> "MissionState":
@@ -629,15 +1037,18 @@ class MissionState:
                 raise SnapshotError(f"snapshot format: unsupported version {got!r} (this build reads "
                                     f"{STATE_FORMAT!r})")
             raise f.err("format", repr(STATE_FORMAT), got)
-        A, M, K = inst.n_agents, inst.n_tasks, inst.skills
         self = cls.__new__(cls)
-        self.inst = inst
         rules = f.raw("rules")
         try:
             self.rules = parse_rules(rules)
         except ValueError as e:
             raise SnapshotError(f"snapshot {e}") from None
-        self.open_cap = self.rules.open_cap(inst)
+        self.open_cap = self.rules.open_cap(inst)  # fixed at mission start
+        self.base = (inst.n_tasks, inst.n_agents, inst.n_species)
+        if d.get("added") is not None:
+            inst = _grown(inst, f.obj("added"))
+        A, M, K = inst.n_agents, inst.n_tasks, inst.skills
+        self.inst = inst
         self.A, self.M, self.K = A, M, K
         self.additive = inst.additive
         self.cap = np.array(inst.traits if self.additive else inst.traits > 0, dtype=np.float64)
@@ -673,6 +1084,15 @@ class MissionState:
         self.start = t.floats("start", (M,), nullable=True)
         self.finish = t.floats("finish", (M,), nullable=True)
         self.members = t.id_lists("members", M, A)
+        self.release = t.floats("release", (M,)) if "release" in t.d else np.array(inst.releases, dtype=np.float64)
+        names = t.raw("names") if "names" in t.d else [None] * M
+        if not isinstance(names, list) or len(names) != M or not all(x is None or isinstance(x, str) for x in names):
+            raise t.err("names", f"a list of {M} strings or nulls", names)
+        self.names = list(names)
+        byop = t.raw("cancelled_by_operator") if "cancelled_by_operator" in t.d else [False] * M
+        if not isinstance(byop, list) or len(byop) != M or not all(isinstance(x, bool) for x in byop):
+            raise t.err("cancelled_by_operator", f"a list of {M} booleans", byop)
+        self.by_operator = np.array(byop, dtype=bool)
         a = f.obj("agents")
         self.mode = a.names("mode", MODE_NAMES, A)
         self.target = np.array(a.ints("target", A, 0, M, nullable=True), dtype=np.int64)
@@ -685,6 +1105,20 @@ class MissionState:
         self.n_open = int((self.status == OPEN).sum())
         self.n_done = int((self.status == DONE).sum())
         self.n_cancelled = int((self.status == CANCELLED).sum())
+        self.n_hidden = int((self.status == UNRELEASED).sum())
+        pending = d.get("pending") or []
+        log = d.get("log") or []
+        if not isinstance(pending, list) or not isinstance(log, list) or not all(isinstance(x, dict) for x in log):
+            raise SnapshotError("snapshot pending / log: expected lists of event records")
+        self.pending = []
+        for i, rec in enumerate(pending):
+            try:
+                _check_record(rec)
+            except EventRejected as e:
+                raise SnapshotError(f"snapshot pending[{i}]: {e}") from None
+            self.pending.append((float(rec["t"]), i + 1, copy.deepcopy(rec)))
+        self._eseq = len(self.pending)
+        self.log = copy.deepcopy(log)
         rng = f.obj("rng")
         if rng.raw("version") != 3:
             raise rng.err("version", "3 (the state layout of Python's random.Random)", rng.raw("version"))
@@ -707,6 +1141,29 @@ class MissionState:
     @property
     def makespan(self) -> float:
         return float(self.arrive.max()) if self.success else math.nan
+
+
+def _grown(inst: Instance, f: "_Fields") -> Instance:
+    """The instance of a mission that grew: the tasks, species and robots added to it."""
+    try:
+        tasks = f.raw("tasks")
+        species = f.raw("species")
+        agents = f.raw("agents")
+        if not (isinstance(tasks, list) and isinstance(species, list) and isinstance(agents, list)):
+            raise SnapshotError("snapshot added: expected lists tasks, species and agents")
+        K = inst.skills
+        new_tasks = tuple(dataclasses.replace(_task_from_record(x, K), release=float(x.get("release", 0.0)))
+                          for x in tasks)
+        new_species = tuple(Species(_vector(x.get("traits") if isinstance(x, dict) else None, K, "traits"), 0,
+                                    _unit_point(x.get("depot") if isinstance(x, dict) else None, "depot"))
+                            for x in species)
+    except EventRejected as e:
+        raise SnapshotError(f"snapshot added: {e}") from None
+    S = inst.n_species + len(new_species)
+    if not all(_is_int(x, 0, S) for x in agents):
+        raise SnapshotError(f"snapshot added.agents: expected species indices in 0..{S - 1}, got {_short(agents)}")
+    return dataclasses.replace(inst, tasks=inst.tasks + new_tasks, species=inst.species + new_species,
+                               added_agents=inst.added_agents + tuple(agents), _cache={})
 
 
 class _Fields:

@@ -127,3 +127,100 @@ def test_snapshot_anywhere_continues_identically(inst, pseed, seed, cut):
             s.step(p(s))
     assert json.dumps(solution_from_state(state, "r", seed, 0).to_dict()) == \
         json.dumps(solution_from_state(restored, "r", seed, 0).to_dict())
+
+
+# ---- random event streams (docs/semantics.md, "Events during a mission") ----------------------
+@st.composite
+def event_streams(draw):
+    """(decision index, kind, draw of the event's details) for up to 6 events."""
+    kinds = st.sampled_from(["add_task", "cancel_task", "add_agent", "drop_agent", "timed_add"])
+    return draw(st.lists(st.tuples(st.integers(0, 30), kinds, st.integers(0, 2**16),
+                                   st.sampled_from(GRID), st.sampled_from(GRID)), max_size=6))
+
+
+def _apply_random_event(state, kind, r, x, y):
+    """Apply one random event; rejected events (EventRejected) are part of what is tested."""
+    from hmrta.core import EventRejected, LOST
+    from hmrta.instance import Task
+
+    K = state.K
+    try:
+        if kind in ("add_task", "timed_add"):
+            q = [float((r >> (2 * k)) % 3) for k in range(K)]
+            q[r % K] = q[r % K] or 1.0
+            task = Task((x, y), tuple(q), float(r % 4) / 2)
+            state.add_task(task, state.clock + (r % 7 if kind == "timed_add" else 0.0))
+        elif kind == "cancel_task":
+            state.cancel_task(r % state.M if state.M else 0)
+        elif kind == "add_agent":
+            if r % 3 == 0:
+                state.add_agent(traits=[float((r >> k) % 2 + (k == 0)) for k in range(K)], position=(x, y))
+            else:
+                state.add_agent(species=r % state.inst.n_species)
+        else:
+            alive = [a for a in range(state.A) if state.mode[a] != LOST]
+            if len(alive) > 1:
+                state.drop_agent(alive[r % len(alive)])
+    except EventRejected:
+        return False
+    return True
+
+
+@settings(max_examples=120, derandomize=True, deadline=None, database=None,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(inst=arbitrary(), spec=policies, seed=st.integers(0, 1000), stream=event_streams())
+def test_random_event_streams(inst, spec, seed, stream):
+    """Adds, cancellations, robot additions and losses at random decision points: the mission
+    always ends (never a deadlock), succeeds unless a task became unsatisfiable, every done task
+    was satisfied by its coalition after everyone arrived, and the state snapshot round trip after
+    the events is bit-exact and continues identically."""
+    from hmrta.core import CANCELLED, DONE, LOST
+
+    pol, rules = _policy(spec)
+    state = MissionState(inst, seed, rules)
+    stream = sorted(stream)
+    k = 0
+    restored = None
+    while not state.done:
+        while stream and stream[0][0] <= k and not state.done:
+            _, kind, r, x, y = stream.pop(0)
+            _apply_random_event(state, kind, r, x, y)
+        if state.done:
+            break
+        if restored is None and k >= 3:  # snapshot once, after some events
+            d = json.loads(json.dumps(state.snapshot()))
+            restored = MissionState.from_snapshot(inst, d)
+            assert json.dumps(restored.snapshot()) == json.dumps(d)
+            twin = _policy(spec)[0]
+            if hasattr(pol, "rng"):
+                twin.rng.setstate(pol.rng.getstate())
+            saved_stream = list(stream)
+            restored_k = k
+        state.step(pol(state))
+        k += 1
+    assert state.done
+    assert state.failure is None or "cancelled" in state.failure, state.failure
+    unsat = (state.status == CANCELLED) & ~state.by_operator
+    assert state.success == (not unsat.any())
+    assert ((state.status == DONE) | (state.status == CANCELLED)).all()
+    assert not state.pending and state.n_hidden == 0
+    for m in np.flatnonzero(state.status == DONE):
+        mem = state.members[m]
+        assert mem and all(state.mode[a] != LOST or True for a in mem)
+        c = state.cap[mem].sum(0)
+        assert (c >= state.req[m] - 1e-9).all()
+    for a in range(state.A):
+        if state.mode[a] != LOST:
+            assert np.allclose(state.to_pos[a], state.inst.depots[a]), (a, state.to_pos[a])
+    if restored is not None:  # the restored twin, fed the same events, ends identically
+        k = restored_k
+        stream = saved_stream
+        while not restored.done:
+            while stream and stream[0][0] <= k and not restored.done:
+                _, kind, r, x, y = stream.pop(0)
+                _apply_random_event(restored, kind, r, x, y)
+            if restored.done:
+                break
+            restored.step(twin(restored))
+            k += 1
+        assert json.dumps(restored.snapshot()) == json.dumps(state.snapshot())

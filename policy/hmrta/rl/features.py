@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core import DONE, IN_PROGRESS, LOST, OPEN, TASK, MissionState
+from ..core import DONE, IN_PROGRESS, LOST, OPEN, TASK, UNRELEASED, MissionState
 
 K_MAX = 5
 TASK_FEATURES = 2 * K_MAX + 5
@@ -45,18 +45,21 @@ def observe(state: MissionState, a: int | None = None, max_tasks: int = MAX_TASK
     pos = state.positions()  # [A, 2]
     tf, af, mask = _observe_full(state, a, pos)
     M, A = state.M, state.A
+    nodes = np.arange(M + 1)
+    if state.n_hidden:  # tasks not yet released are not observed at all (as if they did not exist)
+        nodes = np.concatenate([[0], np.flatnonzero(state.status != UNRELEASED) + 1])
+        tf, mask = tf[nodes], mask[nodes]
+        M = len(nodes) - 1
     if M <= max_tasks and A <= max_agents:
-        return tf, af, mask, np.arange(M + 1), a
+        return tf, af, mask, nodes, a
     here = pos[a]  # [2]
     if M > max_tasks:
-        d = np.hypot(*(state.inst.task_locations - here).T)  # [M]
+        d = np.hypot(*(state.inst.task_locations[nodes[1:] - 1] - here).T)  # [M]
         key = np.where(mask[1:], d, d + 1e6)  # admissible first, then by distance
         keep = np.sort(np.argsort(key, kind="stable")[:max_tasks]) + 1  # [W] task rows (1-based)
         rows = np.concatenate([[0], keep])  # [1+W]
         tf, mask = tf[rows], mask[rows]
-        nodes = rows
-    else:
-        nodes = np.arange(M + 1)
+        nodes = nodes[rows]
     if A > max_agents:
         d = np.hypot(*(pos - here).T)  # [A]
         d[a] = -1.0  # the decider itself always

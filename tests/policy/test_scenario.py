@@ -1,0 +1,172 @@
+"""Dynamic scenarios (`hmrta-scenario/1`): loading, one-line errors, every method running them,
+dynamic metrics, and the learned policy seeing a released task exactly like an added one."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hmrta import methods
+from hmrta.core import MissionState
+from hmrta.formats import load_instance
+from hmrta.generators import ScenarioGenerator
+from hmrta.instance import InstanceError
+from hmrta.scenario import ScenarioError, scenario_from_dict
+
+MISSION = """format: hmrta-instance/1
+requirement_type: additive
+velocity: 0.2
+skills: 2
+species:
+  - {traits: [1, 0], count: 2, depot: [0.0, 0.0]}
+  - {traits: [0, 1], count: 2, depot: [1.0, 1.0]}
+tasks:
+  - {location: [0.5, 0.1], requirements: [1, 0], duration: 2}
+  - {location: [0.2, 0.8], requirements: [1, 1], duration: 3}
+  - {location: [0.9, 0.4], requirements: [0, 2], duration: 1}
+"""
+EVENTS = """  - {t: 3.0, type: add_task, id: inspect-7, location: [0.3, 0.6], requirements: [1, 1], duration: 2}
+  - {t: 4.0, type: add_task, id: extra, location: [0.6, 0.6], requirements: [2, 0], duration: 1}
+  - {t: 5.0, type: cancel_task, id: extra}
+  - {t: 6.0, type: add_robot, species: 1}
+  - {t: 7.0, type: add_robot, traits: [1, 1], position: [0.5, 0.5]}
+  - {t: 8.0, type: lose_robot, robot: 0}
+"""
+
+
+@pytest.fixture
+def scenario(tmp_path):
+    (tmp_path / "mission.yaml").write_text(MISSION)
+    p = tmp_path / "scen.yaml"
+    p.write_text("format: hmrta-scenario/1\nname: demo\ninstance: mission.yaml\nevents:\n" + EVENTS)
+    return p
+
+
+def test_load_scenario_events_in_time_order(scenario):
+    inst = load_instance(scenario)
+    assert inst.name == "demo" and inst.dynamic and inst.n_tasks == 3
+    assert [e["type"] for e in inst.events] == ["add_task", "add_task", "cancel_task", "add_agent", "add_agent",
+                                                "drop_agent"]
+    assert inst.events[2] == {"t": 5.0, "type": "cancel_task", "name": "extra"}
+
+
+@pytest.mark.parametrize("method", ["greedy", "greedy-coalition", "rl", "rl-s3"])
+def test_every_method_runs_a_scenario(scenario, method):
+    sol = methods.solve(load_instance(scenario), method, seed=0)
+    assert sol.success and len(sol.routes) == 6 and len(sol.tasks) == 5
+    dyn = sol.extra["dynamic"]
+    assert dyn["release"] == [0.0, 0.0, 0.0, 3.0, 4.0]
+    assert dyn["tasks_lost"] == {"cancelled": 1, "unsatisfiable": 0, "rejected": 0}
+    assert dyn["response"][4] is None and dyn["response"][3] == pytest.approx(sol.tasks[3]["finish"] - 3.0)
+    assert sol.routes[0] == [] or 0 not in sol.routes[0][1:]  # robot 0 lost at t = 8
+    assert sol.makespan >= max(t["finish"] for t in sol.tasks if t["finish"] == t["finish"])
+
+
+def test_cpsat_refuses_a_scenario(scenario):
+    with pytest.raises(methods.MethodError, match="offline solver"):
+        methods.solve(load_instance(scenario), "cpsat", seed=0)
+
+
+def test_cli_solve_and_bad_file(scenario, tmp_path):
+    out = tmp_path / "sol.json"
+    r = subprocess.run([sys.executable, "-m", "hmrta.cli", "solve", str(scenario), "--method", "greedy",
+                        "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(out.read_text())["dynamic"]["tasks_lost"]["cancelled"] == 1
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: hmrta-scenario/1\ninstance: mission.yaml\nevents:\n"
+                   "  - {t: 1, type: add_task, id: a, location: [0.3, 0.6], requirements: [1, 1], duration: 2}\n"
+                   "  - {t: 2, type: add_robot, species: 7}\n")
+    r = subprocess.run([sys.executable, "-m", "hmrta.cli", "solve", str(bad), "--method", "greedy"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().count("\n") == 0
+    assert "bad.yaml (line 5): events[1].species: expected a species index in 0..1, got 7" in r.stderr
+
+
+@pytest.mark.parametrize("event, message", [
+    ({"t": -1, "type": "lose_robot", "robot": 0}, "events[0].t: expected a time >= 0"),
+    ({"t": 1, "type": "explode"}, "events[0].type: expected one of add_task"),
+    ({"t": 1, "type": "lose_robot", "robot": 9}, "events[0].robot: expected a robot index in 0..3"),
+    ({"t": 1, "type": "cancel_task", "id": "nope"}, "events[0].id: no add_task event has id 'nope'"),
+    ({"t": 1, "type": "cancel_task", "id": 3}, "task index in 0..2"),
+    ({"t": 1, "type": "add_robot", "traits": [1, 0]}, "missing field 'position'"),
+    ({"t": 1, "type": "add_task", "id": "a", "location": [2, 0], "requirements": [1, 0], "duration": 1},
+     "events[0].location: expected a point in the unit square"),
+    ({"t": 1, "type": "add_task", "id": "a", "location": [0, 0], "requirements": [1, 0]}, "missing field 'duration'"),
+    ({"t": 1, "type": "lose_robot", "robot": 0, "why": "x"}, "events[0].why: unknown field"),
+])
+def test_scenario_errors_name_the_field(event, message):
+    import yaml
+
+    d = {"format": "hmrta-scenario/1", "instance": yaml.safe_load(MISSION), "events": [event]}
+    with pytest.raises(ScenarioError, match=None) as e:
+        scenario_from_dict(d, "s.yaml")
+    assert message in str(e.value) and str(e.value).startswith("s.yaml")
+    assert isinstance(e.value, InstanceError)
+
+
+def test_release_field_on_instance_tasks(tmp_path):
+    p = tmp_path / "m.yaml"
+    p.write_text(MISSION.replace("duration: 1}", "duration: 1, release: 2.5}"))
+    inst = load_instance(p)
+    assert inst.tasks[2].release == 2.5 and inst.dynamic
+    assert "release: 2.5" in inst.to_yaml()
+    p.write_text(MISSION.replace("duration: 1}", "duration: 1, release: -1}"))
+    with pytest.raises(InstanceError, match=r"tasks\[2\].release: expected a time >= 0"):
+        load_instance(p)
+
+
+def test_learned_policy_released_equals_added():
+    """A task known from the start with release t (masked, not observed until t) and the same task
+    added at t by an event: the learned policy takes the same decisions, the missions are equal."""
+    pytest.importorskip("torch")
+    from hmrta.rl.features import observe
+
+    base = ScenarioGenerator("MA-AT", 9, 3, 12, 3).instance(11, 0)
+    late = [dataclasses.replace(t, release=0.0) for t in base.tasks[-3:]]
+    early = dataclasses.replace(base, tasks=base.tasks[:-3], _cache={})
+    times = [3.0, 7.5, 12.0]
+    released = dataclasses.replace(
+        base, tasks=early.tasks + tuple(dataclasses.replace(t, release=r) for t, r in zip(late, times)), _cache={})
+    added = dataclasses.replace(early, events=tuple(
+        {"t": r, "type": "add_task", "task": {"location": list(t.location), "requirements": list(t.requirements),
+                                               "duration": t.duration}} for t, r in zip(late, times)), _cache={})
+    decide, rules = methods.decider("rl")
+    a, b = MissionState(released, 4, rules), MissionState(added, 4, rules)
+    seen_hidden = False
+    while not a.done:
+        assert not b.done
+        oa, ob = observe(a), observe(b)
+        seen_hidden |= a.n_hidden > 0
+        for x, y in zip(oa[:3], ob[:3]):
+            assert np.array_equal(x, y)
+        assert np.array_equal(oa[3], ob[3])
+        na, nb = decide(a), decide(b)
+        assert na == nb
+        a.step(na)
+        b.step(nb)
+    assert b.done and seen_hidden
+    assert a.routes == b.routes and a.makespan == b.makespan and a.success
+    sa, sb = (methods.solve(x, "rl", seed=4) for x in (released, added))
+    assert sa.routes == sb.routes and sa.extra["dynamic"]["response"] == sb.extra["dynamic"]["response"]
+
+
+def test_scenario_naming_a_scenario_is_refused(scenario, tmp_path):
+    """The mission a scenario names is a mission: another scenario, or the file itself, is an error
+    (no recursion), and a parsed mapping without a loader takes only an inline mission."""
+    own = tmp_path / "self.yaml"
+    own.write_text("format: hmrta-scenario/1\ninstance: self.yaml\nevents: []\n")
+    nested = tmp_path / "nested.yaml"
+    nested.write_text(f"format: hmrta-scenario/1\ninstance: {scenario.name}\nevents: []\n")
+    for p in (own, nested):
+        with pytest.raises(ScenarioError, match=r"\(line 2\): instance: .*: expected a mission \(hmrta-instance/1\), "
+                                                r"got a scenario"):
+            load_instance(p)
+    with pytest.raises(ScenarioError, match="instance: expected an inline hmrta-instance/1 mapping"):
+        scenario_from_dict({"format": "hmrta-scenario/1", "instance": "mission.yaml", "events": []}, "s.yaml")
