@@ -2,7 +2,8 @@
 
 ``hmrta-mission`` restarts a simulated-robot or agent process that dies; the new process
 resynchronises from the latched board and the mission completes (and still equals the offline
-rollout). When the board dies the launcher ends at once with a partial result and a non-zero exit.
+rollout). When the board dies without a journal (``--no-journal``) the launcher ends at once with a
+partial result and a non-zero exit (with one it is restarted: tests/ros/test_board_crash.py).
 """
 from __future__ import annotations
 
@@ -148,7 +149,7 @@ def test_killed_agent_process_is_restarted_and_the_mission_completes(tmp_path, d
 
 
 def test_killed_board_ends_the_launcher_with_a_partial_result(tmp_path, domain, graph, launched):
-    launcher, out = launch(tmp_path, domain)
+    launcher, out = launch(tmp_path, domain, "--no-journal")  # with its journal the board is restarted
     launched.append(launcher)
     _, done_then, _ = kill_mid_mission(graph, launcher, "hmrta_coordinator.task_board", 6)
     t_kill = time.monotonic()

@@ -48,7 +48,7 @@ from hmrta.methods import MethodError, decider
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (BoardDecoder, Choice, DecodeError, Mission, Status, choice_to_msg, clock_from_msg,
                                  mission_from_msg, pose_to_msg, status_to_msg)
-from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, method_parameters_help, spin_nodes
+from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, spin_nodes
 
 
 EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
@@ -356,9 +356,13 @@ def _set_torch_threads(n: int) -> None:
 
 def main(args: list[str] | None = None) -> None:
     argv = sys.argv if args is None else args
+    from hmrta_msgs_py.params import node_parameters
+    from hmrta_msgs_py.runtime import parameters_help
+
     p = argparse.ArgumentParser(prog="agent_node", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog="method parameters (--ros-args -p NAME:=VALUE):\n" + method_parameters_help())
+                                epilog="ROS parameters (--ros-args -p NAME:=VALUE):\n"
+                                       + parameters_help(node_parameters("agent_node")))
     p.add_argument("--robots", type=robots_arg, default=None,
                    help="host several robots in this process (node /<robot>/agent each); default: one "
                         "robot named by -p robot:=NAME or by the namespace")

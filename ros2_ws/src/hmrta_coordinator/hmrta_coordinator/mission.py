@@ -8,7 +8,11 @@ Gantt picture), prints the metrics and stops every process it started.
 Any process may die. A simulated-robot or agent process that dies (a crash, any signal) is
 restarted, at most 3 times each, with the reason printed and kept in the result's ``incidents``;
 the new process resynchronises from the latched mission and board and the mission goes on. The
-board is not restarted: when it dies (or the mission times out, or is interrupted) the launcher
+board journals every version it publishes (``<out>_logs/journal.jsonl``; ``--no-journal``: off):
+when it dies it is restarted on its journal (at most 3 times), replays it and goes on under the
+same session, and agents and robots resynchronise from its latched board. Without a journal, or
+once it has been restarted too often, a dying board (or a mission that times out, or is
+interrupted) ends the mission: the launcher
 stops the rest at once and writes a partial result (``success`` false, ``partial`` true, the
 ``failure`` reason, and the routes and completed tasks of the latest board it saw). Exit status:
 0 mission completed, 3 completed without success (e.g. lost robots left tasks undone), 1 did not
@@ -99,7 +103,8 @@ class MissionProcesses:
     board: Child | None = None
     sim: Child | None = None
     agents: list[Child] = field(default_factory=list)
-    max_restarts: int = 3  # per simulated-robot / agent process; the board is never restarted
+    max_restarts: int = 3  # per process (the board only when it has a journal to resume from)
+    journal: Path | None = None  # the board's journal: a board that dies is restarted on it
     incidents: list[str] = field(default_factory=list)  # what died and what was done about it
     last_board: str | None = None  # the latest board message seen by run_monitor (its text)
 
@@ -127,6 +132,8 @@ class MissionProcesses:
         bp = {"instance": str(self.instance), "robot_names": self.robots, **common, **self.board_params}
         if self.out is not None:
             bp["output"] = str(self.out)
+        if self.journal is not None:
+            bp["journal"] = str(self.journal)
         self.board = self._spawn("task_board", "hmrta_coordinator.task_board",
                                  ["--ros-args", *ros_params(bp), *self.board_ros_args])
         sp = {"time_scale": self.time_scale, **self.sim_params}
@@ -281,6 +288,13 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
         while time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.1)
             rc = procs.board.proc.poll()
+            if rc is not None and rc != 0 and procs.journal is not None and procs.board.restarts < procs.max_restarts:
+                procs.board.restarts += 1
+                procs.incidents.append(f"board process died ({exit_text(rc)}){when()}; restarted on its journal "
+                                       f"({procs.board.restarts}/{procs.max_restarts})")
+                print(f"hmrta-mission: {procs.incidents[-1]}", file=sys.stderr, flush=True)
+                procs._respawn(procs.board, procs.incidents[-1])
+                continue
             if rc is not None:
                 for _ in range(10):  # boards already received but not yet taken
                     rclpy.spin_once(node, timeout_sec=0.02)
@@ -393,6 +407,8 @@ def main(argv: list[str] | None = None) -> int:
                       help="authenticate robots with this mission keystore (hmrta keys create; docs/security.md)")
     auth.add_argument("--authenticate", action="store_true",
                       help="authenticate robots with a fresh keystore made in the mission's log folder")
+    p.add_argument("--no-journal", action="store_true",
+                   help="no board journal (<out>_logs/journal.jsonl): a board that dies ends the mission")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(remove_ros_args(argv)[1:])
 
@@ -400,23 +416,18 @@ def main(argv: list[str] | None = None) -> int:
     from hmrta.instance import InstanceError
     from hmrta.solution import Solution
 
-    try:
-        name, implied = methods.parse(args.method)
-        method_options = methods.get(name).check({**implied, **methods.options_from_args(args)}, live=True)
-    except methods.MethodError as e:
-        print(f"hmrta-mission: {e}", file=sys.stderr)
-        return 2
-    if methods.get(name).decide is None:
-        print(f"hmrta-mission: method {name} has no per-decision form (live methods: "
-              f"{', '.join(methods.live_methods())})", file=sys.stderr)
-        return 2
-
     path = Path(args.instance) if args.instance else default_instance()
     try:
         inst = load_instance(path)
-    except InstanceError as e:
+        # the live method every robot runs (a per-mission choice such as portfolio is made here)
+        args.method, method_options, scores = methods.resolve(inst, args.method, args.seed,
+                                                              **methods.options_from_args(args))
+    except (InstanceError, methods.MethodError) as e:
         print(f"hmrta-mission: {e}", file=sys.stderr)
         return 2
+    if scores is not None:
+        print("method chosen by simulation: " + args.method + " ("
+              + ", ".join(f"{c} {v:.2f}" for c, v in scores.items()) + ")", flush=True)
     if args.agents_per_process < 1:
         print("hmrta-mission: --agents-per-process must be >= 1", file=sys.stderr)
         return 2
@@ -447,7 +458,10 @@ def main(argv: list[str] | None = None) -> int:
     procs = MissionProcesses(path, robots, out, log_dir, env, seed=args.seed, method=args.method,
                              method_options=method_options, agents_per_process=args.agents_per_process,
                              time_scale=args.time_scale, keystore=keystore,
-                             board_params={"heartbeat_timeout": args.heartbeat_timeout, "progress_period": 0.0})
+                             board_params={"heartbeat_timeout": args.heartbeat_timeout, "progress_period": 0.0},
+                             journal=None if args.no_journal else log_dir / "journal.jsonl")
+    if procs.journal is not None and procs.journal.exists():
+        procs.journal.unlink()  # a new mission: never resume a previous run's journal
     n_proc = 2 + len(procs.agent_groups())
     print(f"mission {inst.name}: {inst.n_agents} robots, {inst.n_tasks} tasks, method {args.method}, seed {args.seed}; "
           f"{n_proc} processes on ROS domain {env['ROS_DOMAIN_ID']} "

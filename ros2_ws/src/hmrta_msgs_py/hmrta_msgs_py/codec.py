@@ -40,8 +40,11 @@ BOARD_FORMAT = "hmrta-board/1"
 CHOICE_FORMAT = "hmrta-choice/1"
 STATUS_FORMAT = "hmrta-status/1"
 REJECTION_FORMAT = "hmrta-rejection/1"
+TASK_REQUEST_FORMAT = "hmrta-task-request/1"
+TASK_EVENT_FORMAT = "hmrta-task-event/1"
 # every format this module writes (the board's third line is an hmrta-state/1 snapshot)
-FORMATS = (MISSION_FORMAT, BOARD_FORMAT, STATE_FORMAT, CHOICE_FORMAT, STATUS_FORMAT, REJECTION_FORMAT, RESULT_FORMAT)
+FORMATS = (MISSION_FORMAT, BOARD_FORMAT, STATE_FORMAT, CHOICE_FORMAT, STATUS_FORMAT, REJECTION_FORMAT, RESULT_FORMAT,
+           TASK_REQUEST_FORMAT, TASK_EVENT_FORMAT)
 
 PHASES = ("starting", "wait", "decide", "closing", "done")
 HOLD = -1  # leg node: stay where you are (0 = own depot, 1 + m = task m)
@@ -475,6 +478,70 @@ def rejection_from_msg(msg: String) -> Rejection:
     return Rejection(_get(d, "reason", str, w), _get(d, "detail", str, w),
                      _get(d, "robot", str, w, optional=True, default=""),
                      _get(d, "version", int, w, optional=True, default=-1))
+
+
+# ---------------------------------------------------------------------------------------------
+# operator task requests (anyone -> board) and task events (board -> anyone)
+# ---------------------------------------------------------------------------------------------
+TASK_OPS = ("add", "cancel")
+TASK_EVENTS = ("accepted", "rejected", "started", "done", "cancelled")
+
+
+@dataclass(frozen=True)
+class TaskRequest:
+    op: str  # add | cancel
+    id: str  # client-chosen task id
+    task: dict[str, Any] | None = None  # add: {location: [x, y], requirements: [...], duration}
+
+
+def task_request_to_msg(r: TaskRequest) -> String:
+    d: dict[str, Any] = {"format": TASK_REQUEST_FORMAT, "op": r.op, "id": r.id}
+    if r.task is not None:
+        d["task"] = r.task
+    return _str(_dumps(d))
+
+
+def task_request_from_msg(msg: String) -> TaskRequest:
+    """Shape only; the task's values are checked when the board applies it (hmrta.core)."""
+    w = TASK_REQUEST_FORMAT
+    d = _obj(msg.data, w)
+    op = _get(d, "op", str, w)
+    if op not in TASK_OPS:
+        raise DecodeError(f"{w}.op: expected one of {TASK_OPS}, got {_short(op)}")
+    rid = _get(d, "id", str, w)
+    if not rid or len(rid) > 256:
+        raise DecodeError(f"{w}.id: expected a non-empty id of at most 256 characters")
+    task = _get(d, "task", dict, w, optional=(op == "cancel"))
+    return TaskRequest(op, rid, task)
+
+
+@dataclass(frozen=True)
+class TaskEvent:
+    id: str
+    event: str  # accepted | rejected | started | done | cancelled
+    t: float = 0.0  # mission time
+    task: int | None = None  # task index on the board
+    reason: str = ""  # rejected: why
+    op: str = ""  # accepted / rejected: the request's op
+
+
+def task_event_to_msg(e: TaskEvent) -> String:
+    d: dict[str, Any] = {"format": TASK_EVENT_FORMAT, "id": e.id, "event": e.event, "t": e.t}
+    if e.task is not None:
+        d["task"] = e.task
+    if e.reason:
+        d["reason"] = e.reason
+    if e.op:
+        d["op"] = e.op
+    return _str(_dumps(d))
+
+
+def task_event_from_msg(msg: String) -> TaskEvent:
+    w = TASK_EVENT_FORMAT
+    d = _obj(msg.data, w)
+    return TaskEvent(_get(d, "id", str, w), _get(d, "event", str, w), _num(d, "t", w),
+                     _get(d, "task", int, w, optional=True), _get(d, "reason", str, w, optional=True, default=""),
+                     _get(d, "op", str, w, optional=True, default=""))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -16,6 +16,8 @@ STATUS = "/hmrta/agent_status"  # std_msgs/String hmrta-status/1    agents -> bo
 REJECTIONS = "/hmrta/rejections"  # std_msgs/String hmrta-rejection/1  board -> anyone
 RESULT = "/hmrta/result"  # std_msgs/String hmrta-solution/1        board -> all (latched)
 MARKERS = "/hmrta/markers"  # visualization_msgs/MarkerArray        board -> RViz
+TASK_REQUESTS = "/hmrta/task_requests"  # std_msgs/String hmrta-task-request/1  operators -> board
+TASK_EVENTS = "/hmrta/task_events"  # std_msgs/String hmrta-task-event/1  board -> operators
 CLOCK = "/clock"  # rosgraph_msgs/Clock                              sim_robot -> all
 
 # ---- per-robot topics (relative: resolved in the robot's namespace) -----------------------------
@@ -43,6 +45,8 @@ CHOICE_QOS = _qos(100)
 STATUS_QOS = _qos(50)
 REJECTION_QOS = _qos(100)
 MARKER_QOS = _qos(1, latched=True)
+TASK_REQUEST_QOS = _qos(100)
+TASK_EVENT_QOS = _qos(100, latched=True)  # a late operator gets the latest answers
 CLOCK_QOS = _qos(1, latched=True)  # a late subscriber gets the current time at once
 GOAL_QOS = _qos(10)
 # poses are published reliably; the board subscribes best effort so that any robot driver

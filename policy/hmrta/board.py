@@ -1,0 +1,662 @@
+"""The task board's protocol, without ROS: a mission board as a plain object.
+
+:class:`MissionBoard` holds the SPEC §3 state machine (:class:`BoardState`, a
+:class:`hmrta.core.MissionState` that logs every leg) and everything the board decides about the
+messages it receives; the ROS node (``hmrta_coordinator.task_board``) only maps topics, parameters
+and timers onto it, in the way a simulator's ROS wrapper delegates to its world object. Feed it
+decoded messages and clock values, call :meth:`MissionBoard.poll` and publish the
+:class:`View` it returns (if any). Nothing here imports rclpy.
+
+* **Choices** (:meth:`MissionBoard.choice`): schema-decoded choices are validated in order
+  (session, authentication when a :class:`hmrta.keys.Verifier` is given, known robot, lost robot,
+  duplicate, version, released decision, turn, mask); a valid one is applied with
+  ``MissionState.step``, anything else returns a :class:`Rejected` and changes nothing.
+* **The clock and the arrival gate**: the board releases a decision only when the mission clock
+  (``/clock``, :meth:`MissionBoard.set_clock`) has reached the decision's instant, and gives the
+  clock a *horizon* it may not pass: the next decision instant, and the start of any task whose
+  members have not yet reported (:meth:`MissionBoard.pose`) being at the task.
+* **Robot loss**: a robot whose heartbeat (:meth:`MissionBoard.heartbeat`) or pose stops for
+  ``heartbeat_timeout`` seconds, or that does not decide within ``decision_timeout`` seconds, is
+  dropped (``MissionState.drop_agent``) by :meth:`MissionBoard.tick`.
+* **Journal and replay** (``journal``: a path): every published board version is appended to a
+  JSON-lines journal (``hmrta-journal/1``), one line per version with the events applied since the
+  previous one (choices, arrival confirmations, losses, the start); lines that carry events are
+  flushed and fsynced before :meth:`MissionBoard.poll` returns the version for publishing. A board
+  created on an existing journal replays it (same session, same versions, same state) and goes on
+  from there. A torn last line (a write cut short) is detected (no newline, or not a JSON object)
+  and dropped before anything is appended; it is never applied in part, since one line holds all
+  the events of one version.
+* **Result** (:meth:`MissionBoard.result`): the ``hmrta-solution/1`` of the mission with the
+  board's extras (lost robots and reasons, undone tasks, latencies, rejections).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import statistics
+import time
+import uuid
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from .core import DONE, LOST, STATUS_NAMES, EventRejected, MissionState, Rules, apply_event
+from .instance import Instance
+from .keys import rejection_code
+from .solution import Solution, solution_from_state
+
+EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
+LEG_WINDOW = 4  # legs per robot repeated on every board (a reader that skipped versions catches up)
+HOLD = -1  # leg node: stay where you are (0 = own depot, 1 + m = task m)
+JOURNAL_FORMAT = "hmrta-journal/1"
+PHASES = ("starting", "wait", "decide", "closing", "done")
+
+
+class JournalError(ValueError):
+    """A journal that cannot be replayed (written for another mission, or corrupt before its last
+    line); one line naming the file and line."""
+
+
+class BoardState(MissionState):
+    """The mission state machine, logging every leg a commitment starts.
+
+    One ``step`` may run several events ahead of the mission clock (a robot commits to a task,
+    the task completes, the robot is sent home), so the current leg alone would lose moves; the
+    log keeps them all, in order, for the robots' goals."""
+
+    def __init__(self, inst, seed: int = 0, rules: Rules = Rules()):
+        self.leg_log: list[list[tuple[int, float, float, float]]] = [[] for _ in range(inst.n_agents)]
+        super().__init__(inst, seed=seed, rules=rules)
+
+    def commit(self, a: int, node: int) -> None:
+        before = (float(self.depart[a]), float(self.arrive[a]))
+        super().commit(a, node)
+        if (float(self.depart[a]), float(self.arrive[a])) != before or node > 0:
+            self.log_leg(a, node)
+
+    def log_leg(self, a: int, node: int) -> None:
+        self.leg_log[a].append((node, float(self.to_pos[a, 0]), float(self.to_pos[a, 1]), float(self.depart[a])))
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """Why a message was refused (``reason``: a code of hmrta-rejection/1)."""
+    reason: str
+    detail: str
+    robot: str = ""
+    version: int = -1
+
+
+@dataclass(frozen=True)
+class View:
+    """One board version to publish (the header fields of hmrta-board/1, the legs and the state)."""
+    session: str
+    version: int
+    rev: int
+    phase: str
+    decider: int | None
+    clock: float
+    horizon: float
+    n_done: int
+    n_cancelled: int
+    n_tasks: int
+    lost: tuple[int, ...]
+    legs: tuple
+    state_json: str  # the hmrta-state/1 snapshot as compact JSON (cached per state revision)
+
+
+def percentile(xs: list[float], q: float) -> float:
+    if not xs:
+        return math.nan
+    s = sorted(xs)
+    return s[min(len(s) - 1, max(0, math.ceil(q / 100 * len(s)) - 1))]
+
+
+def _r(v: float | None) -> float | None:
+    return None if v is None or v != v else round(float(v), 3)
+
+
+def instance_digest(inst: Instance) -> str:
+    """sha256 of the instance's canonical JSON: a journal is replayed only on its own mission."""
+    return hashlib.sha256(json.dumps(inst.to_dict(), sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------
+# the journal file
+# ---------------------------------------------------------------------------------------------
+def read_journal(path: str | os.PathLike) -> tuple[dict[str, Any] | None, list[dict[str, Any]], int, str | None]:
+    """-> (header or None, version lines, byte length of the intact part, why the tail was dropped
+    or None). A last line that is cut short (no newline) or is not a JSON object is torn: it is
+    left out; any earlier line that is not a JSON object is a :class:`JournalError`."""
+    p = Path(path)
+    data = p.read_bytes() if p.exists() else b""
+    lines = data.split(b"\n")
+    tail = lines.pop()  # after the last newline: empty unless the last write was cut short
+    good = len(data) - len(tail)
+    dropped = f"a torn last line ({len(tail)} bytes without a newline)" if tail else None
+    records: list[dict[str, Any]] = []
+    for i, raw in enumerate(lines):
+        try:
+            rec = json.loads(raw)
+            if not isinstance(rec, dict):
+                raise ValueError("not a JSON object")
+        except ValueError:  # JSONDecodeError and UnicodeDecodeError included
+            if i == len(lines) - 1 and dropped is None:
+                good -= len(raw) + 1
+                dropped = f"a torn last line ({len(raw)} bytes that are not a JSON object)"
+                break
+            raise JournalError(f"{p}: line {i + 1} is not a JSON object (the journal is corrupt)") from None
+        records.append(rec)
+    header = None
+    if records:
+        header = records.pop(0)
+        if header.get("format") != JOURNAL_FORMAT:
+            raise JournalError(f"{p}: line 1: expected format {JOURNAL_FORMAT!r}, got {header.get('format')!r}")
+    return header, records, good, dropped
+
+
+class Journal:
+    """Append-only JSON lines; :meth:`append` writes one line, flushes it and (``sync``) fsyncs."""
+
+    def __init__(self, path: str | os.PathLike, keep: int):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        os.ftruncate(fd, keep)  # a torn tail is dropped before anything is appended
+        os.lseek(fd, keep, os.SEEK_SET)
+        self.fh = os.fdopen(fd, "ab")
+        self.lines = 0
+
+    def append(self, rec: dict[str, Any], sync: bool) -> None:
+        self.fh.write((json.dumps(rec, separators=(",", ":"), allow_nan=False) + "\n").encode())
+        self.fh.flush()
+        if sync:
+            os.fsync(self.fh.fileno())
+        self.lines += 1
+
+    def close(self) -> None:
+        self.fh.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# the board
+# ---------------------------------------------------------------------------------------------
+class MissionBoard:
+    """The board's protocol logic (see the module docstring). Wall times come from ``now``
+    (default ``time.monotonic``); ``log(level, text)`` receives what the board reports
+    (levels ``info``, ``warning``)."""
+
+    def __init__(self, inst: Instance, names: Sequence[str] | None = None, *, seed: int = 0,
+                 rules: Rules = Rules(), method: str = "greedy", session: str | None = None,
+                 verifier: Any = None, tolerance: float = 1e-3, heartbeat_timeout: float = 5.0,
+                 decision_timeout: float = 30.0, startup_timeout: float = 120.0, wait_for_robots: bool = True,
+                 journal: str | os.PathLike | None = None, now: Callable[[], float] = time.monotonic,
+                 log: Callable[[str, str], None] | None = None):
+        A = inst.n_agents
+        names = list(names or [f"robot_{a}" for a in range(A)])
+        if len(names) != A or len(set(names)) != A:
+            raise ValueError(f"robot_names: expected {A} distinct names, got {len(names)}")
+        self.inst, self.names, self.seed, self.rules, self.method = inst, names, seed, rules, method
+        self.index = {n: a for a, n in enumerate(names)}
+        self.verifier = verifier
+        self.tolerance, self.heartbeat_timeout = tolerance, heartbeat_timeout
+        self.decision_timeout, self.startup_timeout = decision_timeout, startup_timeout
+        self.now = now
+        self.log = log or (lambda level, text: None)
+        self.state = BoardState(inst, seed=seed, rules=rules)
+        self.session = session or uuid.uuid4().hex[:12]
+        self.version = 0  # published board version
+        self.rev = 0  # state revision
+        self.phase = "starting"
+        self.clock = 0.0  # latest mission clock (/clock)
+        self.t_created = now()
+        self.t_start: float | None = None
+        self.started = False  # the mission has started (journaled: a replayed board does not wait again)
+        self.seen_status: list[float | None] = [None] * A
+        self.seen_pose: list[float | None] = [None] * A
+        self.last_pose: list[tuple[float, float] | None] = [None] * A
+        self.ptr = [0] * A  # route prefix whose arrivals are confirmed
+        self.lost: dict[int, str] = {}
+        self.accepted: set[tuple[int, int]] = set()
+        self.released_at = 0.0  # wall time when the current decision was released
+        self.latency_ms: list[float] = []
+        self.agent_ms: list[float] = []
+        self.rejected: Counter[str] = Counter()
+        self.auth_rejected: dict[str, Counter[str]] = {"choice": Counter(), "status": Counter()}
+        self.finished = False
+        self.restarts = 0  # times this mission's board was restarted on its journal
+        self._key: tuple | None = None
+        self._cache_rev = -1
+        self._legs: tuple = ()
+        self._state_json = ""
+        self._events: list[dict[str, Any]] = []  # applied since the last published version
+        self.requests: dict[str, str] = {}  # operator task id -> last status reported on the events topic
+        self.task_events: list[dict[str, Any]] = []  # hmrta-task-event/1 bodies not yet published
+        self.journal: Journal | None = None
+        if journal is not None:
+            self._open_journal(Path(journal))
+        if not wait_for_robots and not self.started:
+            self.start()
+
+    # ------------------------------------------------------------------------------------------
+    # journal
+    # ------------------------------------------------------------------------------------------
+    def _mission_header(self) -> dict[str, Any]:
+        return {"format": JOURNAL_FORMAT, "session": self.session, "instance": self.inst.name,
+                "instance_sha256": instance_digest(self.inst), "robots": list(self.names), "seed": self.seed,
+                "method": self.method, "rules": self.rules.to_dict()}
+
+    def _open_journal(self, path: Path) -> None:
+        header, records, keep, dropped = read_journal(path)
+        if dropped:
+            self.log("warning", f"journal {path}: dropped {dropped}")
+        if header is None:
+            self.journal = Journal(path, 0)
+            self.journal.append(self._mission_header(), sync=True)
+            return
+        mine = self._mission_header()
+        for k in ("instance_sha256", "robots", "seed", "method", "rules"):
+            if header.get(k) != mine[k]:
+                raise JournalError(f"{path}: written for another mission ({k} differs: {header.get(k)!r} in the "
+                                   f"journal, {mine[k]!r} now); remove it or give another journal path")
+        self.session = str(header["session"])
+        for i, rec in enumerate(records):
+            try:
+                self._replay(rec)
+            except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as e:
+                raise JournalError(f"{path}: line {i + 2} cannot be replayed ({e})") from None
+        self.restarts += 1
+        self.journal = Journal(path, keep)
+        self._events.append({"type": "resume", "t": float(self.state.clock)})
+        self.log("info", f"resumed from journal {path}: {len(records)} versions replayed, board version "
+                         f"{self.version}, {self.state.n_done}/{self.state.M} tasks done, {len(self.lost)} lost")
+
+    def _replay(self, rec: dict[str, Any]) -> None:
+        st = self.state
+        for ev in rec.get("ev", ()):
+            kind = ev["type"]
+            if kind == "start":
+                self.started = True
+            elif kind == "choice":
+                a, node, v = int(ev["robot"]), int(ev["node"]), int(ev["version"])
+                if st.agent != a:
+                    raise ValueError(f"choice of agent {a}, but the decider is {st.agent}")
+                st.step(node)
+                self.accepted.add((a, v))
+                self.rev += 1
+                if ev.get("latency_ms") is not None:
+                    self.latency_ms.append(float(ev["latency_ms"]))
+                self.agent_ms.append(float(ev.get("compute_ms", 0.0)))
+            elif kind == "drop_agent":
+                self._drop(int(ev["robot"]), str(ev.get("reason", "")))
+            elif kind == "arrival":
+                a = int(ev["robot"])
+                self.ptr[a] = max(self.ptr[a], int(ev["ptr"]))
+            elif kind in ("add_task", "cancel_task"):
+                self._apply_held(ev)
+                if kind == "add_task":
+                    self.requests[str(ev["name"])] = "accepted"
+            elif kind == "resume":
+                self.restarts += 1
+            else:
+                raise ValueError(f"unknown event type {kind!r}")
+        self.version = int(rec["v"])
+        self.clock = max(self.clock, float(rec.get("clock", 0.0)))
+        self.finished = self.finished or rec.get("phase") == "done"
+        if "rev" in rec and int(rec["rev"]) != self.rev:
+            raise ValueError(f"state revision {self.rev} after replay, the journal says {rec['rev']}")
+        if "n_done" in rec and int(rec["n_done"]) != st.n_done:
+            raise ValueError(f"{st.n_done} tasks done after replay, the journal says {rec['n_done']}")
+
+    # ------------------------------------------------------------------------------------------
+    # inputs
+    # ------------------------------------------------------------------------------------------
+    def choice(self, c: Any) -> Rejected | None:
+        """Validate and apply a decoded choice (attributes ``robot``, ``session``, ``version``,
+        ``node``, ``compute_ms``, ``payload``). Returns None if applied, else why not."""
+        t_recv = self.now()
+        a = self.index.get(c.robot)
+        who = f"choice of {c.robot!r} for board {c.version}"
+
+        def no(reason: str, detail: str) -> Rejected:
+            self.rejected[reason] += 1
+            return Rejected(reason, f"{who}: {detail}", c.robot, c.version)
+
+        if c.session != self.session:
+            return no("foreign_session", f"for mission run {c.session!r}, not this one")
+        if self.verifier is not None:
+            why = self.verifier.verify(c.payload)
+            if why is not None:
+                code = rejection_code(why)
+                self.auth_rejected["choice"][code] += 1
+                return no(code, why)
+        if a is None:
+            return no("unknown_robot", "unknown robot")
+        if a in self.lost:
+            return no("lost", f"robot was declared lost ({self.lost[a]})")
+        if (a, c.version) in self.accepted:
+            return no("duplicate", "duplicate (already applied)")
+        if c.version != self.version:
+            return no("stale", f"board is at version {self.version}")
+        if self.finished or self.phase != "decide":
+            return no("not_released", f"no decision is open ({self.phase})")
+        st = self.state
+        if a != st.agent:
+            return no("not_your_turn", f"it is {self.names[st.agent]}'s turn")
+        mask = st.mask()
+        if not 0 <= c.node < len(mask) or not mask[c.node]:
+            what = "its depot" if c.node == 0 else f"task {c.node - 1}"
+            return no("masked", f"node {c.node} ({what}) is not admissible now")
+        self.accepted.add((a, c.version))
+        latency = (t_recv - self.released_at) * 1e3
+        self.latency_ms.append(latency)
+        self.agent_ms.append(float(c.compute_ms))
+        st.step(c.node)
+        self.rev += 1
+        self._events.append({"type": "choice", "t": float(st.clock), "robot": a, "node": int(c.node),
+                             "version": int(c.version), "latency_ms": round(latency, 6),
+                             "compute_ms": float(c.compute_ms)})
+        return None
+
+    def malformed(self) -> None:
+        """Count a message that did not decode."""
+        self.rejected["malformed"] += 1
+
+    def heartbeat(self, session: str, robots: Sequence[str], payload: Any = None) -> str | None:
+        """An agent heartbeat naming ``robots``; returns a warning text when it is ignored."""
+        if session != self.session:
+            return None  # agents of another mission run
+        if self.verifier is not None:
+            why = self.verifier.verify(payload)
+            if why is not None:  # keeps nobody alive
+                self.auth_rejected["status"][rejection_code(why)] += 1
+                return f"ignoring heartbeat of {', '.join(robots[:4])[:200]}: {why}"
+        now = self.now()
+        unknown = []
+        for r in robots:
+            a = self.index.get(r)
+            if a is None:
+                unknown.append(r)
+            else:
+                self.seen_status[a] = now
+        if not self.started:
+            self._maybe_start()
+        return f"heartbeat names unknown robot {unknown[0]!r}" if unknown else None
+
+    def pose(self, a: int, x: float, y: float) -> None:
+        """Robot a reports its position (mission coordinates)."""
+        self.seen_pose[a] = self.now()
+        self.last_pose[a] = (x, y)
+        if not self.started:
+            self._maybe_start()
+
+    def set_clock(self, t: float) -> bool:
+        """The mission clock; returns whether it advanced."""
+        if t > self.clock:
+            self.clock = t
+            return True
+        return False
+
+    def _maybe_start(self) -> None:
+        if all(s is not None for s in self.seen_status) and all(s is not None for s in self.seen_pose):
+            self.start()
+
+    def start(self) -> None:
+        self.started = True
+        self.t_start = self.now()
+        self._events.append({"type": "start", "t": float(self.state.clock)})
+        self.log("info", "all robots present: mission starts" if not self.lost else
+                 f"mission starts without {len(self.lost)} robot(s)")
+
+    def tick(self) -> None:
+        """The watchdog (call it periodically): start-up timeout, heartbeat and decision timeouts."""
+        if self.finished:
+            return
+        now = self.now()
+        if self.t_start is None and self.started:  # replayed from a journal: everyone gets a fresh timeout
+            self.t_start = now
+        if not self.started:
+            if self.startup_timeout > 0 and now - self.t_created > self.startup_timeout:
+                for a in range(self.state.A):
+                    if self.seen_status[a] is None or self.seen_pose[a] is None:
+                        self.lose(a, "never reported")
+                self.start()
+            return
+        T = self.heartbeat_timeout
+        if T > 0:
+            for a in range(self.state.A):
+                if a in self.lost:
+                    continue
+                for seen, what in ((self.seen_status[a], "agent heartbeat"), (self.seen_pose[a], "robot pose")):
+                    if now - max(seen or 0.0, self.t_start) > T:
+                        self.lose(a, f"no {what} for {T:g} s")
+                        break
+        if self.decision_timeout > 0 and self.phase == "decide" and now - self.released_at > self.decision_timeout:
+            self.lose(self.state.agent, f"no decision within {self.decision_timeout:g} s")
+
+    def waiting(self) -> list[str]:
+        """Robots whose agent heartbeat or pose was never seen (before the start)."""
+        return [n for a, n in enumerate(self.names) if self.seen_status[a] is None or self.seen_pose[a] is None]
+
+    def lose(self, a: int, reason: str) -> list[int]:
+        """Drop robot a (its commitments are released); returns the tasks this cancels."""
+        if a in self.lost or self.finished:
+            return []
+        cancelled = self._drop(a, reason)
+        self._events.append({"type": "drop_agent", "t": float(self.state.clock), "robot": a, "reason": reason})
+        extra = f"; cancelled task(s) {cancelled} (no longer satisfiable)" if cancelled else ""
+        self.log("warning", f"robot {self.names[a]} lost ({reason}): its commitments are released{extra}")
+        return cancelled
+
+    def _drop(self, a: int, reason: str) -> list[int]:
+        self.lost[a] = reason
+        return self._held(lambda: self.state.drop_agent(a), skip=a)
+
+    def _held(self, change: Callable[[], Any], skip: int = -1) -> Any:
+        """Apply ``change`` to the state; robots it stopped where they were (no commitment) get
+        a hold leg."""
+        st = self.state
+        before = [(len(log), float(st.depart[b]), float(st.arrive[b])) for b, log in enumerate(st.leg_log)]
+        out = change()
+        for b, (n, d, r) in enumerate(before):
+            if b != skip and len(st.leg_log[b]) == n and (float(st.depart[b]), float(st.arrive[b])) != (d, r):
+                st.log_leg(b, HOLD)
+        self.rev += 1
+        return out
+
+    def _apply_held(self, rec: dict[str, Any]) -> Any:
+        return self._held(lambda: apply_event(self.state, rec))
+
+    # ------------------------------------------------------------------------------------------
+    # operator requests (hmrta-task-request/1) and task events (hmrta-task-event/1)
+    # ------------------------------------------------------------------------------------------
+    def task_request(self, op: str, rid: str, task: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Add (``op`` "add", ``task`` {location, requirements, duration}) or cancel a task by
+        its client id; returns the answer (event "accepted" or "rejected" with a reason), also
+        queued in :attr:`task_events`. Accepted requests are journaled like every event."""
+        st = self.state
+        ans: dict[str, Any] = {"id": rid, "op": op}
+        why = None
+        if not self.started or self.finished or st.done:
+            why = "the mission is not running" if not self.started else "the mission is over"
+        elif op == "add" and rid in self.requests:
+            why = f"task {rid!r}: a task with this id exists already"
+        elif op == "cancel" and rid not in self.requests:
+            why = f"task {rid!r}: no task with this id"
+        if why is None:
+            rec: dict[str, Any] = {"type": "add_task" if op == "add" else "cancel_task", "t": float(st.clock),
+                                   "name": rid}
+            if op == "add":
+                rec["task"] = task
+            try:
+                self._apply_held(rec)
+            except EventRejected as e:
+                why = str(e)
+            else:
+                self._events.append(rec)
+                if op == "add":
+                    self.requests[rid] = "accepted"
+                    ans["task"] = st.names.index(rid) if rid in st.names else None
+        ans.update({"event": "rejected", "reason": why} if why is not None else {"event": "accepted"})
+        ans["t"] = float(st.clock)
+        self.task_events.append(ans)
+        return ans
+
+    def _track(self) -> None:
+        """Queue started / done / cancelled events of operator tasks whose status changed."""
+        st = self.state
+        order = {"accepted": 0, "started": 1, "done": 2, "cancelled": 2}
+        for rid, last in self.requests.items():
+            if rid not in st.names:
+                continue
+            m = st.names.index(rid)
+            now = {"in_progress": "started", "done": "done", "cancelled": "cancelled"}.get(STATUS_NAMES[st.status[m]])
+            if now is None or now == last:
+                continue
+            if now == "done" and order[last] < 1:
+                self.task_events.append({"id": rid, "event": "started", "task": m, "t": float(st.start[m])})
+            t = float(st.finish[m]) if now == "done" else float(st.start[m]) if now == "started" else float(st.clock)
+            self.task_events.append({"id": rid, "event": now, "task": m, "t": t})
+            self.requests[rid] = now
+
+    # ------------------------------------------------------------------------------------------
+    # the clock and arrival confirmations
+    # ------------------------------------------------------------------------------------------
+    def _near(self, a: int, xy) -> bool:
+        p = self.last_pose[a]
+        return p is not None and math.hypot(p[0] - xy[0], p[1] - xy[1]) <= self.tolerance
+
+    def gate(self) -> float:
+        """Earliest start of a task with a member not yet confirmed there (inf: none)."""
+        st = self.state
+        locs = st.inst.task_locations
+        gate = math.inf
+        for a in range(st.A):
+            if st.mode[a] == LOST:
+                continue
+            route = st.routes[a]
+            p = min(self.ptr[a], len(route))
+            while p < len(route):
+                m = route[p]
+                if self._near(a, locs[m]):
+                    p += 1
+                    continue
+                s = st.start[m]
+                if s == s:  # not NaN: the task has its coalition and a start time
+                    gate = min(gate, float(s))
+                break
+            if p != self.ptr[a]:
+                self.ptr[a] = p
+                self._events.append({"type": "arrival", "t": float(st.clock), "robot": a, "ptr": p})
+        return gate
+
+    def waiting_for(self) -> str:
+        """What the clock is waiting for (diagnostics)."""
+        st = self.state
+        locs = st.inst.task_locations
+        if st.done:
+            away = [self.names[a] for a in range(st.A) if a not in self.lost and not self._near(a, self.inst.depots[a])]
+            return f"clock {self.clock:.3f}, robots not yet home: {away[:10]}"
+        late = []
+        for a in range(st.A):
+            route = st.routes[a]
+            if a not in self.lost and self.ptr[a] < len(route):
+                m = route[self.ptr[a]]
+                if st.start[m] == st.start[m]:
+                    late.append(f"{self.names[a]} at task {m} (starts {st.start[m]:.3f}, last pose {self.last_pose[a]}, "
+                                f"task at {tuple(locs[m])})")
+        return f"clock {self.clock:.3f}, next decision at {st.clock:.3f}; arrivals not confirmed: {late[:10]}"
+
+    def _target(self) -> tuple[str, int | None, float]:
+        """(phase, decider, horizon) from the state, the clock and the confirmations; sets
+        ``finished`` when the mission is over."""
+        if self.finished:
+            return "done", None, float(self.clock)
+        if not self.started:
+            return "starting", None, 0.0
+        st = self.state
+        if st.done:
+            alive = [a for a in range(st.A) if a not in self.lost]
+            final = max([float(st.arrive[a]) for a in alive] + [float(st.clock)])
+            if ((st.failure and not st.n_cancelled)  # deadlock / time limit: nobody is going home
+                    or (self.clock >= final - EPS and all(self._near(a, self.inst.depots[a]) for a in alive))):
+                self.finished = True
+                return "done", None, float(self.clock)
+            return "closing", None, final
+        gate = self.gate()
+        t = float(st.clock)
+        if self.clock >= t - EPS and gate > t + EPS:
+            return "decide", st.agent, t
+        return "wait", None, min(t, gate)
+
+    def _legs_now(self) -> tuple:
+        st = self.state
+        return tuple(None if st.mode[a] == LOST else (len(log), tuple(log[-LEG_WINDOW:]))
+                     for a, log in enumerate(st.leg_log))
+
+    def poll(self) -> View | None:
+        """The board version to publish now, or None if nothing published changed. The events
+        applied since the previous version are journaled (fsynced) first."""
+        phase, decider, horizon = self._target()
+        self._track()
+        key = (self.rev, phase, decider, horizon)
+        if key == self._key:
+            return None
+        self._key = key
+        self.phase = phase
+        if self._cache_rev != self.rev:
+            self._cache_rev = self.rev
+            self._legs = self._legs_now()
+            self._state_json = json.dumps(self.state.snapshot(), separators=(",", ":"))
+        self.version += 1
+        st = self.state
+        if self.journal is not None:
+            events, self._events = self._events, []
+            rec: dict[str, Any] = {"v": self.version, "rev": self.rev, "n_done": int(st.n_done), "phase": phase,
+                                   "clock": float(self.clock)}
+            if events:
+                rec["ev"] = events
+            self.journal.append(rec, sync=bool(events) or phase == "done")
+        else:
+            self._events.clear()
+        if phase == "decide":
+            self.released_at = self.now()  # latency: board update -> choice received
+        return View(self.session, self.version, self.rev, phase, decider, float(st.clock), float(horizon),
+                    int(st.n_done), int(st.n_cancelled), st.M, tuple(sorted(self.lost)), self._legs, self._state_json)
+
+    # ------------------------------------------------------------------------------------------
+    def result(self) -> Solution:
+        """The mission's hmrta-solution/1 (final once ``finished``)."""
+        st = self.state
+        wall = self.now() - (self.t_start or self.t_created)
+        sol = solution_from_state(st, self.method, self.seed, wall)
+        alive = [a for a in range(st.A) if a not in self.lost]
+        sol.extra.update({
+            "transport": "ros2",
+            "robots": self.names,
+            "lost_robots": [self.names[a] for a in sorted(self.lost)],
+            "lost_reasons": {self.names[a]: r for a, r in sorted(self.lost.items())},
+            "undone_tasks": [m for m in range(st.M) if st.status[m] != DONE],
+            "mission_wall_seconds": round(wall, 3),
+            "decision_latency_ms": {"median": _r(statistics.median(self.latency_ms) if self.latency_ms else None),
+                                    "p99": _r(percentile(self.latency_ms, 99)), "n": len(self.latency_ms)},
+            "agent_compute_ms": {"median": _r(statistics.median(self.agent_ms) if self.agent_ms else None),
+                                 "p99": _r(percentile(self.agent_ms, 99))},
+            "rejected_messages": dict(self.rejected),
+            "authenticated": self.verifier is not None,
+            "auth_rejections": {k: dict(v) for k, v in self.auth_rejected.items()},
+            "board_versions": self.version,
+        })
+        if self.journal is not None:
+            sol.extra["journal"] = str(self.journal.path)
+            sol.extra["board_restarts"] = self.restarts
+        if self.lost and alive:
+            sol.extra["home_time"] = max(float(st.arrive[a]) for a in alive)
+        return sol
+
+    def close(self) -> None:
+        if self.journal is not None:
+            self.journal.close()

@@ -1,0 +1,131 @@
+"""hmrta-task: submit, cancel and list a running mission's tasks (operator interface).
+
+    hmrta-task add --location 0.3,0.7 --requirements 1,0,2 --duration 3 [--id inspect-7]
+    hmrta-task cancel inspect-7
+    hmrta-task list
+
+``add`` and ``cancel`` publish an ``hmrta-task-request/1`` on ``/hmrta/task_requests`` and wait
+for the board's answer on ``/hmrta/task_events`` (``hmrta-task-event/1``); ``list`` reads the
+latched board. Exit status: 0 accepted (or listed), 3 rejected by the board (the reason is
+printed), 1 no answer within ``--timeout`` seconds (no board on this ROS domain?), 2 user error.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import uuid
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _point(text: str) -> list[float]:
+    v = _floats(text)
+    if len(v) != 2:
+        raise argparse.ArgumentTypeError(f"expected x,y, got {text!r}")
+    return v
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="hmrta-task", description=__doc__.split("\n\n")[0])
+    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the board")
+    p.add_argument("--domain-id", type=int, default=None, help="ROS domain (default: $ROS_DOMAIN_ID)")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    a = sub.add_parser("add", help="submit a task")
+    a.add_argument("--location", type=_point, required=True, metavar="X,Y")
+    a.add_argument("--requirements", type=_floats, required=True, metavar="R1,R2,...")
+    a.add_argument("--duration", type=float, required=True)
+    a.add_argument("--id", default=None, help="client task id (default: a random one)")
+    c = sub.add_parser("cancel", help="cancel a task by its id")
+    c.add_argument("id")
+    sub.add_parser("list", help="the mission's tasks and their status")
+    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.timeout <= 0:
+        p.error("--timeout: expected a positive number")
+    if args.cmd == "add" and (args.duration < 0 or any(r < 0 for r in args.requirements)):
+        p.error("--duration and --requirements: expected numbers >= 0")
+
+    import rclpy
+    from std_msgs.msg import String
+
+    from hmrta_msgs_py import topics
+    from hmrta_msgs_py.codec import (DecodeError, TaskRequest, board_from_msg, task_event_from_msg,
+                                     task_request_to_msg)
+
+    rclpy.init(args=[], domain_id=args.domain_id) if args.domain_id is not None else rclpy.init(args=[])
+    node = rclpy.create_node(f"hmrta_task_{uuid.uuid4().hex[:6]}")
+    deadline = time.monotonic() + args.timeout
+    try:
+        if args.cmd == "list":
+            got: list = []
+            node.create_subscription(String, topics.BOARD, got.append, topics.BOARD_QOS)
+            while not got and time.monotonic() < deadline:
+                rclpy.spin_once(node, timeout_sec=0.1)
+            if not got:
+                print(f"hmrta-task: no board within {args.timeout:g} s (is a mission running on this ROS domain?)",
+                      file=sys.stderr)
+                return 1
+            try:
+                b = board_from_msg(got[-1])
+            except DecodeError as e:
+                print(f"hmrta-task: unreadable board: {e}", file=sys.stderr)
+                return 1
+            t = b.state["tasks"]
+            names = t.get("names") or [None] * len(t["status"])
+            print(f"board {b.version}, phase {b.phase}, t={b.clock:.3f}: {b.n_done}/{b.n_tasks} tasks done")
+            for m, status in enumerate(t["status"]):
+                when = f" finish {t['finish'][m]:.3f}" if t["finish"][m] is not None else ""
+                print(f"  {m:4d} {names[m] or '-':>16} {status}{when}")
+            return 0
+        rid = args.id if args.cmd == "cancel" else (args.id or f"task-{uuid.uuid4().hex[:8]}")
+        task = None
+        if args.cmd == "add":
+            task = {"location": args.location, "requirements": args.requirements, "duration": args.duration}
+        answers: list = []
+
+        def on_event(msg: String) -> None:
+            try:
+                e = task_event_from_msg(msg)
+            except DecodeError:
+                return
+            if e.id == rid and e.event in ("accepted", "rejected") and e.op == args.cmd:
+                answers.append(e)
+
+        node.create_subscription(String, topics.TASK_EVENTS, on_event, topics.TASK_EVENT_QOS)
+        pub = node.create_publisher(String, topics.TASK_REQUESTS, topics.TASK_REQUEST_QOS)
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        if pub.get_subscription_count() == 0:
+            print(f"hmrta-task: no board listens on {topics.TASK_REQUESTS} (waited {args.timeout:g} s)",
+                  file=sys.stderr)
+            return 1
+        rclpy.spin_once(node, timeout_sec=0.2)  # latched answers of earlier requests arrive first
+        answers.clear()
+        pub.publish(task_request_to_msg(TaskRequest(args.cmd, rid, task)))
+        while not answers and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        if not answers:
+            print(f"hmrta-task: no answer to {args.cmd} {rid!r} within {args.timeout:g} s", file=sys.stderr)
+            return 1
+        e = answers[0]
+        if e.event == "rejected":
+            print(f"hmrta-task: {args.cmd} {rid!r} rejected: {e.reason}", file=sys.stderr)
+            return 3
+        print(f"{rid}: {args.cmd} accepted at t={e.t:.3f}" + (f" (task {e.task})" if e.task is not None else ""))
+        return 0
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def entry() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entry()

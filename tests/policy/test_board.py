@@ -1,0 +1,326 @@
+"""hmrta.board without ROS: the board's protocol driven by plain values (decoded choices, poses,
+clock values, a fake wall clock). A whole mission run through it equals the offline rollout;
+every rejection reason; the arrival gate; robot loss by timeout; the journal (replay after a crash
+equals the uninterrupted mission, a torn last line is dropped, a foreign journal is refused)."""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+
+from hmrta import keys as K
+from hmrta.board import JOURNAL_FORMAT, JournalError, MissionBoard, read_journal
+from hmrta.core import MissionState
+from hmrta.generators import ScenarioGenerator
+from hmrta.methods import decider, rules, solve
+
+INST = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+SEED = 3
+RULES = rules("greedy")
+
+
+@dataclass
+class Choice:  # what hmrta_msgs_py.codec.choice_from_msg gives the board
+    robot: str
+    session: str
+    version: int
+    node: int
+    compute_ms: float = 0.0
+    payload: Any = field(default=None, compare=False)
+
+
+class FakeTime:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def position(inst, legs, t: float) -> tuple[float, float]:
+    """Where a robot driving ``legs`` (node, x, y, depart) from its depot is at time t (sim_robot's
+    kinematics)."""
+    pos = (float(legs[0][1]), float(legs[0][2]))
+    for _, x, y, dep in legs[1:]:
+        if dep > t:
+            break
+        start = pos
+        arrive = dep + math.hypot(x - start[0], y - start[1]) / inst.velocity
+        if t >= arrive or arrive <= dep:
+            pos = (x, y)
+        else:
+            f = (t - dep) / (arrive - dep)
+            pos = (start[0] + (x - start[0]) * f, start[1] + (y - start[1]) * f)
+    return pos
+
+
+def drive(b: MissionBoard, steps: int | None = None, report: bool = True, max_iter: int = 20000) -> int:
+    """Play agents (greedy on the board's snapshot) and robots that arrive at once, until the
+    mission is over or ``steps`` choices were applied; returns the choices applied."""
+    decide = decider("greedy", SEED)[0]
+    inst, names = b.inst, b.names
+    n = 0
+    for _ in range(max_iter):
+        b.poll()
+        if b.finished or (steps is not None and n >= steps):
+            return n
+        st = b.state
+        if b.phase == "decide":
+            state = MissionState.from_snapshot(inst, json.loads(b._state_json))
+            c = Choice(names[st.agent], b.session, b.version, int(decide(state)))
+            assert b.choice(c) is None
+            n += 1
+            continue
+        horizon = b._key[3]
+        b.set_clock(horizon)
+        if report:
+            for a in range(st.A):
+                if a not in b.lost:
+                    base = [(0, float(inst.depots[a, 0]), float(inst.depots[a, 1]), 0.0)]
+                    b.pose(a, *position(inst, base + st.leg_log[a], b.clock))
+    raise AssertionError(f"stuck: {b.waiting_for()}")
+
+
+def started_board(**kw) -> MissionBoard:
+    return MissionBoard(INST, seed=SEED, rules=RULES, wait_for_robots=False, now=kw.pop("now", FakeTime()), **kw)
+
+
+def same(sol, ref) -> None:
+    a, r = json.loads(json.dumps(sol.to_dict())), json.loads(json.dumps(ref.to_dict()))
+    for k in ("success", "routes", "tasks", "agents", "makespan", "awt", "redundancy"):
+        assert a[k] == r[k], k
+
+
+# ---------------------------------------------------------------------------------------------
+def test_a_mission_through_the_board_equals_the_offline_rollout():
+    b = started_board()
+    n = drive(b)
+    sol = b.result()
+    same(sol, solve(INST, "greedy", SEED))
+    assert n == sol.extra["decision_latency_ms"]["n"] > 0
+    assert b.phase == "done" and sol.extra["lost_robots"] == [] and sol.extra["undone_tasks"] == []
+    assert sol.extra["board_versions"] == b.version > n
+
+
+def test_board_waits_for_every_robot_then_starts():
+    now = FakeTime()
+    b = MissionBoard(INST, seed=SEED, rules=RULES, now=now)
+    v = b.poll()
+    assert v.phase == "starting" and v.version == 1 and b.poll() is None
+    names = b.names
+    assert b.heartbeat("another-run", names) is None and not b.started  # another mission run: ignored
+    b.heartbeat(b.session, names)
+    for a in range(INST.n_agents - 1):
+        b.pose(a, *INST.depots[a])
+    assert not b.started and b.waiting() == [names[-1]]
+    b.pose(INST.n_agents - 1, *INST.depots[-1])
+    assert b.started and b.poll().phase == "decide"
+
+
+def test_every_rejection_reason_and_nothing_changes():
+    keys = {n: bytes([i]) * 32 for i, n in enumerate(f"robot_{a}" for a in range(INST.n_agents))}
+    b = started_board(verifier=K.Verifier(keys))
+    v = b.poll()
+    assert v.phase == "decide"
+    d, names = v.decider, b.names
+    me, other = names[d], names[(d + 1) % len(names)]
+    mask = b.state.mask()
+    good = int(next(n for n in range(1, len(mask)) if mask[n]))
+    bad = [n for n in range(len(mask)) if not mask[n]]
+    sign = lambda robot, **kw: K.Signer({robot: keys[robot]}).sign(  # noqa: E731
+        {"format": "hmrta-choice/1", "robot": robot, "session": b.session, "version": kw.get("version", v.version),
+         "node": kw.get("node", good)})
+
+    def send(robot, version=v.version, node=good, session=None, payload="sign"):
+        p = sign(robot, version=version, node=node) if payload == "sign" else payload
+        return b.choice(Choice(robot, session or b.session, version, node, payload=p))
+
+    cases = [(send(me, session="x"), "foreign_session"), (send(me, payload=None), "unsigned"),
+             (send(me, payload={**sign(me), "node": good + 1}), "forged"),
+             (send("intruder", payload=sign(me) | {"robot": "intruder"}), "unknown_robot"),
+             (send(other), "not_your_turn"), (send(me, version=v.version - 1), "stale"),
+             (send(me, version=v.version + 2), "stale"), (send(me, node=len(mask) + 3), "masked"),
+             (send(me, node=-1), "masked")]
+    if bad:
+        cases.append((send(me, node=bad[0]), "masked"))
+    for r, reason in cases:
+        assert r is not None and r.reason == reason, (r, reason)
+    assert b.poll() is None and b.version == v.version and b.rev == 0  # nothing changed
+    assert send(me) is None
+    assert send(me).reason == "duplicate"
+    assert b.poll().version == v.version + 1
+    b.lose((d + 2) % len(names), "test")
+    assert send(names[(d + 2) % len(names)], version=b.version).reason == "lost"
+    assert sum(b.rejected.values()) == len(cases) + 2
+    assert b.auth_rejected["choice"] == {"unsigned": 1, "forged": 1, "unknown_robot": 1}
+
+
+def test_the_clock_is_held_until_members_report_at_their_task():
+    b = started_board()
+    drive(b, steps=3, report=False)  # nobody reports: the clock may reach the first start, not more
+    b.poll()
+    st = b.state
+    starts = [float(st.start[m]) for a in range(st.A) for m in st.routes[a][:1] if st.start[m] == st.start[m]]
+    if starts:
+        assert b._key[3] <= min(starts) + 1e-9 and "arrivals not confirmed" in b.waiting_for()
+
+
+def test_silent_robot_is_lost_and_the_others_finish():
+    now = FakeTime()
+    b = started_board(now=now, heartbeat_timeout=5.0)
+    for a in range(INST.n_agents):
+        b.heartbeat(b.session, [b.names[a]])
+        b.pose(a, *INST.depots[a])
+    drive(b, steps=4)
+    for _ in range(2):
+        now.t += 3.0
+        b.heartbeat(b.session, b.names[1:])  # robot_0's agent fell silent
+        for a in range(INST.n_agents):
+            b.pose(a, *b.last_pose[a])
+        b.tick()
+    assert list(b.lost) == [0] and "agent heartbeat" in b.lost[0]
+    b.heartbeat_timeout = 0.0  # the fake robots below do not beat any more
+    drive(b)
+    sol = b.result()
+    assert sol.extra["lost_robots"] == ["robot_0"] and b.state.mode[0] == 4
+    assert all(0 not in t["members"] for t in sol.tasks if t["start"] != t["start"] or t["start"] >= b.clock)
+
+
+def test_decision_timeout_drops_the_decider():
+    now = FakeTime()
+    b = started_board(now=now, heartbeat_timeout=0.0, decision_timeout=2.0)
+    v = b.poll()
+    now.t += 2.5
+    b.tick()
+    assert list(b.lost) == [v.decider] and "no decision within" in b.lost[v.decider]
+
+
+# ---------------------------------------------------------------------------------------------
+# journal
+# ---------------------------------------------------------------------------------------------
+def test_a_board_replayed_from_its_journal_continues_like_the_uninterrupted_mission(tmp_path):
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    drive(b, steps=7)
+    b.poll()
+    version, session, rev = b.version, b.session, b.rev
+    legs, snap = b._legs_now(), b.state.snapshot()
+    # crash: the object is dropped without closing; a new board on the same journal
+    b2 = started_board(journal=j)
+    assert (b2.session, b2.version, b2.rev) == (session, version, rev)
+    assert b2._legs_now() == legs and b2.state.snapshot() == snap and b2.ptr == b.ptr
+    assert b2.accepted == b.accepted and b2.started and b2.restarts == 1
+    drive(b2)
+    sol = b2.result()
+    same(sol, solve(INST, "greedy", SEED))
+    assert sol.extra["board_restarts"] == 1 and b2.version > version
+    header, recs, _, dropped = read_journal(j)
+    assert header["format"] == JOURNAL_FORMAT and dropped is None
+    assert [r["v"] for r in recs] == list(range(1, b2.version + 1))  # one line per version, none twice
+    kinds = {e["type"] for r in recs for e in r.get("ev", ())}
+    assert {"start", "choice", "arrival", "resume"} <= kinds
+    # a board that replays the finished mission ends at once with the same result
+    b3 = started_board(journal=j)
+    assert b3.finished and b3.state.done
+    same(b3.result(), sol)
+
+
+def test_losses_are_journaled_and_replayed(tmp_path):
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j, heartbeat_timeout=0.0)
+    drive(b, steps=3)
+    b.lose(2, "test loss")
+    drive(b, steps=2)
+    b.poll()
+    b2 = started_board(journal=j, heartbeat_timeout=0.0)
+    assert b2.lost == {2: "test loss"} and b2.state.snapshot() == b.state.snapshot()
+    drive(b2)
+    drive(b)
+    assert b2.result().routes == b.result().routes
+
+
+def test_a_torn_last_line_is_dropped_never_applied_in_part(tmp_path):
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    drive(b, steps=5)
+    b.poll()
+    intact = j.read_bytes()
+    header, recs, good, _ = read_journal(j)
+    assert good == len(intact)
+    last = json.dumps({"v": b.version + 1, "rev": b.rev + 1, "ev": [{"type": "choice", "robot": 0, "node": 1,
+                                                                      "version": b.version}]}).encode()
+    for torn in (last[: len(last) // 2], last[:-1] + b"\n"[:0], b"\x00\x00\x00\n"):
+        j.write_bytes(intact + torn)
+        h, r, keep, dropped = read_journal(j)
+        assert dropped and "torn last line" in dropped and keep == len(intact) and r == recs
+        logged = []
+        b2 = started_board(journal=j, log=lambda lvl, text: logged.append(text))
+        assert (b2.version, b2.rev) == (b.version, b.rev) and b2.state.snapshot() == b.state.snapshot()
+        assert any("dropped a torn last line" in t for t in logged)
+        b2.close()
+        assert j.read_bytes().startswith(intact) and b"\x00" not in j.read_bytes()[len(intact):]
+        assert read_journal(j)[3] is None  # the file was cut back before anything was appended
+        j.write_bytes(intact)
+    # a damaged line that is not the last is corruption, not a torn write
+    lines = intact.split(b"\n")
+    lines[2] = lines[2][:10]
+    j.write_bytes(b"\n".join(lines))
+    with pytest.raises(JournalError, match="line 3"):
+        started_board(journal=j)
+
+
+def test_a_journal_of_another_mission_is_refused(tmp_path):
+    j = tmp_path / "journal.jsonl"
+    started_board(journal=j).poll()
+    with pytest.raises(JournalError, match="another mission"):
+        MissionBoard(INST, seed=SEED + 1, rules=RULES, wait_for_robots=False, journal=j)
+    other = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(5, 0)
+    with pytest.raises(JournalError, match="instance_sha256"):
+        MissionBoard(other, seed=SEED, rules=RULES, wait_for_robots=False, journal=j)
+    j.write_text('{"format": "hmrta-journal/9"}\n')
+    with pytest.raises(JournalError, match="expected format"):
+        started_board(journal=j)
+
+
+def test_journal_lines_validate_against_the_schema(tmp_path):
+    from test_schemas import assert_valid
+
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    drive(b, steps=4)
+    b.lose(1, "test")
+    b.poll()
+    header, recs, _, _ = read_journal(j)
+    assert_valid("hmrta-journal/1", header)
+    for r in recs:
+        assert_valid("hmrta-journal/1#/$defs/version", r)
+
+
+def test_operator_tasks_are_added_cancelled_answered_and_journaled(tmp_path):
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    early = b.task_request("add", "x", {"location": [0.5, 0.5], "requirements": [1, 0, 0], "duration": 1.0})
+    assert early["event"] == "accepted"  # a started board takes requests at once
+    drive(b, steps=3)
+    new = {"location": [0.2, 0.8], "requirements": [1, 1, 0], "duration": 2.0}
+    a = b.task_request("add", "inspect-7", new)
+    assert a["event"] == "accepted" and a["task"] == INST.n_tasks + 1
+    assert b.task_request("add", "inspect-7", new)["reason"] == "task 'inspect-7': a task with this id exists already"
+    bad = b.task_request("add", "too-big", {**new, "requirements": [99, 0, 0]})
+    assert bad["event"] == "rejected" and "skill 0" in bad["reason"]
+    assert b.task_request("cancel", "nope")["reason"] == "task 'nope': no task with this id"
+    assert b.task_request("cancel", "x")["event"] == "accepted"
+    drive(b, steps=2)
+    b.poll()
+    snap = b.state.snapshot()
+    b2 = started_board(journal=j)
+    assert b2.state.snapshot() == snap and set(b2.requests) == {"x", "inspect-7"}
+    drive(b)
+    events = [(e["id"], e["event"]) for e in b.task_events]
+    assert ("inspect-7", "started") in events and ("inspect-7", "done") in events and ("x", "cancelled") in events
+    assert events.index(("inspect-7", "started")) < events.index(("inspect-7", "done"))
+    sol = b.result()
+    assert sol.extra["undone_tasks"] == [INST.n_tasks] and len(sol.tasks) == INST.n_tasks + 2

@@ -1,0 +1,43 @@
+"""The task board survives its own crash: real processes, real SIGKILL, the real launcher.
+
+``hmrta-mission`` journals the board (``<out>_logs/journal.jsonl``); when the board process is
+killed mid-mission the launcher restarts it on its journal, the new board replays it (same
+session, same versions) and agents and robots resynchronise from its latched board. In simulated
+time the mission then equals the uninterrupted one (the offline rollout)."""
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from hmrta.board import read_journal
+
+rclpy = pytest.importorskip("rclpy")
+from test_crash import assert_same_as_offline, children, finish, kill_mid_mission, launch, launched  # noqa: E402,F401
+
+
+def test_killed_board_is_restarted_on_its_journal_and_the_mission_equals_offline(tmp_path, domain, graph, launched):
+    launcher, out = launch(tmp_path, domain)
+    launched.append(launcher)
+    pid, done_then, seen = kill_mid_mission(graph, launcher, "hmrta_coordinator.task_board", 6)
+    version_then = seen["b"].version
+    t_kill = time.monotonic()
+    graph.spin_until(lambda: launcher.poll() is not None or (seen["b"].n_done > done_then
+                                                           and seen["b"].version > version_then), 40,
+                     "progress after the restart")
+    print(f"board killed with {done_then} tasks done (version {version_then}); the next task was done "
+          f"{time.monotonic() - t_kill:.2f} s after the kill")
+    rc, so, se = finish(launcher, 60)
+    assert rc == 0, so + se
+    assert "board process died (SIGKILL) at t=" in se and "restarted on its journal (1/3)" in se
+    result = json.loads(out.read_text())
+    assert result["success"] and result["undone_tasks"] == [] and result["lost_robots"] == []
+    assert result["board_restarts"] == 1
+    assert any("board process died (SIGKILL)" in line for line in result["incidents"])
+    assert_same_as_offline(result)
+    header, recs, _, dropped = read_journal(tmp_path / "mission_logs" / "journal.jsonl")
+    assert dropped is None and [r["v"] for r in recs] == list(range(1, len(recs) + 1))
+    assert sum(e["type"] == "resume" for r in recs for e in r.get("ev", ())) == 1
+    log = (tmp_path / "mission_logs" / "task_board.log").read_text()
+    assert "restarted by hmrta-mission" in log and "resumed from journal" in log

@@ -1,0 +1,70 @@
+"""The operator interface over real DDS: tasks submitted and cancelled at run time with
+``hmrta-task`` (hmrta-task-request/1 on /hmrta/task_requests), every request answered on
+/hmrta/task_events (hmrta-task-event/1), the added task done by the mission."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import save_instance
+from hmrta.generators import ScenarioGenerator
+
+rclpy = pytest.importorskip("rclpy")
+from std_msgs.msg import String  # noqa: E402
+
+from hmrta_msgs_py import topics  # noqa: E402
+from hmrta_msgs_py import codec as C  # noqa: E402
+from test_mission import BoardWatch, robots_of, wait_board_exit  # noqa: E402
+
+BIN = Path(sys.executable).parent
+
+
+def task_cli(domain: int, tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+           "ROS_LOG_DIR": str(tmp_path / "ros")}
+    return subprocess.run([str(BIN / "hmrta-task"), "--timeout", "20", *args], capture_output=True, text=True,
+                          timeout=60, env=env)
+
+
+def test_tasks_added_and_cancelled_at_run_time(tmp_path, domain, graph, mission_procs):
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots_of(inst), seed=1, time_scale=1.5,
+                          board_params={"progress_period": 0.0, "heartbeat_timeout": 10.0})
+    node = graph.node("operator_watch")
+    watch = BoardWatch(node)
+    events: list[C.TaskEvent] = []
+    node.create_subscription(String, topics.TASK_EVENTS, lambda m: events.append(C.task_event_from_msg(m)),
+                             topics.TASK_EVENT_QOS)
+    graph.spin_until(lambda: watch.board is not None and watch.board.phase in ("decide", "wait"), 60, "the start")
+    add = task_cli(domain, tmp_path, "add", "--location", "0.3,0.7", "--requirements", "1,0,0", "--duration", "1",
+                   "--id", "inspect-7")
+    assert add.returncode == 0 and "inspect-7: add accepted" in add.stdout, add.stdout + add.stderr
+    dup = task_cli(domain, tmp_path, "add", "--location", "0.3,0.7", "--requirements", "1,0,0", "--duration", "1",
+                   "--id", "inspect-7")
+    assert dup.returncode == 3 and "exists already" in dup.stderr
+    big = task_cli(domain, tmp_path, "add", "--location", "0.3,0.7", "--requirements", "99,0,0", "--duration", "1")
+    assert big.returncode == 3 and "skill 0" in big.stderr
+    assert task_cli(domain, tmp_path, "cancel", "nope").returncode == 3
+    extra = task_cli(domain, tmp_path, "add", "--location", "0.9,0.1", "--requirements", "0,1,0", "--duration", "500",
+                     "--id", "spare")
+    assert extra.returncode == 0, extra.stderr
+    cancel = task_cli(domain, tmp_path, "cancel", "spare")
+    assert cancel.returncode == 0, cancel.stderr
+    listed = task_cli(domain, tmp_path, "list")
+    assert listed.returncode == 0 and "inspect-7" in listed.stdout and "spare" in listed.stdout
+    bad = task_cli(domain, tmp_path, "add", "--location", "x", "--requirements", "1", "--duration", "1")
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    wait_board_exit(graph, procs, 120)
+    graph.spin_until(lambda: any(e.id == "inspect-7" and e.event == "done" for e in events), 10, "inspect-7 done")
+    mine = [(e.id, e.event) for e in events if e.id == "inspect-7"]
+    assert mine[0] == ("inspect-7", "accepted") and ("inspect-7", "started") in mine
+    assert ("spare", "cancelled") in [(e.id, e.event) for e in events]
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert len(result["tasks"]) == inst.n_tasks + 2
+    assert result["tasks"][inst.n_tasks]["finish"] is not None
+    assert result["undone_tasks"] == [inst.n_tasks + 1]  # the cancelled one
