@@ -64,9 +64,12 @@ class Method:
     summary: str  # one line, for --help
     solve: str | Callable  # "module:function"(inst, seed=0, **options) -> Solution
     decide: str | None = None  # "module:function"(seed=0, **options) -> decide(state) -> node
-    rules: str = "hmrta.baselines:GREEDY_RULES"  # "module:attr": Rules, or a function(**options) -> Rules
+    rules: str | None = "hmrta.baselines:GREEDY_RULES"  # "module:attr": Rules, or a function(**options) -> Rules
     options: tuple[Option, ...] = ()
     needs: tuple[str, ...] = ()  # optional modules it imports (see hmrta.deps.EXTRAS)
+    # for a method with no per-decision form that picks one per mission (portfolio):
+    # "module:function"(inst, seed=0, **options) -> (method name, {candidate: makespan})
+    choose: str | None = None
 
     def option(self, name: str) -> Option | None:
         return next((o for o in self.options if o.name == name), None)
@@ -104,7 +107,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            "hmrta.rl.inference:solve_rl_lookahead", "hmrta.rl.inference:lookahead_decider",
            options=(CHECKPOINT,), **_RL),
     Method("cpsat", "anytime exact solver: list scheduler, annealing and CP-SAT; offline only",
-           "hmrta.solvers.cpsat:solve_cpsat", None, rules="hmrta.baselines:RANDOM_RULES",
+           "hmrta.solvers.cpsat:solve_cpsat", None, rules=None,
            options=(Option("time_limit", float, 60.0, "seconds per mission", minimum=0.01),
                     Option("warm_start", str, "none", "start from this method's solution",
                            choices=("none", "greedy", "rl")),
@@ -113,6 +116,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
                            "seconds of list scheduling and annealing before CP-SAT (default: a quarter of the limit)",
                            minimum=0.0)),
            needs=("ortools",)),
+    Method("portfolio", "per mission, the best of several methods by simulation (greedy, greedy-coalition, rl); "
+           "live missions run the chosen one",
+           "hmrta.portfolio:solve_portfolio", None, rules=None, choose="hmrta.portfolio:select",
+           options=(Option("candidates", str, "greedy,greedy-coalition,rl", "comma list of methods to choose from"),
+                    CHECKPOINT)),
 )}
 
 
@@ -163,6 +171,9 @@ def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **
     name, implied = parse(method)
     m = get(name)
     opts = m.check({**implied, **{k: v for k, v in options.items() if v is not None}})
+    if m.decide is None and getattr(inst, "dynamic", False):
+        raise MethodError(f"method {name} is an offline solver: it cannot plan a scenario whose tasks or robots "
+                          f"change over time (use greedy, greedy-coalition or an rl method)")
     _needs(m)
     fn = _resolve(m.solve)
     if progress is not None and "progress" in inspect.signature(fn).parameters:
@@ -177,6 +188,9 @@ def rules(method: str, **options: Any):
     the checkpoint's config without building the network or importing torch)."""
     name, _ = parse(method)
     m = get(name)
+    if m.rules is None:
+        raise MethodError(f"method {name} has no fixed rules (it has no per-decision form; live methods: "
+                          f"{', '.join(live_methods())})")
     opts = m.check({k: v for k, v in options.items() if v is not None and k == "checkpoint"})
     r = _resolve(m.rules)
     return r(**opts) if callable(r) else r
@@ -199,6 +213,31 @@ def live_methods() -> list[str]:
     return [k for k, v in METHODS.items() if v.decide is not None]
 
 
+def mission_methods() -> list[str]:
+    """Methods a live mission can run: those with a per-decision form, and those that choose one
+    per mission (see :func:`resolve`)."""
+    return [k for k, v in METHODS.items() if v.decide is not None or v.choose is not None]
+
+
+def resolve(inst, method: str, seed: int = 0, **options: Any) -> tuple[str, dict[str, Any], dict | None]:
+    """The live method a mission runs: ``(name, its options, None)`` for a method with a
+    per-decision form; for a method that chooses per mission (portfolio), the chosen method, the
+    options it takes and ``{candidate: makespan}`` of the choice."""
+    name, implied = parse(method)
+    m = get(name)
+    given = {**implied, **{k: v for k, v in options.items() if v is not None}}
+    if m.decide is not None:
+        return name, m.check(given, live=True), None
+    if m.choose is None:
+        raise MethodError(f"method {name} has no per-decision form (live missions run: "
+                          f"{', '.join(mission_methods())})")
+    opts = m.check(given)
+    _needs(m)
+    chosen, scores = _resolve(m.choose)(inst, seed=seed, **opts)
+    name2, _ = parse(chosen)  # live, rl-sN decodes by sampling (no rollouts to keep the best of)
+    return name2, get(name2).check(options_for(chosen, opts), live=True), scores
+
+
 def live_options() -> dict[str, Option]:
     """Every option some live method takes (the ROS agents' and the launcher's parameters)."""
     out: dict[str, Option] = {}
@@ -218,7 +257,7 @@ def help_text(names: list[str] | None = None) -> str:
 def add_arguments(parser, live: bool = False, default: str = "greedy", methods_flag: bool = False) -> None:
     """Add ``--method`` (or ``--methods``) and one flag per method option to an argparse parser;
     read them back with :func:`options_from_args`."""
-    names = live_methods() if live else list(METHODS)
+    names = mission_methods() if live else list(METHODS)
     if methods_flag:
         parser.add_argument("--methods", default=default,
                             help="comma list of methods (rl-sN = rl-sample with N samples): " + help_text(names))
@@ -228,7 +267,7 @@ def add_arguments(parser, live: bool = False, default: str = "greedy", methods_f
     seen: dict[str, tuple[Option, list[str]]] = {}
     for k in names:
         for o in METHODS[k].options:
-            if o.live or not live:
+            if o.live or not live or METHODS[k].decide is None:
                 seen.setdefault(o.name, (o, []))[1].append(k)
     for name, (o, users) in seen.items():
         default_text = "" if o.default is None else f"; default {o.default}"

@@ -17,7 +17,7 @@ import pytest
 from hmrta import methods
 from hmrta.baselines import GREEDY_RULES
 from hmrta.core import Rules
-from hmrta.instance import load_instance
+from hmrta.formats import load_instance
 from hmrta.methods import METHODS, MethodError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -183,3 +183,26 @@ def test_no_import_cycles_in_the_core():
         if m not in state:
             visit([m])
     assert not cycles, "import cycles: " + "; ".join(cycles)
+
+
+def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
+    pytest.importorskip("torch")
+    from hmrta.generators import ScenarioGenerator
+
+    for inst in ScenarioGenerator("MA-AT", 9, 3, 20, 3).generate(3, 77):
+        sol = methods.solve(inst, "portfolio", seed=1)
+        each = {c: methods.solve(inst, c, seed=1).makespan for c in ("greedy", "greedy-coalition", "rl")}
+        assert sol.makespan == min(each.values())
+        assert sol.extra["portfolio"]["candidates"] == each
+        chosen = sol.extra["portfolio"]["chosen"]
+        assert each[chosen] == min(each.values())
+        live, opts, scores = methods.resolve(inst, "portfolio", 1)
+        assert (live, scores) == (chosen, each) and opts == {}
+    inst = load_instance(EXAMPLE)
+    assert methods.resolve(inst, "greedy", 0) == ("greedy", {}, None)
+    only = methods.solve(inst, "portfolio", candidates="greedy,greedy-coalition")
+    assert set(only.extra["portfolio"]["candidates"]) == {"greedy", "greedy-coalition"}
+    with pytest.raises(MethodError, match="cannot contain itself"):
+        methods.solve(inst, "portfolio", candidates="greedy,portfolio")
+    with pytest.raises(MethodError, match="method cpsat has no per-decision form"):
+        methods.resolve(inst, "cpsat")

@@ -1,0 +1,96 @@
+"""``portfolio``: per mission, the best of several methods, chosen by simulating each one.
+
+Every candidate (by default greedy, greedy-coalition and the learned policy) is rolled out on the
+mission as it is known at the start, and the mission is then run with the candidate of the
+shortest makespan. Offline on a static mission this is simply the best of the candidates, so it is
+never worse than any of them; the cost is the sum of their solve times (greedy rules are
+milliseconds, the learned policy a fraction of a second up to 50 tasks).
+
+Missions that change while they run (tasks released later, timed events of a scenario) are not
+known in advance: the choice is made on the initial mission only (the tasks released at time 0,
+no events), then the chosen method runs the whole mission without knowing the events before their
+time, like every other online method.
+
+The choice is made before a live mission starts (``hmrta-mission --method portfolio`` resolves it
+with :func:`select` and runs the chosen method on every robot), so the task board and the agents
+see an ordinary method and its rules; ``portfolio`` itself has no per-decision form.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+from .errors import MethodError
+from .instance import Instance
+from .solution import Solution
+
+DEFAULT_CANDIDATES = "greedy,greedy-coalition,rl"
+
+
+def initial_view(inst: Instance) -> Instance:
+    """The mission as known at time 0: tasks released at 0, no timed events or added robots."""
+    if not inst.dynamic:
+        return inst
+    return dataclasses.replace(inst, tasks=tuple(t for t in inst.tasks if t.release <= 0), events=(),
+                               added_agents=())
+
+
+def _candidates(candidates: str) -> list[str]:
+    from . import methods
+
+    names = [c.strip() for c in candidates.split(",") if c.strip()]
+    if not names:
+        raise MethodError("portfolio: option candidates: expected a comma list of methods, got nothing")
+    for c in names:
+        name, _ = methods.parse(c)
+        if name == "portfolio":
+            raise MethodError("portfolio: option candidates: a portfolio cannot contain itself")
+    return names
+
+
+def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
+             candidates: str = DEFAULT_CANDIDATES) -> dict[str, Solution]:
+    """Each candidate's solution on the initial view of ``inst`` (candidates whose optional
+    dependency is missing, e.g. torch for rl, are left out)."""
+    from . import methods
+    from .deps import MissingDependency
+
+    view = initial_view(inst)
+    out: dict[str, Solution] = {}
+    missing = []
+    for c in _candidates(candidates):
+        try:
+            out[c] = methods.solve(view, c, seed=seed, **methods.options_for(c, {"checkpoint": checkpoint}))
+        except MissingDependency as e:
+            missing.append(str(e))
+    if not out:
+        raise MethodError(f"portfolio: no candidate could run ({'; '.join(missing)})")
+    return out
+
+
+def choose(results: dict[str, Solution]) -> str:
+    """The candidate with the shortest makespan among the successful ones (ties: the first listed)."""
+    ok = [(s.makespan, i, c) for i, (c, s) in enumerate(results.items()) if s.success]
+    return min(ok)[2] if ok else next(iter(results))
+
+
+def select(inst: Instance, seed: int = 0, checkpoint: str | None = None,
+           candidates: str = DEFAULT_CANDIDATES) -> tuple[str, dict[str, float]]:
+    """(the method to run the mission with, makespan of every candidate on the initial view)."""
+    results = evaluate(inst, seed, checkpoint, candidates)
+    return choose(results), {c: s.makespan for c, s in results.items()}
+
+
+def solve_portfolio(inst: Instance, seed: int = 0, checkpoint: str | None = None,
+                    candidates: str = DEFAULT_CANDIDATES) -> Solution:
+    from . import methods
+
+    t0 = time.perf_counter()
+    results = evaluate(inst, seed, checkpoint, candidates)
+    chosen = choose(results)
+    sol = results[chosen]
+    if inst.dynamic:  # the choice saw only the initial mission: now run the real one, events and all
+        sol = methods.solve(inst, chosen, seed=seed, **methods.options_for(chosen, {"checkpoint": checkpoint}))
+    sol.compute_seconds = time.perf_counter() - t0
+    sol.extra["portfolio"] = {"chosen": chosen, "candidates": {c: s.makespan for c, s in results.items()}}
+    return sol
