@@ -140,9 +140,15 @@ def test_cli_help_lists_every_method_and_option():
 
 
 def _imports(path: Path, module: str, package: str, known: set[str]) -> set[str]:
-    """Every hmrta module ``module`` imports, anywhere in the file (function-level imports too)."""
+    """Every hmrta module ``module`` imports, anywhere in the file (function-level imports too;
+    not the annotations-only imports under ``if TYPE_CHECKING:``, which never run)."""
+    tree = ast.parse(path.read_text())
+    typing_only = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
+                   and "TYPE_CHECKING" in ast.unparse(node.test) for n in ast.walk(node)}
     out = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):

@@ -305,11 +305,11 @@ def test_expert_iteration_clones_the_best_of_teacher_and_samples(tmp_path):
     # near-argmax samples (temperature 1e-3), which tie with it
     own = MissionState(inst, seed=0, rules=RULES)
     rollout(tr.model.eval(), [own], sample=False)
-    tr.cfg["pretrain"]["temperature"] = 1e-3
+    tr.cfg.pretrain.temperature = 1e-3
     labels = [0, 1, 2]
     kept = tr._pool([(own, 0, 3)], [None] * 3, [0] * 3, labels)
     assert kept["teacher_wins"] == 1.0 and labels == [0, 1, 2]
-    tr.cfg["pretrain"]["temperature"] = 1.0
+    tr.cfg.pretrain.temperature = 1.0
 
     rows = [tr.pretrain_step() for _ in range(4)]
     assert tr.pretrain_done == 4 and all(r["labels"] > 0 and 0 <= r["teacher_wins"] <= 1 for r in rows)
@@ -340,7 +340,7 @@ def test_weight_averaging_is_validated_checkpointed_and_shipped(tmp_path):
     for ck in ("shipped.pt", "last.pt"):
         assert torch.equal(load_policy(tmp_path / ck).model.state_dict()[k], tr.ema[k])
     off = FixedTrainer(_tiny_cfg(), tmp_path / "off", device="cpu", log=lambda s: None)
-    off.pretrain_step() if off.cfg["pretrain"]["iterations"] else off.train_step()
+    off.pretrain_step() if off.cfg.pretrain.iterations else off.train_step()
     assert off.ema is None and off.eval_model() is off.model
 
 
@@ -601,3 +601,112 @@ def test_seeded_run_of_every_phase_reproduces_its_recorded_values(tmp_path):
     wsum = float(sum(v.double().abs().sum() for v in tr.model.state_dict().values()))
     esum = float(sum(v.double().abs().sum() for v in tr.ema.values()))
     assert wsum == pytest.approx(1641.945950626381, rel=1e-6) and esum == pytest.approx(1641.4687872076267, rel=1e-6)
+
+
+def _exported(tmp_path, name, seed=0, **over):
+    cfg = _tiny_cfg(**over)
+    cfg["seed"] = seed
+    tr = Trainer(cfg, tmp_path / name, device="cpu", log=lambda s: None)
+    path = tmp_path / f"{name}.pt"
+    tr.export(path)
+    return path, {k: v.clone() for k, v in tr.model.state_dict().items()}
+
+
+def test_checkpoint_average_of_itself_and_of_two(tmp_path, capsys):
+    import hashlib
+
+    from hmrta.cli import main
+    from hmrta.methods import solve
+    from hmrta.rl.checkpoint import FORMAT_VERSION, average, load
+
+    a, wa = _exported(tmp_path, "a", seed=1)
+    b, wb = _exported(tmp_path, "b", seed=2)
+    assert any(not torch.equal(wa[k], wb[k]) for k in wa)
+    entry = average([a, a], tmp_path / "aa.pt")  # with itself: the same weights, bit for bit
+    aa = load(tmp_path / "aa.pt")
+    assert all(torch.equal(aa["model"][k], wa[k]) for k in wa)
+    assert aa["checkpoint_format"] == FORMAT_VERSION and aa["config"] == load(a)["config"]
+    sha = hashlib.sha256(a.read_bytes()).hexdigest()
+    assert [s["sha256"] for s in entry["sources"]] == [sha, sha] and aa["lineage"] == [entry]
+    assert main(["checkpoint", "average", str(a), str(b), "--out", str(tmp_path / "ab.pt")]) == 0
+    capsys.readouterr()
+    ab = load(tmp_path / "ab.pt")
+    for k in wa:
+        if wa[k].is_floating_point():
+            torch.testing.assert_close(ab["model"][k], (wa[k] + wb[k]) / 2)
+    assert [s["path"] for s in ab["lineage"][0]["sources"]] == [str(a), str(b)]
+    pol = load_policy(tmp_path / "ab.pt")  # the result loads and solves
+    assert pol.rules == Rules(max_open=2, safety=True)
+    inst = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
+    assert solve(inst, "rl", seed=0, checkpoint=str(tmp_path / "ab.pt")).success
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_checkpoint_average_uses_the_moving_average_and_refuses_other_networks(tmp_path, capsys):
+    from hmrta.cli import main
+    from hmrta.rl.checkpoint import average, load
+
+    a, _ = _exported(tmp_path, "a", seed=1)
+    FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
+    tr = FixedTrainer(_tiny_cfg(train={"ema": 0.5}), tmp_path / "e", device="cpu", log=lambda s: None)
+    tr.train_step()
+    tr.save(tmp_path / "e.pt")  # a training checkpoint: its moving average is averaged
+    average([tmp_path / "e.pt"], tmp_path / "ee.pt")
+    assert all(torch.equal(load(tmp_path / "ee.pt")["model"][k], v) for k, v in tr.ema.items())
+    assert load(tmp_path / "ee.pt")["lineage"][0]["sources"][0]["weights"] == "ema"
+
+    wide, _ = _exported(tmp_path, "wide", model={"d_model": 64})
+    rules, _ = _exported(tmp_path, "rules", rules={"max_open": None})
+    for other, key in ((wide, "config.model.d_model"), (rules, "config.rules.max_open")):
+        out = tmp_path / "no.pt"
+        with pytest.raises(CheckpointError, match=re.escape(key) + ".*only checkpoints of the same network"):
+            average([a, other], out)
+        assert main(["checkpoint", "average", str(a), str(other), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and str(other) in err and key in err
+        assert not out.exists()
+
+
+def test_checkpoint_format_versions(tmp_path):
+    """Files without checkpoint_format (format 0: the shipped ones) load unchanged; files written
+    now carry format 1; a newer format is refused with a clear error."""
+    from hmrta.rl.checkpoint import FORMAT_VERSION, load, save
+
+    for name in ("default.pt", "coalition-open.pt"):
+        p = DEFAULT_CHECKPOINT.with_name(name)
+        if p.exists():
+            assert "checkpoint_format" not in torch.load(p, weights_only=True)
+            assert load(p)["config"]["model"]
+    FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
+    tr = FixedTrainer(_tiny_cfg(), tmp_path / "run", device="cpu", log=lambda s: None)
+    tr.save(tmp_path / "last.pt")
+    ck = torch.load(tmp_path / "last.pt", weights_only=True)
+    assert ck["checkpoint_format"] == FORMAT_VERSION == 1
+    old = {k: v for k, v in ck.items() if k != "checkpoint_format"}
+    torch.save(old, tmp_path / "v0.pt")
+    tr.load(tmp_path / "v0.pt")  # format 0 resumes
+    for bad, msg in ((2, "checkpoint_format: 2 is newer than this hmrta reads"),
+                     ("1", "checkpoint_format: expected an integer >= 0")):
+        torch.save({**old, "checkpoint_format": bad}, tmp_path / "bad.pt")
+        with pytest.raises(CheckpointError, match=msg):
+            load(tmp_path / "bad.pt")
+        with pytest.raises(CheckpointError, match=msg):
+            tr.load(tmp_path / "bad.pt")
+    with pytest.raises(RuntimeError, match="non-finite"):
+        save(tmp_path / "nan.pt", {"model": {"w": torch.tensor([math.nan])}})
+    assert not (tmp_path / "nan.pt").exists()
+
+
+def test_typed_config_round_trips_and_names_bad_keys():
+    from hmrta.rl.config import TrainConfig, defaults
+
+    cfg = TrainConfig.from_dict(defaults())
+    assert cfg.to_dict() == DEFAULTS and cfg.train.sil.buffer == 16 and cfg.model.ff_hidden == 128
+    with pytest.raises(ValueError, match=re.escape("x.yaml: train.sil.batch: expected an integer >= 1, got 0")):
+        TrainConfig.from_dict(deep_update(DEFAULTS, {"train": {"sil": {"batch": 0}}}), "x.yaml")
+    with pytest.raises(ValueError, match=re.escape("unknown key 'train.sil.bach'")):
+        TrainConfig.from_dict(deep_update(DEFAULTS, {"train": {"sil": {"bach": 0}}}))
+    from hmrta.rl.config import DistillConfig
+
+    with pytest.raises(ValueError, match="distill.teacher: expected one of policy"):
+        DistillConfig(teacher="oracle")  # validated on construction

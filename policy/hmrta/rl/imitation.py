@@ -1,0 +1,153 @@
+"""Behaviour cloning of a baseline (``pretrain``), with DAgger and expert iteration.
+
+Cross-entropy on a baseline's choices (``pretrain.teacher``: ``greedy`` or the coalition-aware
+``greedy-coalition``), so that later phases start from a baseline-level policy. With
+``pretrain.dagger`` > 0 that share of the instances is driven by the policy's own argmax and
+labelled by the teacher (DAgger, Ross et al. 2011), so the policy also learns to recover from its
+own mistakes. With ``pretrain.samples`` > 0 (expert iteration) that many sampled rollouts of the
+policy (``pretrain.temperature``) compete with the teacher's trajectory on each teacher-driven
+instance, and the best of them by return is cloned: the targets are never worse than the teacher,
+and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
+(greedy-coalition) the targets are soft: half on the teacher's choice, half spread by its
+coalition-start estimates.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from ..core import MissionState
+from .config import TEACHERS
+from .features import collate, observe
+from .rollout import returns, rollout
+
+if TYPE_CHECKING:
+    from .train import Trainer
+
+
+class Imitation:
+    """One iteration = ``pretrain.instances_per_iter`` fresh missions, labelled, then
+    ``pretrain.epochs`` epochs of minibatch cross-entropy."""
+
+    def __init__(self, run: "Trainer"):
+        self.run = run
+
+    def step(self) -> dict:
+        run, lr_ = self.run, self.run.learner
+        p = run.cfg.pretrain
+        insts = run._instances(p.instances_per_iter)
+        obs, deciders, acts, soft = [], [], [], []
+        teacher = TEACHERS[p.teacher]()
+        tau = p.tau
+
+        def label(st: MissionState) -> int:  # record the teacher's choice at st; returns it
+            tf, af, mask, nodes, row = observe(st)
+            n = teacher(st)
+            hit = np.flatnonzero(nodes == n)
+            if len(hit):  # (outside the observation window only on missions beyond the training scale)
+                obs.append((tf, af, mask))
+                deciders.append(row)
+                acts.append(int(hit[0]))
+                if tau > 0:
+                    soft.append(soft_target(teacher, st, nodes, int(hit[0]), tau))
+            return n
+
+        on_policy, pool = [], []  # DAgger states; (teacher's finished state, its label range) per pooled instance
+        for inst in insts:
+            st = MissionState(inst, seed=int(lr_.np_rng.integers(2**31)), rules=run.train_rules)
+            if lr_.np_rng.random() < p.dagger:
+                on_policy.append(st)  # DAgger: the policy drives, the teacher labels
+                continue
+            first = len(acts)
+            while not st.done:
+                st.step(label(st))
+            pool.append((st, first, len(acts)))
+        lr_.model.eval()
+        if on_policy:
+            rollout(lr_.model, on_policy, sample=False,
+                    before_step=lambda idx, o, nodes, act: [label(on_policy[i]) for i in idx])
+        pool_stats = self.pool(pool, obs, deciders, acts) if p.samples and pool else {}
+        lr_.set_lr(p.lr)
+        lr_.model.train()
+        n = len(acts)
+        losses = []
+        for _ in range(p.epochs):
+            perm = lr_.np_rng.permutation(n)
+            for lo in range(0, n, p.batch):
+                idx = perm[lo:lo + p.batch]
+                batch = {k: v.to(lr_.device) for k, v in collate([obs[i] for i in idx],
+                                                                 [deciders[i] for i in idx]).items()}
+                logits = lr_.model(**batch)  # [b, T]
+                if tau > 0:  # [b, T] target distributions, zero-padded to the batch's rows
+                    q = torch.zeros_like(logits)
+                    for r, i in enumerate(idx):
+                        q[r, :len(soft[i])] = torch.from_numpy(soft[i])
+                    logp = torch.log_softmax(logits, -1).masked_fill(~batch["action_mask"], 0.0)  # [b, T]
+                    loss = -(q * logp).sum(-1).mean()
+                else:
+                    target = torch.tensor([acts[i] for i in idx], device=lr_.device)
+                    loss = torch.nn.functional.cross_entropy(logits, target)
+                lr_.opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(lr_.model.parameters(), run.cfg.train.grad_clip)
+                lr_.optimizer_step()
+                losses.append(loss.item())
+        run.pretrain_done += 1
+        return {"iteration": run.pretrain_done, "bc_loss": float(np.mean(losses)), "labels": n,
+                "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, **pool_stats}
+
+    def pool(self, pool: list[tuple[MissionState, int, int]], obs: list, deciders: list, acts: list) -> dict:
+        """Expert iteration (``pretrain.samples``): ``samples`` sampled rollouts of the policy compete
+        with the teacher's trajectory on each pooled instance; where a sample has the better return
+        (-T - W), its decisions replace the teacher's labels of that instance. The targets are then
+        never worse than the teacher and are, where the policy won, its own (learnable) choices.
+        ``pool``: (the teacher's finished state, [first, end) of its labels) per instance; the other
+        labels (DAgger's) are kept."""
+        run, lr_ = self.run, self.run.learner
+        p, t = run.cfg.pretrain, run.cfg.train
+        S = int(p.samples)
+        states = [MissionState(st.inst, seed=st.seed, rules=run.train_rules) for st, _, _ in pool for _ in range(S)]
+        traj = rollout(lr_.model, states, sample=True, generator=lr_.torch_gen, record=True,
+                       amp=lr_.amp, temperature=p.temperature)
+        run.episodes += len(states)
+        run.decisions += traj.decisions
+        R = returns(states, t.t_max).reshape(len(pool), S)  # [I, S]
+        Rt = returns([st for st, _, _ in pool], t.t_max)  # [I] the teacher's
+        win = R.max(1) > Rt + 1e-9  # [I] a sample beats the teacher
+        keep = np.ones(len(acts), dtype=bool)
+        for (_, first, end), w in zip(pool, win):
+            keep[first:end] = not w  # drop the teacher's labels where a sample won
+        obs[:] = [o for o, k in zip(obs, keep) if k]
+        deciders[:] = [d for d, k in zip(deciders, keep) if k]
+        acts[:] = [a for a, k in zip(acts, keep) if k]
+        best = torch.as_tensor(np.flatnonzero(win) * S + R.argmax(1)[win])  # winning episodes
+        for o, a, e in zip(traj.obs, traj.actions, traj.episode):
+            for r in torch.isin(e, best).nonzero()[:, 0].tolist():  # rows of this step from a winner
+                n_t, n_a = int(o["task_valid"][r].sum()), int(o["agent_valid"][r].sum())
+                obs.append((o["tasks"][r, :n_t].numpy(), o["agents"][r, :n_a].numpy(),
+                            o["action_mask"][r, :n_t].numpy()))
+                deciders.append(int(o["decider"][r]))
+                acts.append(int(a[r]))
+        mk_t = np.array([st.makespan for st, _, _ in pool])  # [I]
+        mk_best = np.array([s.makespan for s in states])[np.arange(len(pool)) * S + R.argmax(1)]  # [I]
+        return {"teacher_makespan": float(mk_t.mean()), "pool_makespan": float(np.where(win, mk_best, mk_t).mean()),
+                "teacher_wins": float(1 - win.mean())}
+
+
+def soft_target(teacher, st: MissionState, nodes: np.ndarray, row: int, tau: float) -> np.ndarray:
+    """[1+W] half on the teacher's choice, half spread by its coalition-start estimates:
+    softmax(-(start - earliest) / tau) over the admissible tasks in the observation."""
+    q = np.zeros(len(nodes), dtype=np.float32)
+    q[row] = 0.5
+    cand, start, _ = teacher.estimates(st)
+    pos = {int(n): r for r, n in enumerate(nodes)}
+    rows = np.array([pos.get(1 + int(j), -1) for j in cand])  # [C] observation row of each candidate
+    ok = (rows >= 0) & np.isfinite(start)
+    if not ok.any():
+        q[row] = 1.0
+        return q
+    w = np.exp(-(start[ok] - start[ok].min()) / tau)  # [C']
+    q[rows[ok]] += 0.5 * w / w.sum()
+    return q
