@@ -5,8 +5,9 @@ Missions are MA-AT (25,5,50,5) (``hmrta generate`` rows). Half of the tasks (dra
 released over time as a Poisson stream (mean gap ``--gap``); 10% of the robots are lost at times
 drawn uniformly in [0, the last release]. Every method plans online (it sees a task at its release
 and a loss when it happens); the clairvoyant reference is CP-SAT given every task at time 0 and
-the whole team (``--cpsat-limit`` seconds, on the first ``--cpsat`` missions): a bound on what
-knowing the future is worth, not a feasible plan for the dynamic mission.
+the whole team (``--cpsat-limit`` seconds per mission, on the same missions unless ``--cpsat``
+limits them): a bound on what knowing the future is worth, not a feasible plan for the dynamic
+mission. Its response column is the mean finish time (every task released at 0).
 
     .venv/bin/python benchmarks/dynamic.py --count 10
 """
@@ -44,10 +45,13 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=10, help="missions")
     ap.add_argument("--seed", type=int, default=2024, help="generator seed")
     ap.add_argument("--gap", type=float, default=1.5, help="mean time between two releases")
-    ap.add_argument("--methods", default="greedy,greedy-coalition,rl")
-    ap.add_argument("--cpsat", type=int, default=3, help="missions given to the clairvoyant reference (0: none)")
+    ap.add_argument("--methods", default="greedy,greedy-coalition,rl,rl-s10")
+    ap.add_argument("--cpsat", type=int, default=None,
+                    help="missions given to the clairvoyant reference (default: all; 0: none)")
     ap.add_argument("--cpsat-limit", type=float, default=5.0, help="CP-SAT seconds per mission")
     args = ap.parse_args(argv)
+    if args.cpsat is None:
+        args.cpsat = args.count
     gen = ScenarioGenerator("MA-AT", 25, 5, 50, 5)
     base = [gen.instance(args.seed, i) for i in range(args.count)]
     dyn = [dynamic_mission(b, args.seed * 1000 + i, args.gap) for i, b in enumerate(base)]
@@ -65,7 +69,8 @@ def main(argv=None) -> int:
         sols = [methods.solve(b, "cpsat", seed=i, time_limit=args.cpsat_limit) for i, b in enumerate(base[:n])]
         ok = [s for s in sols if s.success]
         resp = [np.mean([t["finish"] for t in s.tasks]) for s in ok]
-        rows.append((f"cpsat clairvoyant ({n} missions, {args.cpsat_limit:g} s)", len(ok),
+        what = f"{n} missions, " if n < args.count else ""
+        rows.append((f"cpsat clairvoyant ({what}{args.cpsat_limit:g} s)", len(ok),
                      float(np.mean([s.makespan for s in ok])) if ok else math.nan,
                      float(np.mean(resp)) if resp else math.nan, 0.0,
                      float(np.mean([s.compute_seconds for s in sols]))))

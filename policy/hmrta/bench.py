@@ -42,6 +42,10 @@ DEFAULT_PAIRS = (("rl", "greedy"), ("rl", "greedy-coalition"))
 TIE_TOLERANCE = 1e-9  # relative makespan difference counted as a tie
 CSV_FIELDS = ("table", "row", "kn", "ks", "km", "kb", "method", "n", "success", "makespan_mean", "makespan_std",
               "awt_mean", "awt_std", "redundancy_mean", "redundancy_std", "compute_seconds", "gap_to_bound_mean")
+# appended to CSV_FIELDS when a row holds dynamic missions (released tasks or timed events)
+CSV_DYNAMIC_FIELDS = ("mean_response_mean", "mean_response_std", "max_response_mean", "max_response_std",
+                      "lost_cancelled_mean", "lost_unsatisfiable_mean", "lost_rejected_mean")
+LOST_KINDS = ("cancelled", "unsatisfiable", "rejected")
 
 
 @functools.lru_cache(maxsize=1)
@@ -120,7 +124,8 @@ class MissionSet:
         """(cache identity, instance) pairs; the identity follows the content, not just the name."""
         out = []
         for f, inst in zip(self.files, self.loaded):
-            digest = hashlib.sha256(json.dumps(inst.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+            content = inst.to_dict() | ({"events": list(inst.events)} if inst.events else {})  # a scenario's events
+            digest = hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16]
             out.append((f"{f.stem}@{digest}", inst))
         return out
 
@@ -133,18 +138,47 @@ def paper_suite(tables: Iterable[str] | None = None) -> list[Row]:
     return [Row(t, *r) for t in tables for r in PAPER_ROWS[t]]
 
 
+def _mean_std(values: Iterable[float | None]) -> tuple[float, float]:
+    v = np.array([x for x in values if x is not None], dtype=float)
+    return (float(v.mean()), float(v.std())) if len(v) else (math.nan, math.nan)
+
+
+def response_record(sol) -> dict:
+    """A solve's response figures for the bench cache: mean and max response time (finish -
+    release) over its done tasks, the tasks lost by kind, and whether the mission is dynamic
+    (released tasks or timed events). A static mission's tasks are all released at 0."""
+    dyn = sol.extra.get("dynamic")
+    if dyn is not None:
+        return {"dynamic": True, "mean": dyn["mean_response"], "max": dyn["max_response"],
+                "lost": {k: int(dyn["tasks_lost"][k]) for k in LOST_KINDS}}
+    fin = [t["finish"] for t in sol.tasks if t["finish"] == t["finish"]]
+    return {"dynamic": False, "mean": float(np.mean(fin)) if fin else None, "max": float(max(fin)) if fin else None,
+            "lost": {k: 0 for k in LOST_KINDS}}
+
+
 def summarise(results: list[dict]) -> dict:
-    """mean/std over solved instances, plus success rate and mean compute seconds."""
+    """mean/std over solved instances, plus success rate and mean compute seconds. When a result
+    comes from a dynamic mission, ``dynamic`` adds the response figures over every mission of the
+    row that has them (solved or not: a task done is a task answered): mean/std of the per-mission
+    mean and max response time, and the mean number of tasks lost per mission by kind."""
     ok = [r for r in results if r["success"]]
     def ms(key):
-        v = np.array([r[key] for r in ok], dtype=float)
-        return (float(v.mean()), float(v.std())) if len(v) else (math.nan, math.nan)
-    return {
+        return _mean_std(r[key] for r in ok)
+    out = {
         "n": len(results), "success": len(ok) / len(results) if results else math.nan,
         "makespan": ms("makespan"), "awt": ms("awt"), "redundancy": ms("redundancy"),
         "compute_seconds": float(np.mean([r["compute_seconds"] for r in results])) if results else math.nan,
         "gap_to_bound": ms("gap") if ok and all("gap" in r for r in ok) else None,
     }
+    resp = [r["response"] for r in results if r.get("response")]
+    if any(x["dynamic"] for x in resp):
+        out["dynamic"] = {
+            "n": len(resp), "n_dynamic": sum(x["dynamic"] for x in resp),
+            "mean_response": _mean_std(x["mean"] for x in resp),
+            "max_response": _mean_std(x["max"] for x in resp),
+            "tasks_lost": {k: float(np.mean([x["lost"][k] for x in resp])) for k in LOST_KINDS},
+        }
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -416,7 +450,7 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
                         r = {"row": row.key, "method": method, "index": ident, "seed": row_seed,
                              "variant": variants[method], "success": sol.success,
                              "makespan": sol.makespan, "awt": sol.awt, "redundancy": sol.redundancy,
-                             "compute_seconds": sol.compute_seconds}
+                             "compute_seconds": sol.compute_seconds, "response": response_record(sol)}
                         lb = sol.extra.get("lower_bound")
                         if lb is not None:
                             r["solver_bound"] = lb
@@ -557,10 +591,13 @@ def to_markdown(summary: dict) -> str:
         show_red = table.startswith("MA-AT") or table == "missions"
         show_gap = any(res.get("gap_to_bound") for r in rows for res in r["results"].values())
         show_paper = any(r.get("kind") == "paper" for r in rows)
+        show_dyn = any(res.get("dynamic") for r in rows for res in r["results"].values())
         out.append(f"### {_title(table, rows, summary)}")
         out.append("")
         named = any(r.get("name") for r in rows)
         head = ([_name_column(table)] if named else []) + ["kn, ks, km, kb", "method", "success", "makespan", "AWT"]
+        if show_dyn:
+            head += ["mean response", "max response", "tasks lost (cancelled / unsatisfiable / rejected)"]
         if show_red:
             head.append("redundancy")
         head.append("compute s")
@@ -577,6 +614,10 @@ def to_markdown(summary: dict) -> str:
                 cells = ([r.get("name") or ""] if named else []) + [
                     ", ".join(map(str, r["size"])), DISPLAY_NAME.get(method, method),
                     f"{res['success'] * 100:.0f}%", _pm(res["makespan"]), _pm(res["awt"])]
+                if show_dyn:
+                    d = res.get("dynamic")
+                    cells += ([_pm(d["mean_response"]), _pm(d["max_response"]),
+                               " / ".join(f"{d['tasks_lost'][k]:.2f}" for k in LOST_KINDS)] if d else ["—"] * 3)
                 if show_red:
                     cells.append(_pm(res["redundancy"], 3))
                 cells.append(f"{res['compute_seconds']:.3f}")
@@ -599,10 +640,12 @@ def to_markdown(summary: dict) -> str:
 
 
 def to_csv(summary: dict) -> str:
-    """One line per (row, method) with the figures of the JSON summary (columns :data:`CSV_FIELDS`)."""
+    """One line per (row, method) with the figures of the JSON summary (columns :data:`CSV_FIELDS`,
+    then :data:`CSV_DYNAMIC_FIELDS` when a row holds dynamic missions; empty for the other rows)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(CSV_FIELDS)
+    show_dyn = any(res.get("dynamic") for r in summary["rows"] for res in r["results"].values())
+    w.writerow(CSV_FIELDS + (CSV_DYNAMIC_FIELDS if show_dyn else ()))
 
     def num(v):
         return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else repr(float(v))
@@ -610,10 +653,16 @@ def to_csv(summary: dict) -> str:
     for r in summary["rows"]:
         for method, res in r["results"].items():
             gap = res.get("gap_to_bound")
-            w.writerow([r["table"], r["row"], *r["size"], method, res["n"], num(res["success"]),
-                        num(res["makespan"][0]), num(res["makespan"][1]), num(res["awt"][0]), num(res["awt"][1]),
-                        num(res["redundancy"][0]), num(res["redundancy"][1]), num(res["compute_seconds"]),
-                        num(gap[0]) if gap else ""])
+            line = [r["table"], r["row"], *r["size"], method, res["n"], num(res["success"]),
+                    num(res["makespan"][0]), num(res["makespan"][1]), num(res["awt"][0]), num(res["awt"][1]),
+                    num(res["redundancy"][0]), num(res["redundancy"][1]), num(res["compute_seconds"]),
+                    num(gap[0]) if gap else ""]
+            if show_dyn:
+                d = res.get("dynamic")
+                line += ([num(d["mean_response"][0]), num(d["mean_response"][1]), num(d["max_response"][0]),
+                          num(d["max_response"][1])] + [num(d["tasks_lost"][k]) for k in LOST_KINDS]
+                         if d else [""] * len(CSV_DYNAMIC_FIELDS))
+            w.writerow(line)
     return buf.getvalue()
 
 

@@ -139,3 +139,76 @@ def test_only_paper_rows_get_the_paper_title():
     assert "paper makespan" not in generated
     paper = to_markdown(_bench(None, rows=(PAPER_ROW,), count=1))
     assert "### Table III: MA-AT (1 instances per row, seed 5)" in paper and "paper makespan" in paper
+
+
+MISSION = """format: hmrta-instance/1
+requirement_type: additive
+velocity: 0.2
+skills: 2
+species:
+  - {traits: [1, 0], count: 2, depot: [0.0, 0.0]}
+  - {traits: [0, 1], count: 2, depot: [1.0, 1.0]}
+tasks:
+  - {location: [0.5, 0.1], requirements: [1, 0], duration: 2}
+  - {location: [0.2, 0.8], requirements: [1, 1], duration: 3}
+  - {location: [0.9, 0.4], requirements: [0, 2], duration: 1}
+"""
+SCENARIO = """format: hmrta-scenario/1
+instance: mission.yaml
+events:
+  - {t: 3.0, type: add_task, id: a, location: [0.3, 0.6], requirements: [1, 1], duration: 2}
+  - {t: 4.0, type: add_task, id: b, location: [0.6, 0.6], requirements: [2, 0], duration: 1}
+  - {t: 5.0, type: cancel_task, id: b}
+  - {t: 6.0, type: add_task, id: c, location: [0.6, 0.6], requirements: [0, 9], duration: 1}
+"""
+
+
+def test_dynamic_columns_only_for_rows_with_dynamic_missions(tmp_path):
+    """A row of scenario files and instances with released tasks gets mean / max response and
+    tasks lost (by kind) in Markdown, JSON and CSV, equal to the solutions' own figures; a static
+    row in the same summary has none (dashes / empty cells) and a static-only summary no columns."""
+    from hmrta import methods
+    from hmrta.bench import MissionSet
+
+    (tmp_path / "mission.yaml").write_text(MISSION)
+    (tmp_path / "scen.yaml").write_text(SCENARIO)
+    (tmp_path / "released.yaml").write_text(MISSION.replace("duration: 1}", "duration: 1, release: 2.5}"))
+    dyn = MissionSet.load("dyn", [tmp_path / "scen.yaml", tmp_path / "released.yaml"])
+    static = MissionSet.load("static", [tmp_path / "mission.yaml"])
+    out = tmp_path / "out"
+    s = _bench(out, methods=("greedy",), rows=(dyn, static), count=1)
+    sols = [methods.solve(i, "greedy", seed=0).extra["dynamic"] for i in dyn.loaded]
+    assert [d["tasks_lost"] for d in sols] == [{"cancelled": 1, "unsatisfiable": 0, "rejected": 1},
+                                               {"cancelled": 0, "unsatisfiable": 0, "rejected": 0}]
+    d = s["rows"][0]["results"]["greedy"]["dynamic"]
+    assert d["n"] == d["n_dynamic"] == 2
+    assert d["mean_response"][0] == pytest.approx((sols[0]["mean_response"] + sols[1]["mean_response"]) / 2)
+    assert d["max_response"][0] == pytest.approx((sols[0]["max_response"] + sols[1]["max_response"]) / 2)
+    assert d["tasks_lost"] == {"cancelled": 0.5, "unsatisfiable": 0.0, "rejected": 0.5}
+    assert "dynamic" not in s["rows"][1]["results"]["greedy"]
+    save(s, out)
+    data = json.loads((out / "results.json").read_text())
+    assert data["rows"][0]["results"]["greedy"]["dynamic"]["tasks_lost"]["rejected"] == 0.5
+    md = (out / "results.md").read_text()
+    assert "| mean response | max response | tasks lost (cancelled / unsatisfiable / rejected) |" in md
+    assert "| 0.50 / 0.00 / 0.50 |" in md and "| — | — | — |" in md
+    lines = list(csv.DictReader(io.StringIO((out / "results.csv").read_text())))
+    assert [x["row"] for x in lines] == ["missions:dyn", "missions:static"]
+    assert float(lines[0]["mean_response_mean"]) == d["mean_response"][0]
+    assert float(lines[0]["lost_cancelled_mean"]) == 0.5 and lines[1]["lost_cancelled_mean"] == ""
+    # a static summary keeps the static columns only
+    st = _bench(None, methods=("greedy",), rows=(static,), count=1)
+    assert "mean response" not in to_markdown(st)
+    from hmrta.bench import to_csv
+    assert "mean_response_mean" not in to_csv(st)
+
+
+def test_scenario_cache_identity_follows_the_events(tmp_path):
+    from hmrta.bench import MissionSet
+
+    (tmp_path / "mission.yaml").write_text(MISSION)
+    (tmp_path / "scen.yaml").write_text(SCENARIO)
+    (ident_a, _), = MissionSet.load("x", [tmp_path / "scen.yaml"]).instances(1, 0)
+    (tmp_path / "scen.yaml").write_text(SCENARIO.replace("t: 3.0", "t: 3.5"))
+    (ident_b, _), = MissionSet.load("x", [tmp_path / "scen.yaml"]).instances(1, 0)
+    assert ident_a != ident_b

@@ -170,3 +170,28 @@ def test_scenario_naming_a_scenario_is_refused(scenario, tmp_path):
             load_instance(p)
     with pytest.raises(ScenarioError, match="instance: expected an inline hmrta-instance/1 mapping"):
         scenario_from_dict({"format": "hmrta-scenario/1", "instance": "mission.yaml", "events": []}, "s.yaml")
+
+
+def test_small_rollouts_run_their_forwards_on_one_thread(scenario):
+    """The forwards of a single mission (and of a few samples) run on one intra-op thread, so that
+    their cost does not depend on a busy machine's thread pool and live agents (one thread) take
+    the same decisions; the process setting is restored afterwards, and large batches keep it."""
+    torch = pytest.importorskip("torch")
+    from hmrta.rl import rollout as R
+    from hmrta.rl.inference import load_policy
+
+    pol = load_policy(None)
+    seen: list[int] = []
+    hook = pol.model.register_forward_pre_hook(lambda *_: seen.append(torch.get_num_threads()))
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        methods.solve(load_instance(scenario), "rl", seed=0)
+        assert seen and set(seen) == {1} and torch.get_num_threads() == 2
+        seen.clear()
+        states = [MissionState(load_instance(scenario), k, pol.rules) for k in range(R.SINGLE_THREAD_STATES + 1)]
+        R.rollout(pol.model, states, sample=False)
+        assert seen[0] == 2 and torch.get_num_threads() == 2 and all(s.done for s in states)
+    finally:
+        hook.remove()
+        torch.set_num_threads(old)

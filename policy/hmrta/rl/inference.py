@@ -23,7 +23,7 @@ from ..solution import Solution, solution_from_state
 from .features import batch_observations
 from .checkpoint_info import DEFAULT_CHECKPOINT, CheckpointError, checkpoint_path  # noqa: F401 (re-exported)
 from .model import ModelConfig, PolicyNet
-from .rollout import action_costs, best_action, rollout
+from .rollout import action_costs, best_action, forward_threads, rollout
 
 _CACHE: dict[str, "LoadedPolicy"] = {}
 _LOCK = threading.Lock()
@@ -41,14 +41,14 @@ def load_policy(checkpoint: str | Path | None = None) -> LoadedPolicy:
     The file is unpickled weights-only (it cannot run code); its model config, rules and weights
     (names, shapes, finite values) are checked before the network is built from them."""
     from ..core import parse_rules
-    from .checkpoint_file import check_shapes, load_checkpoint, weights
+    from .checkpoint import check_shapes, load, policy_weights
 
     path = checkpoint_path(checkpoint)
     key = str(path.resolve())
     with _LOCK:
         if key in _CACHE:
             return _CACHE[key]
-        ck = load_checkpoint(path)
+        ck = load(path)
         config = ck.get("config")
         if not isinstance(config, dict):
             raise CheckpointError(f"{path}: config: expected a mapping (the training config), got "
@@ -62,8 +62,7 @@ def load_policy(checkpoint: str | Path | None = None) -> LoadedPolicy:
         except ValueError as e:
             raise CheckpointError(f"{path}: {e}") from None
         # a training checkpoint with averaged weights (train.ema) is scored, and so used, by those
-        which = "ema" if ck.get("ema") is not None else "model"
-        sd = weights(ck, which, path)
+        which, sd = policy_weights(ck, path)
         with torch.device("meta"):  # the network's shapes, without allocating it
             check_shapes(PolicyNet(cfg), sd, path, which)
         model = PolicyNet(cfg)
@@ -120,7 +119,7 @@ def lookahead_choices(model: torch.nn.Module, states: list[MissionState], t_max:
     to the policy's own choice. Never worse than the policy alone (Bertsekas' cost improvement).
     The states themselves are not changed."""
     obs, nodes = batch_observations(states)
-    with torch.inference_mode():
+    with torch.inference_mode(), forward_threads(len(states)):  # threaded as a rollout of these states
         own = model(**obs).argmax(-1).tolist()  # [b] the policy's choice (action rows)
     mask = obs["action_mask"].numpy()  # [b, T]
     multi = [j for j in range(len(states)) if mask[j].sum() > 1]  # nothing to compare elsewhere
@@ -163,7 +162,7 @@ class RLDecider:
         self.name = "rl-sample" if sample else "rl"
 
     def __call__(self, state: MissionState) -> int:
-        with torch.inference_mode():
+        with torch.inference_mode(), forward_threads(1):  # the same bits as a rollout of one mission
             obs, nodes = batch_observations([state])
             logits = self.pol.model(**obs)[0]  # [T]
             if self.sample:

@@ -1,10 +1,17 @@
 """Batched rollouts: many MissionStates (instances x rollouts) advance together, with one forward
 pass per decision step for every pending decision. The states are the core state machine itself,
-so a batched rollout and ``hmrta.sim.run`` give identical schedules for identical choices."""
+so a batched rollout and ``hmrta.sim.run`` give identical schedules for identical choices.
+
+A rollout of a few states (inference: one mission, a few samples, lookahead branches) runs its
+forward passes on one intra-op thread: each pass is a millisecond of work, too small to share,
+and on a busy machine the thread pool's synchronisation costs ten to a hundred times the work
+itself. One thread also keeps the logits, and so the decisions, independent of the machine's
+number of cores (the thread count changes the order of floating-point sums)."""
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -12,6 +19,29 @@ import torch
 from ..core import DONE, MissionState
 from ..solution import redundancy
 from .features import batch_observations
+
+
+SINGLE_THREAD_STATES = 64  # a rollout of at most this many states runs its forwards on one thread
+
+
+@contextmanager
+def intra_op_threads(n: int) -> Iterator[None]:
+    """Run the block with at most ``n`` torch intra-op threads (the process setting is restored)."""
+    old = torch.get_num_threads()
+    fewer = n < old
+    if fewer:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if fewer:
+            torch.set_num_threads(old)
+
+
+def forward_threads(n_states: int):
+    """The threading of forward passes over ``n_states`` states: one thread for at most
+    :data:`SINGLE_THREAD_STATES`, the process setting above."""
+    return intra_op_threads(1 if n_states <= SINGLE_THREAD_STATES else torch.get_num_threads())
 
 
 @dataclass
@@ -40,7 +70,7 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
     (e.g. to branch copies of some states)."""
     traj = Trajectories() if record else None
     active = [i for i, s in enumerate(states) if not s.done]
-    with torch.inference_mode():
+    with torch.inference_mode(), forward_threads(len(active)):
         while active:
             for lo in range(0, len(active), max_batch):
                 idx = active[lo:lo + max_batch]
