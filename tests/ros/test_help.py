@@ -20,6 +20,7 @@ NODE_SOURCES = {
     "task_board": SRC / "hmrta_coordinator" / "hmrta_coordinator" / "task_board.py",
     "sim_robot": SRC / "hmrta_coordinator" / "hmrta_coordinator" / "sim_robot.py",
     "agent_node": SRC / "hmrta_agent" / "hmrta_agent" / "agent_node.py",
+    "recorder": SRC / "hmrta_coordinator" / "hmrta_coordinator" / "recorder.py",
 }
 _AST_TYPES = {bool: P.BOOL, int: P.INTEGER, float: P.DOUBLE, str: P.STRING}
 
@@ -89,7 +90,8 @@ def _help(exe: str, *extra: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize("exe,node", [("task_board", "task_board"), ("sim_robot", "sim_robot"),
-                                      ("agent_node", "agent_node"), ("mission", None), ("hmrta-mission", None)])
+                                      ("agent_node", "agent_node"), ("recorder", "recorder"), ("mission", None),
+                                      ("hmrta-mission", None)])
 def test_help_lists_parameters_and_exits_0(exe, node):
     out = _help(exe)
     assert out.returncode == 0, f"{exe} --help exited {out.returncode}: {out.stderr[-2000:]}"
@@ -110,7 +112,8 @@ def test_help_before_ros_args():
     assert out.returncode == 0 and "instance (string" in out.stdout
 
 
-@pytest.mark.parametrize("module", ["hmrta_coordinator.task_board", "hmrta_coordinator.sim_robot"])
+@pytest.mark.parametrize("module", ["hmrta_coordinator.task_board", "hmrta_coordinator.sim_robot",
+                                    "hmrta_coordinator.recorder"])
 def test_help_starts_no_rclpy(module, monkeypatch, capsys):
     import importlib
 

@@ -1,0 +1,178 @@
+"""hmrta.replay: reading a recorded mission (MCAP, ROS 2 CDR) back without ROS, on small
+recordings written here with mcap-ros2-support, and its errors (``hmrta render --from``)."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("mcap_ros2")
+pytest.importorskip("matplotlib")
+
+from mcap_ros2.writer import Writer  # noqa: E402
+
+from hmrta.cli import main as cli_main  # noqa: E402
+from hmrta.core import MissionState  # noqa: E402
+from hmrta.formats import load_instance  # noqa: E402
+from hmrta.methods import solve  # noqa: E402
+from hmrta.render import agent_timeline  # noqa: E402
+from hmrta.replay import ReplayError, read_recording, render_recording  # noqa: E402
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "policy" / "hmrta" / "data" / "example.yaml"
+STRING = "string data\n"
+TIME = "int32 sec\nuint32 nanosec\n"
+SEP = "=" * 80
+CLOCK = f"builtin_interfaces/Time clock\n{SEP}\nMSG: builtin_interfaces/Time\n{TIME}"
+POSE = (f"std_msgs/Header header\nPose pose\n{SEP}\nMSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\n"
+        f"string frame_id\n{SEP}\nMSG: builtin_interfaces/Time\n{TIME}{SEP}\nMSG: geometry_msgs/Pose\n"
+        f"Point position\nQuaternion orientation\n{SEP}\nMSG: geometry_msgs/Point\nfloat64 x\nfloat64 y\nfloat64 z\n"
+        f"{SEP}\nMSG: geometry_msgs/Quaternion\nfloat64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n")
+T0 = 1_700_000_000_000_000_000  # receive times (wall ns)
+SCALE = 10.0  # frame units (metres) per mission unit
+
+
+def _stamp(t: float) -> dict:
+    ns = int(round(t * 1e9))
+    return {"sec": ns // 10**9, "nanosec": ns % 10**9}
+
+
+def _pose(t: float, x: float, y: float) -> dict:
+    return {"header": {"stamp": _stamp(t), "frame_id": "map"},
+            "pose": {"position": {"x": x * SCALE, "y": y * SCALE, "z": 0.0},
+                     "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+
+
+def mission_payload(inst, robots) -> str:
+    return json.dumps({"format": "hmrta-mission/1", "session": "s1", "instance": inst.to_dict(), "robots": robots,
+                       "seed": 0, "method": "greedy", "frame_id": "map", "scale": SCALE, "rules": {}})
+
+
+def write_recording(path: Path, *, mission=True, result=True, board=False, poses=True, wall_stamps=False,
+                    late: float = 0.0) -> tuple:
+    """A recording of the greedy plan of the example, its robots arriving on time (+ ``late``):
+    poses stamped with the mission clock, or (``wall_stamps``) with wall time, clocks on /clock."""
+    inst = load_instance(EXAMPLE)
+    sol = solve(inst, "greedy", 0)
+    robots = [f"robot_{a}" for a in range(inst.n_agents)]
+    msgs: list[tuple[float, str, str, dict]] = []  # (mission time, topic, schema, message)
+    if mission:
+        msgs.append((-1.0, "/hmrta/mission", "std_msgs/msg/String", {"data": mission_payload(inst, robots)}))
+    if board:
+        snap = MissionState(inst, seed=0).snapshot()
+        head = {"format": "hmrta-board/1", "session": "s1", "version": 1, "rev": 0, "phase": "wait", "clock": 0.0}
+        msgs.append((0.0, "/hmrta/board", "std_msgs/msg/String",
+                     {"data": "\n".join((json.dumps(head), "[]", json.dumps(snap)))}))
+    for a, segs in enumerate(agent_timeline(inst, sol)):
+        for s in segs:
+            if s["kind"] == "travel" and poses:
+                t = s["t1"] + late
+                stamp = (T0 * 1e-9 + t) if wall_stamps else t
+                msgs.append((s["t0"], f"/{robots[a]}/goal_pose", "geometry_msgs/msg/PoseStamped", _pose(s["t0"], *s["p1"])))
+                msgs.append((t, f"/{robots[a]}/pose", "geometry_msgs/msg/PoseStamped", _pose(stamp, *s["p1"])))
+    ticks = sorted({m[0] for m in msgs if m[0] >= 0} | {0.0})
+    msgs += [(t, "/clock", "rosgraph_msgs/msg/Clock", {"clock": _stamp(t)}) for t in ticks]
+    if result:
+        msgs.append((sol.makespan + 1, "/hmrta/result", "std_msgs/msg/String", {"data": json.dumps(sol.to_dict())}))
+    msgs.sort(key=lambda m: (m[0], m[2] != "rosgraph_msgs/msg/Clock"))  # a clock tick before what happens at it
+    defs = {"std_msgs/msg/String": STRING, "geometry_msgs/msg/PoseStamped": POSE, "rosgraph_msgs/msg/Clock": CLOCK}
+    with open(path, "wb") as f, Writer(f) as w:
+        schemas = {name: w.register_msgdef(name, text) for name, text in defs.items()}
+        for i, (t, topic, schema, msg) in enumerate(msgs):
+            w.write_message(topic, schemas[schema], msg, log_time=T0 + int(max(t + 1.0, 0) * 1e9) + i)
+    return inst, sol, robots
+
+
+def test_reads_back_mission_plan_tracks_and_counts(tmp_path):
+    inst, sol, robots = write_recording(tmp_path / "r.mcap")
+    rec = read_recording(tmp_path / "r.mcap")
+    assert rec.instance.to_dict() == inst.to_dict() and rec.robots == robots and rec.scale == SCALE
+    assert rec.plan_source == "result" and rec.routes == sol.routes and rec.plan.makespan == sol.makespan
+    assert rec.counts["/hmrta/mission"] == 1 and rec.counts["/hmrta/result"] == 1
+    assert rec.types["/robot_0/pose"] == "geometry_msgs/msg/PoseStamped"
+    n_travel = sum(s["kind"] == "travel" for segs in agent_timeline(inst, sol) for s in segs)
+    assert sum(rec.counts[f"/{r}/pose"] for r in robots if f"/{r}/pose" in rec.counts) == n_travel
+    # tracks in mission coordinates (the wire carries x scale) and mission time
+    t, x, y = rec.tracks["robot_0"][0]
+    first = agent_timeline(inst, sol)[0][0]
+    assert (x, y) == pytest.approx(first["p1"]) and t == pytest.approx(first["t1"], abs=1e-9)
+    visits = rec.visits()
+    assert [[v["task"] for v in rows] for rows in visits] == sol.routes
+    for rows in visits:
+        for v in rows:
+            assert v["actual_arrival"] == pytest.approx(v["arrival"], abs=1e-6)
+
+
+def test_late_robots_and_wall_clock_stamps_map_through_the_clock(tmp_path):
+    """Poses stamped with wall time (a real robot) take the mission clock of their receive time;
+    arrivals 0.5 late show as late."""
+    inst, sol, _ = write_recording(tmp_path / "r.mcap", wall_stamps=True, late=0.5)
+    rec = read_recording(tmp_path / "r.mcap")
+    lates = [v["actual_arrival"] - v["arrival"] for rows in rec.visits() for v in rows]
+    assert lates and all(0.0 <= d <= 0.5 + 1e-6 for d in lates)
+    assert max(lates) == pytest.approx(0.5, abs=1e-6)  # a pose received at a clock tick of its own
+
+
+def test_without_result_the_plan_comes_from_the_board(tmp_path):
+    write_recording(tmp_path / "r.mcap", result=False, board=True)
+    rec = read_recording(tmp_path / "r.mcap")
+    assert rec.plan_source == "board" and rec.plan.extra["partial"] and not rec.plan.success
+    write_recording(tmp_path / "n.mcap", result=False, board=False, poses=False)
+    rec = read_recording(tmp_path / "n.mcap")
+    assert rec.plan is None and rec.plan_source == "none" and rec.visits() == [[] for _ in rec.robots]
+    assert render_recording(rec, tmp_path / "n.png").stat().st_size > 0
+
+
+def test_render_from_recording(tmp_path, capsys):
+    _, sol, _ = write_recording(tmp_path / "r.mcap", late=0.25)
+    n = sum(map(len, sol.routes))
+    out = tmp_path / "fig" / "replay.png"
+    assert cli_main(["render", "--from", str(tmp_path / "r.mcap"), "--out", str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
+    assert cli_main(["render", str(EXAMPLE), "--from", str(tmp_path / "r.mcap"), "--out", str(out)]) == 0
+    assert f"{n}/{n} arrivals" in capsys.readouterr().out
+
+
+def _one_line_error(args, capsys) -> str:
+    assert cli_main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("hmrta: error: "), err
+    return err
+
+
+def test_errors_are_one_line(tmp_path, capsys):
+    out = str(tmp_path / "x.png")
+    (tmp_path / "t.mcap").write_text("hello")
+    assert "not an MCAP file" in _one_line_error(["render", "--from", str(tmp_path / "t.mcap"), "--out", out], capsys)
+    assert "no such file" in _one_line_error(["render", "--from", str(tmp_path / "no.mcap"), "--out", out], capsys)
+    write_recording(tmp_path / "nm.mcap", mission=False)
+    assert "no mission message" in _one_line_error(["render", "--from", str(tmp_path / "nm.mcap"), "--out", out],
+                                                  capsys)
+    write_recording(tmp_path / "r.mcap")
+    data = (tmp_path / "r.mcap").read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
+    err = _one_line_error(["render", "--from", str(tmp_path / "cut.mcap"), "--out", out], capsys)
+    assert "cut.mcap" in err
+    other = tmp_path / "other.yaml"
+    other.write_text(EXAMPLE.read_text().replace("velocity: 0.2", "velocity: 0.3", 1))
+    assert "is not the instance" in _one_line_error(
+        ["render", str(other), "--from", str(tmp_path / "r.mcap"), "--out", out], capsys)
+    assert "not a solution file" in _one_line_error(
+        ["render", str(EXAMPLE), "s.json", "--from", str(tmp_path / "r.mcap"), "--out", out], capsys)
+    assert "INSTANCE and SOLUTION" in _one_line_error(["render", "--out", out], capsys)
+    assert not (tmp_path / "x.png").exists()  # nothing drawn for a refused recording
+
+
+def test_malformed_mission_payload(tmp_path):
+    with open(tmp_path / "b.mcap", "wb") as f, Writer(f) as w:
+        s = w.register_msgdef("std_msgs/msg/String", STRING)
+        w.write_message("/hmrta/mission", s, {"data": "{not json"}, log_time=T0)
+    with pytest.raises(ReplayError, match=r"b\.mcap: the /hmrta/mission message is not valid JSON"):
+        read_recording(tmp_path / "b.mcap")
+    with open(tmp_path / "c.mcap", "wb") as f, Writer(f) as w:
+        s = w.register_msgdef("std_msgs/msg/String", STRING)
+        w.write_message("/hmrta/mission", s, {"data": json.dumps({"format": "hmrta-mission/9"})}, log_time=T0)
+    with pytest.raises(ReplayError, match="is not hmrta-mission/1"):
+        read_recording(tmp_path / "c.mcap")
+    assert math.isfinite(T0)

@@ -1,0 +1,128 @@
+"""Recording missions to MCAP: ``hmrta-mission --record`` and the ``recorder`` executable, read
+back with ``hmrta.replay`` (same routes as the result and the offline rollout) and drawn with
+``hmrta render --from``."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("mcap_ros2")
+rclpy = pytest.importorskip("rclpy")
+from mcap.reader import make_reader  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+
+from hmrta.cli import main as cli_main  # noqa: E402
+from hmrta.formats import load_instance  # noqa: E402
+from hmrta.methods import solve  # noqa: E402
+from hmrta.replay import read_recording  # noqa: E402
+from hmrta_coordinator.mission import default_instance  # noqa: E402
+from hmrta_msgs_py import topics  # noqa: E402
+
+BIN = Path(sys.executable).parent
+
+
+def _env(domain: int, tmp_path: Path) -> dict[str, str]:
+    return dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain),
+                ROS_LOG_DIR=str(tmp_path / "ros_logs"))
+
+
+def test_recorded_sim_mission_reads_back_with_the_same_routes(tmp_path, domain):
+    out, rec_file, seed = tmp_path / "mission.json", tmp_path / "mission.mcap", 1
+    r = subprocess.run([str(BIN / "hmrta-mission"), "--method", "greedy", "--seed", str(seed), "--out", str(out),
+                        "--no-plot", "--quiet", "--agents-per-process", "15", "--timeout", "150",
+                        "--domain-id", str(domain), "--record", str(rec_file)],
+                       capture_output=True, text=True, timeout=200, env=_env(domain, tmp_path), cwd=tmp_path)
+    assert r.returncode == 0, f"mission exited {r.returncode}:\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
+    assert f"wrote {rec_file}" in r.stdout and not Path(str(rec_file) + ".part").exists()
+    result = json.loads(out.read_text())
+    inst = load_instance(default_instance())
+    rec = read_recording(rec_file)
+    assert rec.instance.to_dict() == inst.to_dict() and rec.plan_source == "result"
+    assert rec.routes == result["routes"] == solve(inst, "greedy", seed).routes
+    assert rec.plan.makespan == result["makespan"]
+    # every mission topic and every robot's goals and poses, with messages
+    robots = [f"robot_{a}" for a in range(inst.n_agents)]
+    expected = {topics.MISSION, topics.BOARD, topics.CHOICE, topics.RESULT, topics.CLOCK}
+    expected |= {topics.robot_topic(r, leaf) for r in robots for leaf in (topics.GOAL, topics.POSE)}
+    missing = sorted(expected - {t for t, n in rec.counts.items() if n > 0})
+    assert not missing, f"not recorded: {missing}; recorded {rec.counts}"
+    assert rec.counts[topics.MISSION] == 1 and rec.counts[topics.RESULT] == 1
+    # volatile topics (choices, goals, poses) published before the recorder matched their
+    # publishers can be missed on a loaded machine: only presence is guaranteed
+    assert rec.counts[topics.CHOICE] <= sum(map(len, result["routes"])) + 10 * inst.n_agents
+    # the executed mission: every planned visit seen in the poses, on time (simulated robots)
+    visits = rec.visits()
+    assert [[v["task"] for v in rows] for rows in visits] == result["routes"]
+    arrivals = [v for rows in visits for v in rows]
+    assert all(v["actual_arrival"] >= v["arrival"] - 1e-6 for v in arrivals), arrivals  # never early
+    on_time = [v for v in arrivals if abs(v["actual_arrival"] - v["arrival"]) < 1e-6]
+    assert len(on_time) >= len(arrivals) // 2, f"{len(on_time)}/{len(arrivals)} arrivals seen on time"
+    # a standard ROS 2 MCAP: ros2 profile, CDR messages, ros2msg schemas
+    with open(rec_file, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+        assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+        assert {s.name for s in summary.schemas.values()} >= {"std_msgs/msg/String", "geometry_msgs/msg/PoseStamped",
+                                                             "rosgraph_msgs/msg/Clock"}
+    png = tmp_path / "replay.png"
+    assert cli_main(["render", "--from", str(rec_file), "--out", str(png)]) == 0
+    assert png.stat().st_size > 10_000
+
+
+def test_recorder_executable_gets_latched_topics_and_finishes_on_sigterm(tmp_path, graph):
+    """Started after the mission was published (latched: it still gets it), follows the robots
+    the mission names, and on SIGTERM finishes and renames its file."""
+    node = graph.node("publisher")
+    mission_pub = node.create_publisher(String, topics.MISSION, topics.MISSION_QOS)
+    mission_pub.publish(String(data=json.dumps({"format": "hmrta-mission/1", "robots": ["bot_a"]})))
+    out = tmp_path / "rec" / "run.mcap"
+    proc = subprocess.Popen([str(BIN / "recorder"), "--ros-args", "-p", f"output:={out}", "-p", "discovery_period:=0.2"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=_env(graph.domain, tmp_path), start_new_session=True)
+    try:
+        from geometry_msgs.msg import PoseStamped
+
+        pose_pub = node.create_publisher(PoseStamped, "/bot_a/pose", topics.POSE_PUB_QOS)
+        choice_pub = node.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
+        graph.spin_until(lambda: pose_pub.get_subscription_count() > 0 and choice_pub.get_subscription_count() > 0,
+                         60, "the recorder to subscribe to the mission's robot and the choices")
+        time.sleep(0.5)  # DDS matching on the recorder's side
+        for i in range(5):
+            choice_pub.publish(String(data=f"c{i}"))
+            msg = PoseStamped()
+            msg.pose.position.x = float(i)
+            pose_pub.publish(msg)
+            graph.executor.spin_once(timeout_sec=0.05)
+        time.sleep(1.0)
+        assert Path(str(out) + ".part").exists() and not out.exists()
+        proc.send_signal(signal.SIGTERM)
+        text, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert proc.returncode in (0, -signal.SIGTERM), text
+    assert out.exists() and not Path(str(out) + ".part").exists(), text
+    with open(out, "rb") as f:
+        s = make_reader(f).get_summary()
+    counts = {c.topic: s.statistics.channel_message_counts.get(i, 0) for i, c in s.channels.items()}
+    assert counts == {topics.MISSION: 1, topics.CHOICE: 5, "/bot_a/pose": 5}, counts
+
+
+def test_recorder_help_and_bad_compression(tmp_path, domain):
+    r = subprocess.run([str(BIN / "recorder"), "--help"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "output (string" in r.stdout
+    r = subprocess.run([str(BIN / "recorder"), "--ros-args", "-p", f"output:={tmp_path / 'x.mcap'}",
+                        "-p", "compression:=gzip"], capture_output=True, text=True, timeout=60,
+                       env=_env(domain, tmp_path))
+    assert r.returncode == 2 and "compression: expected one of zstd, lz4, none" in r.stderr
+    assert not list(tmp_path.glob("x.mcap*"))
