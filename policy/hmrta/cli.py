@@ -14,6 +14,7 @@ from pathlib import Path
 from . import __version__
 
 EXAMPLE = Path(__file__).resolve().parent / "data" / "example.yaml"
+INSTANCE_HELP = "instance YAML, CTAS-D config.json (or its folder), or a folder of *.yaml"
 
 
 class UserError(Exception):
@@ -22,21 +23,17 @@ class UserError(Exception):
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     from .instance import InstanceError
-    from .methods import MethodError
-    from .solution import RouteError
+    from .errors import MethodError
+    from .reading import InputError
+    from .solution import RouteError, SolutionError
 
-    errs: list[type[BaseException]] = [UserError, InstanceError, RouteError, MethodError]
-    try:
-        from .rl.inference import CheckpointError
-
-        errs.append(CheckpointError)
-    except ImportError:  # torch missing: rl methods unavailable
-        pass
+    errs: list[type[BaseException]] = [UserError, InstanceError, RouteError, MethodError, SolutionError, InputError]
+    # CheckpointError and MissingDependency are MethodErrors
     return tuple(errs)
 
 
 def _load(path: str):
-    from .instance import load_instance
+    from .formats import load_instance
 
     return load_instance(path)
 
@@ -55,13 +52,92 @@ def _resolve_instances(paths: list[str]) -> list[Path]:
     return out
 
 
+def _matching(folder: Path, inst_file: Path, what: str) -> Path:
+    """``folder/<stem>.json`` for an instance file (a CTAS-D folder's stem is the folder name)."""
+    p = folder / f"{inst_file.stem}.json"
+    if not p.is_file():
+        raise UserError(f"{p}: no such file (expected the {what} of instance {inst_file})")
+    return p
+
+
+def _progress_on(args) -> bool:
+    return not getattr(args, "no_progress", False)
+
+
+class SolveProgress:
+    """A progress bar on stderr for one solve, fed by the solver's ``progress(done, total, unit,
+    note)`` calls (``unit`` "s": seconds of a time limit, then the bar also advances between calls;
+    "task": tasks started). It appears only once the solve has run for :attr:`DELAY` seconds, so
+    short solves print nothing."""
+
+    DELAY = 2.0
+
+    def __init__(self, desc: str, enabled: bool = True):
+        import threading
+
+        self.desc, self.enabled = desc, enabled
+        self.bar = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._ticker = None
+        self._last = (0.0, 0.0)  # (done, wall clock) of the last call, for "s" bars
+
+    def __call__(self, done: float, total: float | None = None, unit: str = "", note: str = "") -> None:
+        import time
+
+        if not self.enabled:
+            return
+        with self._lock:
+            if self.bar is None:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=total, desc=self.desc, unit=unit or "it", delay=self.DELAY, leave=False,
+                                file=sys.stderr, bar_format=None if unit != "s" else
+                                "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s{postfix}")
+                if unit == "s":
+                    import threading
+
+                    self._ticker = threading.Thread(target=self._tick, daemon=True)
+                    self._ticker.start()
+            if total is not None and self.bar.total != total:
+                self.bar.total = total
+            self._last = (done, time.monotonic())
+            if note:
+                self.bar.set_postfix_str(note, refresh=False)
+            self._advance(done)
+
+    def _advance(self, value: float) -> None:
+        if self.bar.total is not None:
+            value = min(value, self.bar.total)
+        if value > self.bar.n:
+            self.bar.update(value - self.bar.n)
+
+    def _tick(self) -> None:
+        import time
+
+        while not self._stop.wait(0.5):
+            with self._lock:
+                done, at = self._last
+                self._advance(done + time.monotonic() - at)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._ticker is not None:
+            self._ticker.join(timeout=2.0)
+        if self.bar is not None:
+            self.bar.close()
+
+    def __enter__(self) -> "SolveProgress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 def _solve_opts(args) -> dict:
-    opts = {}
-    for k in ("checkpoint", "time_limit", "warm_start", "samples", "workers"):
-        v = getattr(args, k, None)
-        if v is not None:
-            opts[k] = v
-    return opts
+    from .methods import options_from_args
+
+    return options_from_args(args)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -71,16 +147,16 @@ def cmd_solve(args) -> int:
 
     files = _resolve_instances(args.instances)
     method = args.method
-    if args.samples and method == "rl-sample":
-        method = f"rl-s{args.samples}"
     out = Path(args.out) if args.out else None
     many = len(files) > 1
     if many and out and out.suffix == ".json":
         raise UserError(f"--out {out}: with several instances, --out must be a folder")
     sols = []
-    for f in tqdm(files, desc="solve", disable=len(files) < 5 or args.json, unit="instance"):
+    for f in tqdm(files, desc="solve", disable=not many or not _progress_on(args), unit="instance", file=sys.stderr,
+                  delay=SolveProgress.DELAY):
         inst = _load(str(f))
-        sol = solve(inst, method, seed=args.seed, **_solve_opts(args))
+        with SolveProgress(f"{method} {inst.name}", _progress_on(args)) as prog:
+            sol = solve(inst, method, seed=args.seed, progress=prog, **_solve_opts(args))
         sols.append(sol)
         if out:
             target = out / f"{f.stem}.json" if (many or out.is_dir() or out.suffix != ".json") else out
@@ -110,21 +186,27 @@ def schedule_text(inst, sol) -> str:
 
 
 def cmd_evaluate(args) -> int:
-    from .solution import evaluate_routes, parse_routes
+    from .solution import RouteError, evaluate_routes, read_routes
 
-    inst = _load(args.instance)
-    try:
-        data = json.loads(Path(args.routes).read_text())
-    except FileNotFoundError:
-        raise UserError(f"{args.routes}: no such file") from None
-    except json.JSONDecodeError as e:
-        raise UserError(f"{args.routes}:{e.lineno}: invalid JSON ({e.msg})") from None
-    routes = parse_routes(inst, data, args.routes)
-    sol = evaluate_routes(inst, routes)
+    files = _resolve_instances([args.instance])
+    routes_arg = Path(args.routes)
+    if len(files) > 1 and not routes_arg.is_dir():
+        raise UserError(f"{routes_arg}: with a folder of instances, expected a folder of <instance stem>.json routes")
+    sols = []
+    for f in files:
+        inst = _load(str(f))
+        path = _matching(routes_arg, f, "routes") if routes_arg.is_dir() else routes_arg
+        routes = read_routes(inst, path)  # RouteError naming the file (unreadable, not UTF-8, bad JSON, bad ids)
+        try:
+            sol = evaluate_routes(inst, routes)
+        except RouteError as e:
+            raise RouteError(f"{path}: {e}") from None
+        sols.append(sol)
+        if not args.json:
+            print(f"{inst.name}: makespan {sol.makespan:.6f}  AWT {sol.awt:.6f}  redundancy {sol.redundancy:.6f}")
     if args.json:
-        print(json.dumps(sol.to_dict(), indent=1))
-    else:
-        print(f"{inst.name}: makespan {sol.makespan:.6f}  AWT {sol.awt:.6f}  redundancy {sol.redundancy:.6f}")
+        data = [s.to_dict() for s in sols]
+        print(json.dumps(data[0] if len(data) == 1 else data, indent=1))
     return 0
 
 
@@ -148,10 +230,55 @@ def cmd_generate(args) -> int:
     return 0
 
 
+def robot_mapping(inst, config: dict) -> dict:
+    """CTAS-D robot ids -> hmrta agent ids of the converted instance. Robots sharing pose and
+    skillset form one species (in order of the lowest robot id); agents are numbered species-major,
+    each species' robots in increasing id order."""
+    robots = config["robots"]
+    k = inst.skills
+    slots: dict[int, list[str]] = {}
+    for key in sorted(robots, key=int):
+        r = robots[key]
+        traits = [0.0] * k
+        for sk, v in r["skillset"].items():
+            traits[int(sk)] = float(v)
+        sig = ((float(r["pose"]["x"]), float(r["pose"]["y"])), tuple(traits))
+        s = next(i for i, sp in enumerate(inst.species) if (tuple(sp.depot), tuple(sp.traits)) == sig)
+        slots.setdefault(s, []).append(key)
+    offset, robot_to_agent = 0, {}
+    for s, sp in enumerate(inst.species):
+        ids = slots.get(s, [])
+        if len(ids) != sp.count:  # the reader grouped robots otherwise: never write a wrong mapping
+            raise RuntimeError(f"species {s}: {len(ids)} robots map to it, the instance has {sp.count}")
+        for j, key in enumerate(ids):
+            robot_to_agent[key] = offset + j
+        offset += sp.count
+    return robot_to_agent
+
+
+def mapping_path(out: str | Path) -> Path:
+    """Where ``convert --out OUT.yaml`` writes the robot id mapping: ``OUT.mapping.json``."""
+    out = Path(out)
+    return out.with_name(f"{out.stem}.mapping.json")
+
+
 def cmd_convert(args) -> int:
+    from .instance import atomic_write_text
+
     inst = _load(args.input)
-    inst.save(args.output)
-    print(f"wrote {args.output} ({inst.n_agents} agents in {inst.n_species} species, {inst.n_tasks} tasks)")
+    src = Path(args.input)
+    cfg = src / "config.json" if src.is_dir() else src
+    mapping = None
+    if cfg.suffix.lower() == ".json":  # CTAS-D: robots are renumbered species-major
+        r2a = robot_mapping(inst, json.loads(cfg.read_text()))
+        mapping = {"source": str(cfg), "instance": str(args.out), "robot_to_agent": r2a,
+                   "agent_to_robot": sorted(r2a, key=r2a.get)}
+    inst.save(args.out)
+    print(f"wrote {args.out} ({inst.n_agents} agents in {inst.n_species} species, {inst.n_tasks} tasks)")
+    if mapping is not None:
+        mp = mapping_path(args.out)
+        atomic_write_text(mp, json.dumps(mapping, indent=1) + "\n")
+        print(f"wrote {mp} (CTAS-D robot id -> hmrta agent id, agents numbered species-major)")
     return 0
 
 
@@ -160,11 +287,37 @@ def cmd_bench(args) -> int:
     from .generators import PAPER_ROWS
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    from .methods import get, parse
+    from .methods import METHODS, MethodError, options_for, parse
 
     for m in methods:
-        get(parse(m)[0])  # unknown method: user error before any work
-    if args.suite:
+        parse(m)  # unknown method: user error before any work
+    for k in _solve_opts(args):  # an option none of the methods takes is an error
+        if not any(k in options_for(m, {k: 1}) for m in methods):
+            takers = [n for n, rec in METHODS.items() if rec.option(k)]
+            raise MethodError(f"--{k.replace('_', '-')}: none of the methods {', '.join(methods)} takes it "
+                              f"(methods that do: {', '.join(takers)})")
+    given = [x for x, on in (("INSTANCE", args.instances), ("--suite", args.suite), ("--scenario", args.scenario))
+             if on]
+    if len(given) > 1:
+        raise UserError(f"bench: give your missions (INSTANCE...), --suite, or one --scenario row, not both "
+                        f"{given[0]} and {given[1]}")
+    if args.out and Path(args.out).suffix.lower() in (".json", ".md", ".csv"):
+        raise UserError(f"--out {args.out}: expected a folder (results.md, results.json and results.csv go in it)")
+    try:
+        compare = None if args.compare is None else [_pair(c) for c in args.compare]
+        bench.comparison_pairs(methods, compare)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    if args.instances:
+        rows = _mission_sets(args.instances)
+    elif args.suite == "families":
+        from .families import family_suite
+
+        try:
+            rows = family_suite(args.tables.split(",") if args.tables else None, args.max_tasks)
+        except ValueError as e:
+            raise UserError(f"--tables: {e}") from None
+    elif args.suite:
         tables = args.tables.split(",") if args.tables else None
         if tables:
             bad = [t for t in tables if t not in PAPER_ROWS]
@@ -176,41 +329,84 @@ def cmd_bench(args) -> int:
     else:
         missing = [k for k in ("scenario", "agents", "species", "tasks", "skills") if getattr(args, k) is None]
         if missing:
-            raise UserError(f"bench: give --suite paper, or all of --scenario --agents --species --tasks --skills "
-                            f"(missing --{missing[0]})")
+            raise UserError(f"bench: give your missions (INSTANCE...), --suite paper, or all of --scenario --agents "
+                            f"--species --tasks --skills (missing --{missing[0]})")
         table = args.scenario
         try:
             rows = [bench.Row(table, args.agents, args.species, args.tasks, args.skills)]
             rows[0].generator()
         except ValueError as e:
             raise UserError(str(e)) from None
-    if args.suite and not args.out_dir:
-        args.out_dir = f"docs/results/{args.suite}"  # the suite's tables live in docs/results/
-    out_dir = Path(args.out_dir) if args.out_dir else None
+    if args.suite and not args.out:
+        args.out = f"docs/results/{args.suite}"  # the suite's tables live in docs/results/
+    out_dir = Path(args.out) if args.out else None
     summary = bench.run_bench(rows, methods, args.count, args.seed, out_dir, _solve_opts(args),
-                              progress=not args.no_progress, with_bounds=args.bounds,
-                              log=lambda s: print(s, file=sys.stderr))
-    md = bench.to_markdown(summary)
-    print(md)
-    json_path = Path(args.json) if args.json else (out_dir / "results.json" if out_dir else None)
-    md_path = Path(args.markdown) if args.markdown else (out_dir / "results.md" if out_dir else None)
-    bench.save(summary, md, json_path, md_path)
+                              progress=_progress_on(args), with_bounds=args.bounds,
+                              log=lambda s: print(s, file=sys.stderr), compare=compare,
+                              command=_command_line(args))
+    if args.json:
+        print(json.dumps(bench.clean(summary), indent=1))
+    else:
+        print(bench.to_markdown(summary))
+    if out_dir:
+        written = bench.save(summary, out_dir)
+        print(f"wrote {', '.join(map(str, written))}", file=sys.stderr)
     return 0
 
 
-def cmd_train(args) -> int:
-    import torch
+def _pair(text: str) -> tuple[str, str]:
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 2 or not all(parts):
+        raise ValueError(f"--compare {text}: expected two methods A,B (e.g. rl,greedy)")
+    return parts[0], parts[1]
 
-    from .rl.train import Trainer, load_config, write_config
+
+def _command_line(args) -> str:
+    import shlex
+
+    return "hmrta " + shlex.join(getattr(args, "argv", None) or [])
+
+
+def _mission_sets(paths: list[str]) -> list:
+    """Bench rows of user missions: one per folder of *.yaml, one for the files given singly."""
+    from .bench import MissionSet
+
+    rows, singles = [], []
+    for p in paths:
+        pp = Path(p)
+        if pp.is_dir() and not (pp / "config.json").exists():
+            rows.append(MissionSet.load(pp.resolve().name, _resolve_instances([p])))
+        else:
+            singles.append(pp)
+    if singles:
+        name = (singles[0].resolve().name if singles[0].is_dir() else singles[0].stem) if len(singles) == 1 \
+            else "missions"
+        rows.append(MissionSet.load(name, singles))
+    return rows
+
+
+def cmd_train(args) -> int:
+    from .deps import require
+
+    torch = require("torch", "hmrta train")
+
+    from .rl.train import Trainer, check_config, load_config, write_config
 
     try:
         cfg = load_config(args.config)
     except ValueError as e:
         raise UserError(str(e)) from None
+    if args.check:
+        print(f"{args.config}: a valid training config (name {cfg['name']!r})")
+        return 0
     if args.max_minutes is not None:
         cfg["train"]["max_minutes"] = args.max_minutes
     if args.iterations is not None:
         cfg["train"]["iterations"] = args.iterations
+    try:  # the command-line overrides are checked like the file's values
+        check_config(cfg, f"{args.config} (with --max-minutes/--iterations)")
+    except ValueError as e:
+        raise UserError(str(e)) from None
     if (args.init or args.reseed) and not args.resume:
         raise UserError("--init and --reseed only apply with --resume")
     run_dir = Path(args.run_dir or f"runs/{cfg['name']}")
@@ -251,40 +447,111 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_checkpoint(args) -> int:
+    from .deps import require
+
+    require("torch", "hmrta checkpoint")
+    from .rl.checkpoint import average
+
+    out = Path(args.out)
+    if out.is_dir():
+        raise UserError(f"--out {out}: is a folder, expected a checkpoint file name")
+    if not out.parent.is_dir():
+        raise UserError(f"--out {out}: no such folder {out.parent}")
+    entry = average(args.checkpoints, out)
+    print(json.dumps({"out": str(out), **entry}))
+    print(f"averaged {len(entry['sources'])} checkpoint(s) into {out}", file=sys.stderr)
+    return 0
+
+
 def cmd_bound(args) -> int:
     from .bounds import bound_report, format_report
+    from .solution import check_solution
 
-    inst = _load(args.instance)
-    sols = [_read_solution(p) for p in args.solutions]
-    if args.time_limit:
-        from .methods import solve
+    from tqdm import tqdm
 
-        sols.append(solve(inst, "cpsat", seed=0, time_limit=args.time_limit))
-    rep = bound_report(inst, sols)
-    print(json.dumps(rep, indent=1) if args.json else format_report(rep))
+    files = _resolve_instances([args.instance])
+    many = len(files) > 1
+    sol_args = [Path(p) for p in args.solutions]
+    if many:
+        loose = [p for p in sol_args if not p.is_dir()]
+        if loose:
+            raise UserError(f"{loose[0]}: with a folder of instances, expected a folder of <instance stem>.json "
+                            f"solutions")
+    reports = []
+    for f in tqdm(files, desc="bound", disable=not many or not _progress_on(args), unit="instance", file=sys.stderr,
+                  delay=SolveProgress.DELAY):
+        inst = _load(str(f))
+        sols = []
+        for p in sol_args:
+            path = str(_matching(p, f, "solution") if p.is_dir() else p)
+            sols.append(_read_solution(path))
+            check_solution(inst, sols[-1], path)  # a solution of another instance has no gap here
+        if args.time_limit:
+            from .methods import solve
+
+            with SolveProgress(f"cpsat {inst.name}", _progress_on(args)) as prog:
+                sols.append(solve(inst, "cpsat", seed=0, progress=prog, time_limit=args.time_limit))
+        rep = bound_report(inst, sols)
+        reports.append(rep)
+        if not args.json:
+            print(format_report(rep))
+    if args.json:
+        print(json.dumps(reports[0] if len(reports) == 1 else reports, indent=1))
     return 0
 
 
 def _read_solution(path: str):
-    from .solution import Solution
+    from .solution import read_solution
 
+    return read_solution(path)
+
+
+def cmd_render_recording(args) -> int:
+    """``hmrta render [INSTANCE] --from FILE.mcap --out fig.png``: the executed mission."""
+    from .replay import ReplayError, read_recording, render_recording, summary
+    from .solution import check_solution
+
+    if args.solution is not None:
+        raise UserError("render --from: give the recording and (optionally) the instance, not a solution file")
+    if args.gif:
+        raise UserError("render --from: --gif is not available for recordings")
     try:
-        return Solution.from_dict(json.loads(Path(path).read_text()))
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such file") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise UserError(f"{path}: not an hmrta-solution/1 file ({type(e).__name__}: {e})") from None
+        rec = read_recording(args.from_)
+    except ReplayError as e:
+        raise UserError(str(e)) from None
+    if args.instance is not None:  # the recorded mission must be this instance
+        inst = _load(args.instance)
+        if inst.to_dict() != rec.instance.to_dict():
+            raise UserError(f"{args.from_}: the recorded mission ({rec.instance.name}, {rec.instance.n_agents} robots, "
+                            f"{rec.instance.n_tasks} tasks) is not the instance {args.instance} ({inst.name})")
+    if rec.plan is not None:
+        check_solution(rec.instance, rec.plan, f"{args.from_} (recorded {rec.plan_source})")
+    try:
+        out = render_recording(rec, args.out)
+    except ValueError as e:  # e.g. an image format matplotlib cannot write
+        raise UserError(f"--out {args.out}: {' '.join(str(e).splitlines())}") from None
+    print(summary(rec).splitlines()[0])
+    print(f"wrote {out}")
+    return 0
 
 
 def cmd_render(args) -> int:
     from .render import render
+    from .solution import SolutionError
 
+    if args.from_ is not None:
+        return cmd_render_recording(args)
+    if args.instance is None or args.solution is None:
+        raise UserError("render: give INSTANCE and SOLUTION (or --from FILE.mcap, a recorded mission)")
     inst = _load(args.instance)
     sol = _read_solution(args.solution)
-    try:
-        written = render(inst, sol, args.out, gif=args.gif, frames=args.frames, fps=args.fps)
-    except ValueError as e:
-        raise UserError(f"{args.solution}: {e}") from None
+    try:  # render() first checks that the solution belongs to the instance (SolutionError naming the file)
+        written = render(inst, sol, args.out, gif=args.gif, frames=args.frames, fps=args.fps, source=args.solution)
+    except SolutionError:
+        raise
+    except ValueError as e:  # e.g. an image format matplotlib cannot write
+        raise UserError(f"--out {args.out}: {' '.join(str(e).splitlines())}") from None
     for w in written if isinstance(written, (list, tuple)) else [args.out]:
         print(f"wrote {w}")
     return 0
@@ -296,7 +563,8 @@ def cmd_demo(args) -> int:
     inst = _load(args.instance or str(EXAMPLE))
     print(f"mission {inst.name}: {inst.n_agents} robots in {inst.n_species} species, {inst.n_tasks} tasks, "
           f"{inst.requirement_type} requirements")
-    sol = solve(inst, args.method, seed=args.seed)
+    with SolveProgress(args.method, _progress_on(args)) as prog:
+        sol = solve(inst, args.method, seed=args.seed, progress=prog, **_solve_opts(args))
     print(sol.summary())
     print(schedule_text(inst, sol))
     if args.out:
@@ -305,7 +573,36 @@ def cmd_demo(args) -> int:
     return 0 if sol.success else 3
 
 
+def cmd_keys(args) -> int:
+    from .keys import KeystoreError, create_keystore, robot_key_path
+
+    if args.instance:
+        robots = [f"robot_{a}" for a in range(_load(args.instance).n_agents)]
+    else:
+        robots = [r.strip() for r in args.robots.split(",") if r.strip()]
+    try:
+        create_keystore(args.out, robots, force=args.force)
+    except KeystoreError as e:
+        raise UserError(f"keys create: {e}") from None
+    print(f"wrote keystore {args.out} for {len(robots)} robots: {Path(args.out) / 'keys.json'} (the task board's, "
+          f"every key) and {robot_key_path(args.out, robots[0]).parent}/<robot>.key.json (give each robot only its own)")
+    return 0
+
+
 # ---------------------------------------------------------------------------------------------
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default once: appended as "(default: X)" unless the help text already
+    speaks of its default, and never for options without a default (None, off flags, empty)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        d = action.default
+        if d is None or d is False or d == argparse.SUPPRESS or (isinstance(d, list) and not d) \
+                or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
+
 def _row_args(p: argparse.ArgumentParser, required: bool) -> None:
     """--scenario --agents --species --tasks --skills (one scenario row)."""
     from .generators import SCENARIOS
@@ -321,36 +618,31 @@ def _row_args(p: argparse.ArgumentParser, required: bool) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .methods import add_arguments as add_method_arguments
+
     p = argparse.ArgumentParser(
         prog="hmrta",
         description="Heterogeneous multi-robot task allocation: instances, simulator, baselines, learned policy.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=HelpFormatter)
     p.add_argument("--version", action="version", version=f"hmrta {__version__}")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
-    F = argparse.ArgumentDefaultsHelpFormatter
-    methods_help = ("method: greedy (nearest task) | greedy-coalition (task whose coalition can start first) | "
-                    "random | rl (learned policy, greedy decoding) | rl-sample / rl-sN "
-                    "(N sampled rollouts, best kept) | rl-lookahead (one-step lookahead over the policy's greedy "
-                    "continuations at every decision: slower, better) | cpsat (CP-SAT solver)")
+    F = HelpFormatter
 
     s = sub.add_parser("solve", help="solve instances and write hmrta-solution/1 JSON", formatter_class=F)
-    s.add_argument("instances", nargs="+", metavar="INSTANCE",
-                   help="instance YAML, CTAS-D config.json (or its folder), or a folder of *.yaml")
-    s.add_argument("--method", default="greedy", help=methods_help)
+    s.add_argument("instances", nargs="+", metavar="INSTANCE", help=INSTANCE_HELP)
+    add_method_arguments(s)
     s.add_argument("--seed", type=int, default=0, help="episode seed (decision order, sampling)")
-    s.add_argument("--samples", type=int, default=None, help="rollouts for --method rl-sample (default 10)")
-    s.add_argument("--checkpoint", default=None, help="policy checkpoint (default: the shipped one)")
-    s.add_argument("--time-limit", type=float, default=None, help="cpsat: seconds per instance (default 60)")
-    s.add_argument("--warm-start", choices=["greedy", "rl"], default=None, help="cpsat: warm start")
-    s.add_argument("--workers", type=int, default=None, help="cpsat: parallel workers (default 2)")
     s.add_argument("--out", default=None, help="solution file (one instance) or folder (DIR/<stem>.json)")
     s.add_argument("--json", action="store_true", help="print the solution JSON instead of a summary")
     s.add_argument("--schedule", action="store_true", help="also print the per-task schedule and routes")
+    s.add_argument("--no-progress", action="store_true",
+                   help="no progress bars (per instance with several, per decision or second in a long solve)")
     s.set_defaults(fn=cmd_solve)
 
     e = sub.add_parser("evaluate", help="re-simulate given routes and print the metrics", formatter_class=F)
-    e.add_argument("instance", help="instance file")
-    e.add_argument("routes", help="JSON object with a 'routes' key: per agent (species-major) the task ids in order")
+    e.add_argument("instance", help=INSTANCE_HELP)
+    e.add_argument("routes", help="JSON object with a 'routes' key: per agent (species-major) the task ids in "
+                                  "order; for several instances, a folder of <instance stem>.json files")
     e.add_argument("--json", action="store_true", help="print the re-evaluated solution as JSON")
     e.set_defaults(fn=cmd_evaluate)
 
@@ -364,24 +656,33 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("convert", help="convert a CTAS-D config.json (or any instance) to hmrta-instance/1 YAML",
                        formatter_class=F)
     c.add_argument("input", help="config.json, its folder, or an instance YAML")
-    c.add_argument("-o", "--output", required=True, help="output YAML path")
+    c.add_argument("--out", required=True,
+                   help="output YAML path; a CTAS-D input also writes OUT.mapping.json (robot id -> agent id)")
     c.set_defaults(fn=cmd_convert)
 
-    b = sub.add_parser("bench", help="paper-style tables: our methods beside the paper's numbers", formatter_class=F)
-    b.add_argument("--suite", choices=["paper"], default=None, help="every paper row (Tables I-IV)")
-    b.add_argument("--tables", default=None, help="with --suite: comma list of SA-BT,SA-AT,MA-AT,MA-AT-large")
+    b = sub.add_parser("bench", help="compare methods on generated rows (the paper's tables, the paper's numbers "
+                                     "beside ours) or on your own missions: Markdown, JSON and CSV with provenance",
+                       formatter_class=F)
+    b.add_argument("instances", nargs="*", metavar="INSTANCE",
+                   help="your missions instead of generated rows: " + INSTANCE_HELP
+                        + " (one table row per folder, one for the files given singly)")
+    b.add_argument("--suite", choices=["paper", "families"], default=None,
+                   help="paper: every paper row (Tables I-IV); families: the mission families (docs/families.md)")
+    b.add_argument("--tables", default=None, help="with --suite: comma list of SA-BT,SA-AT,MA-AT,MA-AT-large "
+                   "(families: of family names, e.g. homog,binary)")
     b.add_argument("--max-tasks", type=int, default=None, help="with --suite: skip rows with more tasks")
     _row_args(b, required=False)
     b.add_argument("--count", type=int, default=50, help="instances per row")
     b.add_argument("--seed", type=int, default=1000, help="test-set seed (never used in training/validation)")
-    b.add_argument("--methods", default="greedy", help="comma list, e.g. greedy,greedy-coalition,rl,rl-s10,cpsat")
-    b.add_argument("--checkpoint", default=None, help="policy checkpoint for rl methods")
-    b.add_argument("--time-limit", type=float, default=None, help="cpsat seconds per instance")
+    add_method_arguments(b, methods_flag=True)
     b.add_argument("--bounds", action="store_true", help="also report each method's gap to the best lower bound")
-    b.add_argument("--out-dir", default=None,
-                   help="write results.md/results.json and a resumable cache here (--suite default: docs/results/<suite>)")
-    b.add_argument("--json", default=None, help="save the tables as JSON to this file")
-    b.add_argument("--markdown", default=None, help="save the Markdown tables to this file")
+    b.add_argument("--compare", action="append", default=None, metavar="A,B",
+                   help="paired per-instance comparison of two methods (repeatable; default: rl,greedy and "
+                        "rl,greedy-coalition when those methods run)")
+    b.add_argument("--out", default=None,
+                   help="folder for results.md, results.json, results.csv and a resumable cache "
+                        "(--suite default: docs/results/<suite>)")
+    b.add_argument("--json", action="store_true", help="print the results as JSON instead of Markdown")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     b.set_defaults(fn=cmd_bench)
 
@@ -399,19 +700,35 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     t.add_argument("--export", default=None, help="after training, write the best weights + config here")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.add_argument("--check", action="store_true", help="only validate the config, then exit (no training)")
     t.set_defaults(fn=cmd_train)
+
+    ck = sub.add_parser("checkpoint", help="policy checkpoints: average the weights of several", formatter_class=F)
+    cksub = ck.add_subparsers(dest="checkpoint_cmd", required=True, metavar="ACTION")
+    ca = cksub.add_parser("average", help="average the weights (the moving average where present) of checkpoints "
+                                          "of the same network and rules; writes the config and the lineage "
+                                          "(sources with sha256)", formatter_class=F)
+    ca.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT", help="checkpoint files (.pt)")
+    ca.add_argument("--out", required=True, help="checkpoint to write (atomically)")
+    ca.set_defaults(fn=cmd_checkpoint)
 
     lb = sub.add_parser("bound", help="lower bounds on the makespan (and the gap of given solutions)",
                         formatter_class=F)
-    lb.add_argument("instance", help="instance file")
-    lb.add_argument("solutions", nargs="*", metavar="SOLUTION", help="solution JSON files to report gaps for")
+    lb.add_argument("instance", help=INSTANCE_HELP + " (a report per instance)")
+    lb.add_argument("solutions", nargs="*", metavar="SOLUTION",
+                    help="solution JSON files to report gaps for; for several instances, folders of "
+                         "<instance stem>.json files (e.g. written by solve --out DIR)")
     lb.add_argument("--time-limit", type=float, default=None, help="also run CP-SAT this long; its bound counts")
     lb.add_argument("--json", action="store_true", help="print JSON")
+    lb.add_argument("--no-progress", action="store_true", help="no progress bars")
     lb.set_defaults(fn=cmd_bound)
 
     r = sub.add_parser("render", help="draw the routes map and a Gantt chart of a solution", formatter_class=F)
-    r.add_argument("instance", help="instance file")
-    r.add_argument("solution", help="hmrta-solution/1 JSON")
+    r.add_argument("instance", nargs="?", default=None,
+                   help="instance file (with --from: optional, checked against the recorded mission)")
+    r.add_argument("solution", nargs="?", default=None, help="hmrta-solution/1 JSON")
+    r.add_argument("--from", dest="from_", default=None, metavar="FILE.mcap",
+                   help="draw a recorded mission (hmrta-mission --record): planned vs actual arrival times")
     r.add_argument("--out", required=True, help="output image (.png); an --out ending in .gif writes only the animation")
     r.add_argument("--gif", action="store_true", help="also write an animated GIF beside the PNG")
     r.add_argument("--frames", type=int, default=80, help="GIF frames")
@@ -420,16 +737,30 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="solve the built-in example mission and print its schedule", formatter_class=F)
     d.add_argument("--instance", default=None, help="another instance instead of the built-in example")
-    d.add_argument("--method", default="greedy", help=methods_help)
+    add_method_arguments(d)
     d.add_argument("--seed", type=int, default=0, help="episode seed")
     d.add_argument("--out", default=None, help="also write the solution JSON here")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar during a long solve")
     d.set_defaults(fn=cmd_demo)
+
+    k = sub.add_parser("keys", help="mission keystore: one secret key per robot (signed choices and statuses)",
+                       formatter_class=F)
+    ksub = k.add_subparsers(dest="keys_cmd", required=True, metavar="ACTION")
+    kc = ksub.add_parser("create", help="write a new keystore: KEYSTORE/keys.json (the board's) and "
+                                        "KEYSTORE/robots/<robot>.key.json (one per robot)", formatter_class=F)
+    who = kc.add_mutually_exclusive_group(required=True)
+    who.add_argument("--robots", default=None, help="comma-separated robot names, e.g. robot_0,robot_1")
+    who.add_argument("--instance", default=None, help="instance file: robots robot_0..robot_{A-1}")
+    kc.add_argument("--out", required=True, help="keystore folder to create")
+    kc.add_argument("--force", action="store_true", help="replace an existing keystore at --out")
+    kc.set_defaults(fn=cmd_keys)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # for the provenance of results
     try:
         return args.fn(args)
     except KeyboardInterrupt:
@@ -439,7 +770,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     except Exception as e:  # noqa: BLE001
         if isinstance(e, _user_errors()):
-            print(f"hmrta: error: {e}", file=sys.stderr)
+            print(f"hmrta: error: {' '.join(str(e).splitlines())}", file=sys.stderr)  # always one line
             return 2
         traceback.print_exc()
         print(f"hmrta: internal error: {type(e).__name__}: {e}", file=sys.stderr)
