@@ -18,6 +18,12 @@ decoded messages and clock values, call :meth:`MissionBoard.poll` and publish th
 * **Robot loss**: a robot whose heartbeat (:meth:`MissionBoard.heartbeat`) or pose stops for
   ``heartbeat_timeout`` seconds, or that does not decide within ``decision_timeout`` seconds, is
   dropped (``MissionState.drop_agent``) by :meth:`MissionBoard.tick`.
+* **Robots joining** (:meth:`MissionBoard.join`, from the ``joining`` list of a heartbeat): a
+  robot not in the mission that announces its species (or traits, and its position when its
+  driver reports one) is added with ``add_agent`` at the mission clock, journaled, and named;
+  robots a scenario's ``add_robot`` events add are named ``robot_<n>`` (n = robots at the start +
+  how many the scenario added before). ``robots_changed`` tells the node to republish the mission
+  (same session, the grown robot list and instance).
 * **Journal and replay** (``journal``: a path): every published board version is appended to a
   JSON-lines journal (``hmrta-journal/1``), one line per version with the events applied since the
   previous one (choices, arrival confirmations, losses, the start); lines that carry events are
@@ -69,6 +75,7 @@ class BoardState(MissionState):
 
     def __init__(self, inst, seed: int = 0, rules: Rules = Rules()):
         self.leg_log: list[list[tuple[int, float, float, float]]] = [[] for _ in range(inst.n_agents)]
+        self.until = 0.0  # live: the state never runs ahead of the mission clock (MissionState.advance_to)
         super().__init__(inst, seed=seed, rules=rules)
 
     def commit(self, a: int, node: int) -> None:
@@ -78,6 +85,8 @@ class BoardState(MissionState):
             self.log_leg(a, node)
 
     def log_leg(self, a: int, node: int) -> None:
+        while len(self.leg_log) <= a:  # a robot added during the mission
+            self.leg_log.append([])
         self.leg_log[a].append((node, float(self.to_pos[a, 0]), float(self.to_pos[a, 1]), float(self.depart[a])))
 
 
@@ -234,6 +243,10 @@ class MissionBoard:
         self._state_json = ""
         self._events: list[dict[str, Any]] = []  # applied since the last published version
         self.requests: dict[str, str] = {}  # operator task id -> last status reported on the events topic
+        self._join_names: list[str] = []  # names of robots joining, given to the next added agents
+        self._scenario_added = 0  # robots a scenario's add_robot events added (named robot_<A0 + k>)
+        self.join_refused: dict[str, str] = {}  # robot asking to join -> why it was refused (warned once)
+        self.robots_changed = False  # robots were added since the node last published the mission
         self.task_events: list[dict[str, Any]] = []  # hmrta-task-event/1 bodies not yet published
         self.journal: Journal | None = None
         if journal is not None:
@@ -278,6 +291,8 @@ class MissionBoard:
         st = self.state
         for ev in rec.get("ev", ()):
             kind = ev["type"]
+            if "until" in ev:  # the state's hold when the event was applied (MissionState.advance_to)
+                st.until = max(st.until, float(ev["until"]))
             if kind == "start":
                 self.started = True
             elif kind == "choice":
@@ -291,12 +306,16 @@ class MissionBoard:
                     self.latency_ms.append(float(ev["latency_ms"]))
                 self.agent_ms.append(float(ev.get("compute_ms", 0.0)))
             elif kind == "drop_agent":
-                self._drop(int(ev["robot"]), str(ev.get("reason", "")))
+                self._drop(int(ev["robot"]), str(ev.get("reason", "")), float(ev["t"]))
+            elif kind == "advance":
+                self._held(lambda: st.advance_to(float(ev["until"])))
             elif kind == "arrival":
                 a = int(ev["robot"])
                 self.ptr[a] = max(self.ptr[a], int(ev["ptr"]))
-            elif kind in ("add_task", "cancel_task"):
-                self._apply_held(ev)
+            elif kind in ("add_task", "cancel_task", "add_agent"):
+                if kind == "add_agent" and "name" in ev:
+                    self._joined(str(ev["name"]))  # before it is added: the name goes to this robot
+                self._external(ev)
                 if kind == "add_task":
                     self.requests[str(ev["name"])] = "accepted"
             elif kind == "resume":
@@ -356,8 +375,8 @@ class MissionBoard:
         self.agent_ms.append(float(c.compute_ms))
         st.step(c.node)
         self.rev += 1
-        self._events.append({"type": "choice", "t": float(st.clock), "robot": a, "node": int(c.node),
-                             "version": int(c.version), "latency_ms": round(latency, 6),
+        self._events.append({"type": "choice", "t": float(st.clock), "until": float(st.until), "robot": a,
+                             "node": int(c.node), "version": int(c.version), "latency_ms": round(latency, 6),
                              "compute_ms": float(c.compute_ms)})
         return None
 
@@ -365,8 +384,11 @@ class MissionBoard:
         """Count a message that did not decode."""
         self.rejected["malformed"] += 1
 
-    def heartbeat(self, session: str, robots: Sequence[str], payload: Any = None) -> str | None:
-        """An agent heartbeat naming ``robots``; returns a warning text when it is ignored."""
+    def heartbeat(self, session: str, robots: Sequence[str], payload: Any = None,
+                  joining: Sequence[Any] = ()) -> str | None:
+        """An agent heartbeat naming ``robots`` (and ``joining``: robots asking to join, objects
+        with ``robot``, ``species``, ``traits``, ``position``; see :meth:`join`); returns a
+        warning text when something in it is ignored."""
         if session != self.session:
             return None  # agents of another mission run
         if self.verifier is not None:
@@ -374,6 +396,9 @@ class MissionBoard:
             if why is not None:  # keeps nobody alive
                 self.auth_rejected["status"][rejection_code(why)] += 1
                 return f"ignoring heartbeat of {', '.join(robots[:4])[:200]}: {why}"
+        warn = None
+        for j in joining:
+            warn = self.join(j.robot, j.species, j.traits, j.position) or warn
         now = self.now()
         unknown = []
         for r in robots:
@@ -384,7 +409,45 @@ class MissionBoard:
                 self.seen_status[a] = now
         if not self.started:
             self._maybe_start()
-        return f"heartbeat names unknown robot {unknown[0]!r}" if unknown else None
+        return f"heartbeat names unknown robot {unknown[0]!r}" if unknown else warn
+
+    def join(self, name: str, species: int | None = None, traits: Sequence[float] | None = None,
+             position: Sequence[float] | None = None) -> str | None:
+        """A robot not in the mission asks to join (its agent's heartbeat): once the mission runs,
+        it is added (``add_agent``) at the event time, at ``position`` (where its driver reports
+        it) or its species' depot, under its name, and journaled; ``robots_changed`` tells the node
+        to republish the mission. Agents repeat the request until the robot is in the mission, so
+        one that comes before the start or while a board is replaying is simply added later.
+        Returns a warning the first time a request is refused (with the reason), else None."""
+        if name in self.index or not self.started or self.finished or self.state.done:
+            return None
+        if self.verifier is not None:
+            why = ("robots cannot join an authenticated mission at run time (its keystore names every robot; "
+                   "start the mission with it)")
+        else:
+            st = self.state
+            rec: dict[str, Any] = {"type": "add_agent", "t": self._event_time(), "until": float(st.until),
+                                   "name": name}
+            for k, v in (("species", species), ("traits", traits), ("position", position)):
+                if v is not None:
+                    rec[k] = int(v) if k == "species" else [float(x) for x in v]
+            self._joined(name)
+            try:
+                a = self._external(rec)
+            except EventRejected as e:
+                self._join_names.remove(name)
+                why = str(e)
+            else:
+                self._events.append(rec)
+                self.join_refused.pop(name, None)
+                where = f"at {tuple(rec['position'])}" if "position" in rec else "at its species' depot"
+                self.log("info", f"robot {name} joined the mission at t={rec['t']:.3f} as agent {a} "
+                                 f"(species {int(st.inst.agent_species[a])}, {where})")
+                return None
+        if self.join_refused.get(name) == why:
+            return None
+        self.join_refused[name] = why
+        return f"robot {name!r} cannot join: {why}"
 
     def pose(self, a: int, x: float, y: float) -> None:
         """Robot a reports its position (mission coordinates)."""
@@ -394,11 +457,27 @@ class MissionBoard:
             self._maybe_start()
 
     def set_clock(self, t: float) -> bool:
-        """The mission clock; returns whether it advanced."""
+        """The mission clock; returns whether it advanced. The state runs up to it (completions,
+        scheduled events and the decisions they bring; journaled as an ``advance`` event when
+        anything happened) and holds there."""
         if t > self.clock:
             self.clock = t
+            if self.started and not self.finished:
+                self._advance(t + EPS)
             return True
         return False
+
+    def _advance(self, until: float) -> None:
+        st = self.state
+        if st.done or st.agent is not None:
+            st.until = max(st.until, until)
+            return
+        before = (float(st.clock), st.agent, st.done, st.decisions, len(st.log), int(st.n_done), int(st.n_cancelled))
+        self._held(lambda: st.advance_to(until), bump=False)
+        if (float(st.clock), st.agent, st.done, st.decisions, len(st.log), int(st.n_done),
+                int(st.n_cancelled)) != before:
+            self.rev += 1
+            self._events.append({"type": "advance", "t": float(st.clock), "until": float(st.until)})
 
     def _maybe_start(self) -> None:
         if all(s is not None for s in self.seen_status) and all(s is not None for s in self.seen_pose):
@@ -442,57 +521,118 @@ class MissionBoard:
         return [n for a, n in enumerate(self.names) if self.seen_status[a] is None or self.seen_pose[a] is None]
 
     def lose(self, a: int, reason: str) -> list[int]:
-        """Drop robot a (its commitments are released); returns the tasks this cancels."""
+        """Drop robot a at the mission clock (its commitments are released); returns the tasks
+        this cancels."""
         if a in self.lost or self.finished:
             return []
-        cancelled = self._drop(a, reason)
-        self._events.append({"type": "drop_agent", "t": float(self.state.clock), "robot": a, "reason": reason})
+        t = self._event_time()
+        cancelled = self._drop(a, reason, t)
+        self._events.append({"type": "drop_agent", "t": t, "until": float(self.state.until), "robot": a,
+                             "reason": reason})
         extra = f"; cancelled task(s) {cancelled} (no longer satisfiable)" if cancelled else ""
         self.log("warning", f"robot {self.names[a]} lost ({reason}): its commitments are released{extra}")
         return cancelled
 
-    def _drop(self, a: int, reason: str) -> list[int]:
+    def _drop(self, a: int, reason: str, t: float) -> list[int]:
         self.lost[a] = reason
-        return self._held(lambda: self.state.drop_agent(a), skip=a)
-
-    def _held(self, change: Callable[[], Any], skip: int = -1) -> Any:
-        """Apply ``change`` to the state; robots it stopped where they were (no commitment) get
-        a hold leg."""
         st = self.state
-        before = [(len(log), float(st.depart[b]), float(st.arrive[b])) for b, log in enumerate(st.leg_log)]
+
+        def change() -> list[int]:
+            if not st.done:
+                st.advance_to(t, idle=True)
+            return st.drop_agent(a) if not st.done else []
+        return self._held(change, skip=a)
+
+    def _event_time(self) -> float:
+        """When an event given now applies: the mission clock, or the instant of the pending
+        decision (the clock is held at it until the decision is made)."""
+        st = self.state
+        return float(st.clock) if st.agent is not None or st.done else max(float(self.clock), float(st.clock))
+
+    def _external(self, rec: dict[str, Any]) -> Any:
+        """Apply an operator event (add_task, cancel_task, add_agent) at its time ``t``: the held
+        state moves to ``t`` first. EventRejected leaves the state as it was."""
+        st = self.state
+
+        def change() -> Any:
+            st.advance_to(float(rec["t"]), idle=True)
+            return apply_event(st, rec)
+        return self._held(change)
+
+    def _held(self, change: Callable[[], Any], skip: int = -1, bump: bool = True) -> Any:
+        """Apply ``change`` to the state; robots it stopped short of their destination (no new
+        commitment) get a hold leg."""
+        st = self.state
+        before = [(len(log), float(st.to_pos[b, 0]), float(st.to_pos[b, 1])) for b, log in enumerate(st.leg_log)]
         out = change()
-        for b, (n, d, r) in enumerate(before):
-            if b != skip and len(st.leg_log[b]) == n and (float(st.depart[b]), float(st.arrive[b])) != (d, r):
+        for b, (n, x, y) in enumerate(before):
+            if b != skip and len(st.leg_log[b]) == n and (float(st.to_pos[b, 0]), float(st.to_pos[b, 1])) != (x, y):
                 st.log_leg(b, HOLD)
-        self.rev += 1
+        for b in range(len(self.names)):
+            if st.mode[b] == LOST and b not in self.lost:  # lost by a scenario event
+                self.lost[b] = "lost (scenario event)"
+        self._sync_robots()
+        if bump:
+            self.rev += 1
         return out
 
-    def _apply_held(self, rec: dict[str, Any]) -> Any:
-        return self._held(lambda: apply_event(self.state, rec))
+    def _sync_robots(self) -> None:
+        """Give robots the state added (a scenario's add_robot, a robot that joined) a name and
+        the board's per-robot bookkeeping; ``robots_changed`` tells the node to republish the
+        mission."""
+        st = self.state
+        while len(self.names) < st.A:
+            a = len(self.names)
+            if self._join_names:
+                name = self._join_names.pop(0)
+            else:  # a scenario's add_robot event: the k-th is robot_<robots at the start + k>
+                name = f"robot_{self.inst.n_agents + self._scenario_added}"
+                self._scenario_added += 1
+            while name in self.index:
+                name += "_"
+            self.names.append(name)
+            self.index[name] = a
+            self.seen_status.append(self.now() if self.started else None)
+            self.seen_pose.append(self.now() if self.started else None)
+            self.last_pose.append(None)
+            self.ptr.append(0)
+            self.robots_changed = True
+        while len(st.leg_log) < st.A:
+            st.leg_log.append([])
+
+    def _joined(self, name: str) -> None:
+        """The name of the robot the next add_agent creates (a robot that joined)."""
+        self._join_names.append(name)
 
     # ------------------------------------------------------------------------------------------
     # operator requests (hmrta-task-request/1) and task events (hmrta-task-event/1)
     # ------------------------------------------------------------------------------------------
-    def task_request(self, op: str, rid: str, task: dict[str, Any] | None = None) -> dict[str, Any]:
+    def task_request(self, op: str, rid: str, task: dict[str, Any] | None = None,
+                     request_id: str = "") -> dict[str, Any]:
         """Add (``op`` "add", ``task`` {location, requirements, duration}) or cancel a task by
-        its client id; returns the answer (event "accepted" or "rejected" with a reason), also
-        queued in :attr:`task_events`. Accepted requests are journaled like every event."""
+        its client id; returns the answer (event "accepted" or "rejected" with a reason, and the
+        client's ``request_id`` echoed when given), also queued in :attr:`task_events`. Accepted
+        requests are journaled like every event."""
         st = self.state
         ans: dict[str, Any] = {"id": rid, "op": op}
+        if request_id:
+            ans["request_id"] = request_id
         why = None
         if not self.started or self.finished or st.done:
-            why = "the mission is not running" if not self.started else "the mission is over"
+            why = ("the mission is not running" if not self.started else
+                   "the mission is over" if self.finished or st.failure else
+                   "the mission is over (every task is done or cancelled; the robots are going home)")
         elif op == "add" and rid in self.requests:
             why = f"task {rid!r}: a task with this id exists already"
         elif op == "cancel" and rid not in self.requests:
             why = f"task {rid!r}: no task with this id"
         if why is None:
-            rec: dict[str, Any] = {"type": "add_task" if op == "add" else "cancel_task", "t": float(st.clock),
-                                   "name": rid}
+            rec: dict[str, Any] = {"type": "add_task" if op == "add" else "cancel_task", "t": self._event_time(),
+                                   "until": float(st.until), "name": rid}
             if op == "add":
                 rec["task"] = task
             try:
-                self._apply_held(rec)
+                self._external(rec)
             except EventRejected as e:
                 why = str(e)
             else:
@@ -501,7 +641,7 @@ class MissionBoard:
                     self.requests[rid] = "accepted"
                     ans["task"] = st.names.index(rid) if rid in st.names else None
         ans.update({"event": "rejected", "reason": why} if why is not None else {"event": "accepted"})
-        ans["t"] = float(st.clock)
+        ans["t"] = float(st.clock) if why is None else float(max(self.clock, st.clock))
         self.task_events.append(ans)
         return ans
 
@@ -516,6 +656,8 @@ class MissionBoard:
             now = {"in_progress": "started", "done": "done", "cancelled": "cancelled"}.get(STATUS_NAMES[st.status[m]])
             if now is None or now == last:
                 continue
+            if now == "started" and self.clock < float(st.start[m]) - EPS:
+                continue  # the coalition is complete; the task starts when its last member arrives
             if now == "done" and order[last] < 1:
                 self.task_events.append({"id": rid, "event": "started", "task": m, "t": float(st.start[m])})
             t = float(st.finish[m]) if now == "done" else float(st.start[m]) if now == "started" else float(st.clock)
@@ -558,7 +700,8 @@ class MissionBoard:
         st = self.state
         locs = st.inst.task_locations
         if st.done:
-            away = [self.names[a] for a in range(st.A) if a not in self.lost and not self._near(a, self.inst.depots[a])]
+            away = [self.names[a] for a in range(st.A)
+                    if a not in self.lost and not self._near(a, st.inst.depots[a])]
             return f"clock {self.clock:.3f}, robots not yet home: {away[:10]}"
         late = []
         for a in range(st.A):
@@ -582,12 +725,17 @@ class MissionBoard:
             alive = [a for a in range(st.A) if a not in self.lost]
             final = max([float(st.arrive[a]) for a in alive] + [float(st.clock)])
             if ((st.failure and not st.n_cancelled)  # deadlock / time limit: nobody is going home
-                    or (self.clock >= final - EPS and all(self._near(a, self.inst.depots[a]) for a in alive))):
+                    or (self.clock >= final - EPS and all(self._near(a, st.inst.depots[a]) for a in alive))):
                 self.finished = True
                 return "done", None, float(self.clock)
             return "closing", None, final
         gate = self.gate()
         t = float(st.clock)
+        if st.agent is None:  # held until the next completion or scheduled event
+            nxt = min([float(st.events[0][0])] if st.events else [], default=math.inf)
+            nxt = min([nxt, float(st.pending[0][0])] if st.pending else [nxt])
+            h = min(nxt, gate)
+            return "wait", None, h if math.isfinite(h) else max(t, float(self.clock))
         if self.clock >= t - EPS and gate > t + EPS:
             return "decide", st.agent, t
         return "wait", None, min(t, gate)

@@ -232,6 +232,10 @@ def apply_event(state: "MissionState", record: dict) -> Any:
 class MissionState:
     """Exact event-driven state of one mission (SPEC §3). See the module docstring."""
 
+    # live missions (the ROS board): the state processes nothing due after ``until`` (it holds,
+    # with no decision pending and not done) until :meth:`advance_to` moves it on; offline: no hold
+    until: float = math.inf
+
     def __init__(self, inst: Instance, seed: int = 0, rules: Rules = Rules()):
         self.inst = inst
         self.rules = rules
@@ -532,6 +536,8 @@ class MissionState:
         then, in time order; the freed agents, waiting and parked ones are queued. False if t lies
         beyond ``t_max`` (the episode fails)."""
         t = max(t, self.clock)
+        if t > self.until:  # held: the live mission clock has not reached t (advance_to resumes here)
+            return False
         if t > self.rules.t_max:
             self._fail(f"time limit {self.rules.t_max} exceeded")
             return False
@@ -674,6 +680,19 @@ class MissionState:
         if position is not None:
             rec["position"] = [float(x) for x in position]
         return self._event(rec)
+
+    def advance_to(self, t: float, idle: bool = False) -> None:
+        """Live missions: let the state run up to mission time ``t`` (completions and scheduled
+        events due by then, and the decisions they bring) and hold there. Holding splits the
+        run without changing it: a state advanced step by step ends exactly like one never held.
+        With ``idle``, a held state (nothing due before ``t``) moves its clock to ``t``, so that an
+        event given at ``t`` applies at once."""
+        self.until = max(self.until, float(t))
+        if self.done or self.agent is not None:
+            return
+        self._advance()
+        if idle and not self.done and self.agent is None and self.clock < t:
+            self.clock = float(t)
 
     def schedule(self, record: dict) -> None:
         """Queue an external event record (``t`` >= the clock) to be applied when the mission
@@ -1019,6 +1038,9 @@ class MissionState:
                 "species": [{"traits": [float(x) for x in sp.traits], "depot": [float(x) for x in sp.depot]}
                             for sp in inst.species[S0:]],
                 "agents": [int(x) for x in inst.added_agents[A0 - (inst.n_agents - len(inst.added_agents)):]],
+                # the sizes of the mission as it started: a reader given the grown instance (a
+                # republished mission) cuts it back to them, so nothing added counts twice
+                "base": {"tasks": int(M0), "agents": int(A0), "species": int(S0)},
             }
         return d
 
@@ -1043,6 +1065,8 @@ class MissionState:
             self.rules = parse_rules(rules)
         except ValueError as e:
             raise SnapshotError(f"snapshot {e}") from None
+        if isinstance(d.get("added"), dict) and d["added"].get("base") is not None:
+            inst = _base(inst, f.obj("added").obj("base"))
         self.open_cap = self.rules.open_cap(inst)  # fixed at mission start
         self.base = (inst.n_tasks, inst.n_agents, inst.n_species)
         if d.get("added") is not None:
@@ -1141,6 +1165,21 @@ class MissionState:
     @property
     def makespan(self) -> float:
         return float(self.arrive.max()) if self.success else math.nan
+
+
+def _base(inst: Instance, f: "_Fields") -> Instance:
+    """``inst`` cut back to the mission's start sizes (``added.base`` of a snapshot): the instance
+    of a grown mission (tasks, species and robots appended) read with a snapshot that lists the
+    additions again."""
+    M0, A0, S0 = f.integer("tasks", 0), f.integer("agents", 0), f.integer("species", 1)
+    block = sum(s.count for s in inst.species[:S0])
+    if M0 > inst.n_tasks or S0 > inst.n_species or not block <= A0 <= inst.n_agents:
+        raise SnapshotError(f"snapshot added.base: the mission started with {M0} tasks, {A0} robots and {S0} "
+                            f"species; the instance has {inst.n_tasks}, {inst.n_agents} and {inst.n_species}")
+    if (M0, A0, S0) == (inst.n_tasks, inst.n_agents, inst.n_species):
+        return inst
+    return dataclasses.replace(inst, tasks=inst.tasks[:M0], species=inst.species[:S0],
+                               added_agents=inst.added_agents[:A0 - block], _cache={})
 
 
 def _grown(inst: Instance, f: "_Fields") -> Instance:

@@ -150,6 +150,8 @@ class Instance:
                 }
                 for t in self.tasks
             ],
+            # robots added during a mission (a live board republishes its grown mission)
+            **({"added_agents": [int(s) for s in self.added_agents]} if self.added_agents else {}),
         }
 
     def to_yaml(self) -> str:
@@ -174,6 +176,8 @@ class Instance:
                 f"duration: {_fmt(t['duration'])}"
                 + (f", release: {_fmt(t['release'])}" if "release" in t else "") + "}"
             )
+        if "added_agents" in d:
+            lines.append(f"added_agents: [{', '.join(str(s) for s in d['added_agents'])}]")
         return "\n".join(lines) + "\n"
 
     def save(self, path: str | Path) -> None:
@@ -236,7 +240,7 @@ def atomic_write_text(path: Path, text: str) -> None:
 # ---------------------------------------------------------------------------------------------
 # Validation
 # ---------------------------------------------------------------------------------------------
-_TOP_KEYS = {"format", "name", "requirement_type", "velocity", "skills", "species", "tasks"}
+_TOP_KEYS = {"format", "name", "requirement_type", "velocity", "skills", "species", "tasks", "added_agents"}
 _REQUIRED_TOP = {"format", "requirement_type", "velocity", "skills", "species", "tasks"}
 _SPECIES_KEYS = {"traits", "count", "depot"}
 _TASK_KEYS = {"location", "requirements", "duration"}
@@ -314,6 +318,10 @@ def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
         raise _err(f"{source}: species", "expected a non-empty list of species")
     if not isinstance(d["tasks"], list):
         raise _err(f"{source}: tasks", "expected a list of tasks")
+    added = d.get("added_agents", [])  # robots added during a mission: the species of each
+    if not isinstance(added, list) or not all(isinstance(a, int) and not isinstance(a, bool) and a >= 0
+                                              for a in added):
+        raise _err(f"{source}: added_agents", f"expected a list of species indices, got {short(added)}")
     species = []
     for i, s in enumerate(d["species"]):
         w = f"{source}: species[{i}]"
@@ -322,12 +330,18 @@ def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
         if not any(traits):
             raise _err(f"{w}.traits", "expected at least one non-zero trait (all zero)")
         c = s["count"]
-        if isinstance(c, bool) or not isinstance(c, int) or not 1 <= c <= MAX_AGENTS:
+        # count 0: a species only robots added during the mission have (added_agents)
+        if (isinstance(c, bool) or not isinstance(c, int) or not 0 <= c <= MAX_AGENTS
+                or (c == 0 and i not in added)):
             raise _err(f"{w}.count", f"expected a positive integer (at most {MAX_AGENTS}), got {short(c)}")
         depot = _vector(s["depot"], 2, f"{w}.depot", unit=True)
         species.append(Species(traits, c, depot))  # type: ignore[arg-type]
-    if sum(s.count for s in species) > MAX_AGENTS:
-        raise _err(f"{source}: species", f"{sum(s.count for s in species)} agents in all; at most {MAX_AGENTS}")
+    if any(a >= len(species) for a in added):
+        raise _err(f"{source}: added_agents", f"expected species indices in 0..{len(species) - 1}, got "
+                                              f"{short(max(added))}")
+    if sum(s.count for s in species) + len(added) > MAX_AGENTS:
+        raise _err(f"{source}: species", f"{sum(s.count for s in species) + len(added)} agents in all; "
+                                         f"at most {MAX_AGENTS}")
     tasks = []
     for m, t in enumerate(d["tasks"]):
         w = f"{source}: tasks[{m}]"
@@ -343,7 +357,7 @@ def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
         if not 0 <= rel <= MAX_VALUE:
             raise _err(f"{w}.release", f"expected a time >= 0 and <= {MAX_VALUE:g}, got {short(t['release'])}")
         tasks.append(Task(loc, req, dur, rel))  # type: ignore[arg-type]
-    inst = Instance(rt, vel, k, tuple(species), tuple(tasks), name)
+    inst = Instance(rt, vel, k, tuple(species), tuple(tasks), name, added_agents=tuple(added))
     why = inst.infeasibility()
     if why:
         raise InstanceError(f"{source}: {why}")

@@ -136,6 +136,13 @@ def _list(v: Any, where: str) -> list:
     return v
 
 
+def _operator_cancelled(d: dict) -> bool:
+    """Whether a dynamic mission's operator cancelled tasks (they stay undone in a success)."""
+    dyn = d.get("dynamic")
+    lost = dyn.get("tasks_lost") if isinstance(dyn, dict) else None
+    return isinstance(lost, dict) and bool(lost.get("cancelled"))
+
+
 def _solution_from_dict(d: Any, source: str) -> Solution:
     d = _fields(d, _KNOWN, source, extra=True)
     if d["format"] != FORMAT:
@@ -175,7 +182,7 @@ def _solution_from_dict(d: Any, source: str) -> Solution:
         start, finish = _time(t["start"], f"{w}.start"), _time(t["finish"], f"{w}.finish")
         if math.isnan(start) != math.isnan(finish) or finish < start:
             raise _serr(f"{w}.finish", f"expected a finish >= the start ({short(t['start'])}), got {short(t['finish'])}")
-        if d["success"] and math.isnan(start):
+        if d["success"] and math.isnan(start) and not _operator_cancelled(d):  # cancelled tasks have no start
             raise _serr(f"{w}.start", "expected a time: the solution succeeded, so every task was done")
         tasks.append({"start": start, "finish": finish, "members": list(members)})
     routes = _list(d["routes"], f"{source}: routes")

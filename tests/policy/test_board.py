@@ -4,6 +4,7 @@ every rejection reason; the arrival gate; robot loss by timeout; the journal (re
 equals the uninterrupted mission, a torn last line is dropped, a foreign journal is refused)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
@@ -15,6 +16,7 @@ from hmrta import keys as K
 from hmrta.board import JOURNAL_FORMAT, JournalError, MissionBoard, read_journal
 from hmrta.core import MissionState
 from hmrta.generators import ScenarioGenerator
+from hmrta.instance import instance_from_dict
 from hmrta.methods import decider, rules, solve
 
 INST = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
@@ -57,31 +59,44 @@ def position(inst, legs, t: float) -> tuple[float, float]:
     return pos
 
 
-def drive(b: MissionBoard, steps: int | None = None, report: bool = True, max_iter: int = 20000) -> int:
+def drive(b: MissionBoard, steps: int | None = None, report: bool = True, max_iter: int = 20000,
+          clock: float = math.inf) -> int:
     """Play agents (greedy on the board's snapshot) and robots that arrive at once, until the
-    mission is over or ``steps`` choices were applied; returns the choices applied."""
+    mission is over, ``steps`` choices were applied or the clock reached ``clock``; returns the
+    choices applied."""
     decide = decider("greedy", SEED)[0]
     inst, names = b.inst, b.names
     n = 0
     for _ in range(max_iter):
         b.poll()
-        if b.finished or (steps is not None and n >= steps):
+        if b.finished or (steps is not None and n >= steps) or b.clock >= clock:
             return n
         st = b.state
         if b.phase == "decide":
-            state = MissionState.from_snapshot(inst, json.loads(b._state_json))
+            # an agent rebuilds the state on the mission it heard: the grown one once robots joined
+            state = MissionState.from_snapshot(mission_instance(b), json.loads(b._state_json))
             c = Choice(names[st.agent], b.session, b.version, int(decide(state)))
             assert b.choice(c) is None
             n += 1
             continue
         horizon = b._key[3]
-        b.set_clock(horizon)
+        b.set_clock(min(horizon, clock))
+        added = {r["id"]: r["position"] for r in st.log if r["type"] == "add_agent" and "position" in r}
         if report:
             for a in range(st.A):
                 if a not in b.lost:
-                    base = [(0, float(inst.depots[a, 0]), float(inst.depots[a, 1]), 0.0)]
+                    # robots added during the mission start where they were added (default: depot)
+                    x, y = added.get(a, st.inst.depots[a])
+                    base = [(0, float(x), float(y), 0.0)]
                     b.pose(a, *position(inst, base + st.leg_log[a], b.clock))
     raise AssertionError(f"stuck: {b.waiting_for()}")
+
+
+def mission_instance(b: MissionBoard):
+    """The instance of the mission the node (re)publishes, through its wire round trip: the
+    robots added, not the tasks."""
+    grown = dataclasses.replace(b.state.inst, tasks=b.inst.tasks, _cache={})
+    return instance_from_dict(json.loads(json.dumps(grown.to_dict())))
 
 
 def started_board(**kw) -> MissionBoard:
@@ -324,3 +339,126 @@ def test_operator_tasks_are_added_cancelled_answered_and_journaled(tmp_path):
     assert events.index(("inspect-7", "started")) < events.index(("inspect-7", "done"))
     sol = b.result()
     assert sol.extra["undone_tasks"] == [INST.n_tasks] and len(sol.tasks) == INST.n_tasks + 2
+
+
+def test_the_board_state_never_runs_ahead_of_the_mission_clock():
+    """A task whose work outlasts every decision is still running (and cancellable) on the board
+    while the clock has not reached its finish; the held state ends like the offline rollout."""
+    b = started_board()
+    long = {"location": [0.9, 0.1], "requirements": [0, 1, 0], "duration": 500.0}
+    assert b.task_request("add", "spare", long)["event"] == "accepted"
+    drive(b, clock=50.0)  # long after every other task is done
+    b.poll()
+    m = b.state.names.index("spare")
+    assert not b.state.done and b.state.clock <= b.clock + 1e-6 < 500.0
+    assert b.phase in ("wait", "decide") and b.state.status[m] != 3  # not done before its time
+    ans = b.task_request("cancel", "spare")
+    assert ans["event"] == "accepted", ans
+    drive(b)
+    assert b.finished and b.state.status[m] == 4 and b.result().makespan < 500.0
+
+
+def test_a_held_state_ends_exactly_like_one_never_held():
+    ref = MissionState(INST, seed=SEED, rules=RULES)
+    held = MissionState(INST, seed=SEED, rules=RULES)
+    held.until = 0.0
+    decide = decider("greedy", SEED)[0]
+    held.advance_to(0.0)
+    steps = 0
+    while not held.done:
+        if held.agent is None:
+            nxt = min([held.events[0][0]] if held.events else [math.inf])
+            held.advance_to(nxt / 2 if steps % 2 else nxt)  # halfway stops change nothing
+            steps += 1
+            continue
+        node = int(decide(held))
+        assert ref.agent == held.agent and ref.clock == held.clock
+        ref.step(node)
+        held.step(node)
+    assert ref.done and held.snapshot() == ref.snapshot() and steps > 2
+
+
+# ---------------------------------------------------------------------------------------------
+# robots joining a running mission
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class Join:  # what hmrta_msgs_py.codec.status_from_msg gives the board in Status.joining
+    robot: str
+    species: int | None = None
+    traits: Any = None
+    position: Any = None
+
+
+def test_a_robot_that_asks_to_join_is_added_journaled_and_works(tmp_path):
+    waiting = MissionBoard(INST, seed=SEED, rules=RULES, now=FakeTime())
+    assert waiting.heartbeat(waiting.session, [], joining=[Join("robot_new", 1)]) is None
+    assert "robot_new" not in waiting.names  # not before the mission runs (the agent asks again)
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    drive(b, steps=4)
+    t = b._event_time()
+    b.heartbeat(b.session, [], joining=[Join("robot_new", 1, position=(0.5, 0.25))])
+    A = INST.n_agents
+    assert b.names == [f"robot_{a}" for a in range(A)] + ["robot_new"] and b.robots_changed
+    assert b.state.A == A + 1 and list(b.state.inst.agent_species[A:]) == [1]
+    assert tuple(b.state.from_pos[A]) == (0.5, 0.25)
+    b.heartbeat(b.session, [], joining=[Join("robot_new", 1)])  # repeated until it is in the mission: no-op
+    assert b.state.A == A + 1
+    refused = b.heartbeat(b.session, [], joining=[Join("robot_x", 7)])
+    assert refused == "robot 'robot_x' cannot join: new robot: species 7: no such species (0..2)"
+    assert b.heartbeat(b.session, [], joining=[Join("robot_x", 7)]) is None  # warned once
+    drive(b)
+    sol = b.result()
+    assert sol.success and sol.routes[A] and sol.extra["robots"][A] == "robot_new"
+    # the same mission offline: the robot added by a timed event at the same instant, same place
+    ref = MissionState(INST, seed=SEED, rules=RULES)
+    ref.schedule({"type": "add_agent", "t": t, "species": 1, "position": [0.5, 0.25]})
+    decide = decider("greedy", SEED)[0]
+    while not ref.done:
+        ref.step(int(decide(ref)))
+    assert [list(r) for r in ref.routes] == sol.routes and ref.makespan == sol.makespan
+    # replayed from the journal: the same robots under the same names, the same state
+    b2 = started_board(journal=j)
+    assert b2.names == b.names and b2.state.snapshot() == b.state.snapshot()
+    same(b2.result(), sol)
+
+
+def test_a_grown_mission_instance_round_trips_and_never_counts_added_robots_twice():
+    st = MissionState(INST, seed=SEED, rules=RULES)
+    decide = decider("greedy", SEED)[0]
+    for _ in range(3):
+        st.step(int(decide(st)))
+    st.add_agent(2)
+    st.add_agent(traits=[1, 1, 0], position=[0.1, 0.9])
+    snap = json.loads(json.dumps(st.snapshot()))
+    grown = dataclasses.replace(st.inst, tasks=INST.tasks, _cache={})
+    wire = instance_from_dict(json.loads(json.dumps(grown.to_dict())))
+    assert wire.n_agents == INST.n_agents + 2 and wire.added_agents == (2, 3) and wire.species[3].count == 0
+    assert instance_from_dict(json.loads(json.dumps(wire.to_dict()))).added_agents == (2, 3)
+    for inst in (INST, wire):  # the instance as it started, or as republished: the same state
+        again = MissionState.from_snapshot(inst, snap)
+        assert again.A == INST.n_agents + 2 and again.snapshot() == snap
+    d = wire.to_dict()
+    d["species"][3]["count"] = 0
+    d["added_agents"] = [2]  # a species nobody has
+    with pytest.raises(ValueError, match=r"species\[3\]\.count"):
+        instance_from_dict(d)
+
+
+def test_scenario_robots_are_named_by_their_order_and_joined_robots_keep_their_names():
+    inst = dataclasses.replace(INST, events=({"type": "add_agent", "t": 0.5, "species": 0},
+                                             {"type": "add_agent", "t": 1.0, "species": 2}), _cache={})
+    b = MissionBoard(inst, seed=SEED, rules=RULES, wait_for_robots=False, now=FakeTime())
+    b.heartbeat(b.session, [], joining=[Join("scout", 1)])
+    drive(b)
+    A = INST.n_agents
+    assert b.names[A:] == ["scout", f"robot_{A}", f"robot_{A + 1}"] and b.result().success
+
+
+def test_task_answers_echo_the_request_id():
+    b = started_board()
+    task = {"location": [0.5, 0.5], "requirements": [1, 0, 0], "duration": 1.0}
+    assert b.task_request("add", "a", task, request_id="n1")["request_id"] == "n1"
+    again = b.task_request("add", "a", task, request_id="n2")
+    assert again["event"] == "rejected" and again["request_id"] == "n2"
+    assert "request_id" not in b.task_request("cancel", "a")

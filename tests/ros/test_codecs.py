@@ -2,8 +2,10 @@
 encoded message validates against its published JSON Schema (docs/schemas/)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -362,3 +364,56 @@ def test_fuzzed_payloads_decode_or_raise_decode_error(text):
             decode(_msg(text))
         except C.DecodeError:
             pass
+
+
+# ---------------------------------------------------------------------------------------------
+# robots joining (status.joining, a grown mission) and operator requests matched by request_id
+# ---------------------------------------------------------------------------------------------
+def test_statuses_carry_robots_asking_to_join():
+    s = C.Status(("robot_1",), "s1", 3, "h:1", joining=(C.Join("robot_new", 2), C.Join("scout", None, (1.0, 0.0, 2.0),
+                                                                                        (0.25, 0.75))))
+    d = json.loads(C.status_to_msg(s).data)
+    assert_valid("hmrta-status/1", d)
+    assert C.status_from_msg(C.status_to_msg(s)) == s
+    assert "joining" not in json.loads(C.status_to_msg(C.Status(("r",), "s", 1)).data)  # written only when asked
+    for bad, reason in [([{"robot": "x"}], "joining[0]: expected exactly one of species and traits"),
+                        ([{"robot": "x", "species": -1}], "joining[0].species: expected a species index >= 0"),
+                        ([{"robot": "", "species": 1}], "joining[0].robot: expected a non-empty robot name"),
+                        ([{"robot": "x", "species": 1, "position": [0.5]}], "joining[0].position: expected [x, y]"),
+                        (["x"], "joining[0]: expected an object")]:
+        with pytest.raises(C.DecodeError, match=re.escape(reason)):
+            C.status_from_msg(_msg(json.dumps({**d, "joining": bad})))
+        assert schema_errors("hmrta-status/1", {**d, "joining": bad})
+
+
+def test_a_grown_mission_round_trips_with_its_added_robots_once():
+    state = _mid_state()
+    state.add_agent(1)
+    grown = dataclasses.replace(state.inst, tasks=INST.tasks, _cache={})
+    m = _mission(instance=grown, robots=tuple(f"r{a}" for a in range(INST.n_agents + 1)))
+    d = json.loads(C.mission_to_msg(m).data)
+    assert_valid("hmrta-mission/1", d)
+    back = C.mission_from_msg(C.mission_to_msg(m))
+    assert back.instance.added_agents == (1,) and back.instance.n_agents == INST.n_agents + 1
+    snap = json.loads(json.dumps(state.snapshot()))
+    assert MissionState.from_snapshot(back.instance, snap).snapshot() == snap  # not counted twice
+    with pytest.raises(C.DecodeError, match="robots: expected"):  # the robot list must grow with it
+        C.mission_from_msg(C.mission_to_msg(_mission(instance=grown)))
+
+
+def test_task_requests_and_events_carry_the_request_id():
+    r = C.TaskRequest("add", "inspect-7", {"location": [0.3, 0.7], "requirements": [1, 0, 0], "duration": 1.0}, "n-1")
+    d = json.loads(C.task_request_to_msg(r).data)
+    assert d["request_id"] == "n-1" and C.task_request_from_msg(C.task_request_to_msg(r)) == r
+    assert_valid("hmrta-task-request/1", d)
+    old = C.TaskRequest("cancel", "inspect-7")  # a client without request ids
+    assert "request_id" not in json.loads(C.task_request_to_msg(old).data)
+    assert C.task_request_from_msg(C.task_request_to_msg(old)).request_id == ""
+    e = C.TaskEvent("inspect-7", "rejected", 1.5, None, "exists already", "add", "n-1")
+    d = json.loads(C.task_event_to_msg(e).data)
+    assert d["request_id"] == "n-1" and C.task_event_from_msg(C.task_event_to_msg(e)) == e
+    assert_valid("hmrta-task-event/1", d)
+    with pytest.raises(C.DecodeError, match="request_id: expected str"):
+        C.task_request_from_msg(_msg(json.dumps({**json.loads(C.task_request_to_msg(r).data), "request_id": 5})))
+    assert C.request_id_of('{"format": "hmrta-task-request/1", "op": "move", "request_id": "n-2"}') == "n-2"
+    assert C.request_id_of("not json") == "" and C.request_id_of('{"request_id": 3}') == ""

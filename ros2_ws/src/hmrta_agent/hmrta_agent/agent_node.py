@@ -12,6 +12,12 @@ time), which a Nav2 navigator or ``sim_robot`` consumes unchanged. A heartbeat o
 ``/hmrta/agent_status`` tells the board it is alive (sent only once the board and the robot's
 driver listen, so that nothing the agent sends is lost).
 
+A robot joins a running mission by starting its agent under a name the mission does not have,
+with its species (``-p species:=S``, an index of the mission's species): the heartbeat asks the
+board to add it (at its driver's reported pose, else its species' depot); the board republishes
+the mission with it and it takes part in the next decisions. An agent not in the mission and
+without a species waits until the board adds its robot (a scenario's ``add_robot`` event).
+
 One robot per process::
 
     agent_node --ros-args -r __ns:=/robot_3 -p method:=greedy -p seed:=1
@@ -46,8 +52,8 @@ from hmrta.core import MissionState
 from hmrta.keys import KeystoreError, Signer, load_key_file, load_keystore
 from hmrta.methods import MethodError, decider
 from hmrta_msgs_py import topics
-from hmrta_msgs_py.codec import (BoardDecoder, Choice, DecodeError, Mission, Status, choice_to_msg, clock_from_msg,
-                                 mission_from_msg, pose_to_msg, status_to_msg)
+from hmrta_msgs_py.codec import (BoardDecoder, Choice, DecodeError, Join, Mission, Status, choice_to_msg,
+                                 clock_from_msg, mission_from_msg, pose_from_msg, pose_to_msg, status_to_msg)
 from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, spin_nodes
 
 
@@ -160,9 +166,14 @@ class Host:
         if any(not a.ready and a.is_ready() for a in self.agents):
             self.dispatch()  # what they saw while not ready (they held back: their messages would be lost)
         sessions: dict[str, list[str]] = {}
+        joining: list[Join] = []
         for a in self.agents:
             if a.ready and not a.finished:
                 sessions.setdefault(a.mission.session, []).append(a.robot)
+            elif a.wants_to_join():
+                joining.append(Join(a.robot, a.species_param, None, a.position()))
+        if joining:
+            sessions.setdefault(self.mission.session, [])
         if self.board_msg is not None and self.mission is not None:
             try:
                 board = self.boards.decode(self.board_msg)
@@ -173,7 +184,8 @@ class Host:
                     a.resend(board)
         for session, robots in sessions.items():
             self._seq += 1
-            self._status_pub.publish(status_to_msg(Status(tuple(robots), session, self._seq, self._host),
+            join = tuple(joining) if self.mission is not None and session == self.mission.session else ()
+            self._status_pub.publish(status_to_msg(Status(tuple(robots), session, self._seq, self._host, joining=join),
                                                    self.signer))
 
     def agent_finished(self) -> None:
@@ -213,6 +225,30 @@ class AgentNode(Node):
         self._warned: set[str] = set()
         self.choice_pub = self.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
         self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
+        self._pose: PoseStamped | None = None  # its driver's latest pose (a robot asking to join reports it)
+        if self.species_param >= 0:
+            self.create_subscription(PoseStamped, topics.POSE, self._on_pose, topics.POSE_SUB_QOS)
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        self._pose = msg
+
+    def position(self) -> tuple[float, float] | None:
+        """Where its driver last reported the robot (mission coordinates, clipped to the unit
+        square), or None (no pose yet: the board places it at its species' depot)."""
+        m = self.host.mission
+        if self._pose is None or m is None:
+            return None
+        try:
+            x, y, _ = pose_from_msg(self._pose, m.scale)
+        except DecodeError:
+            return None
+        return (min(1.0, max(0.0, x)), min(1.0, max(0.0, y)))
+
+    def wants_to_join(self) -> bool:
+        """Not in the mission heard, with a species: it asks the board to add it (heartbeat)."""
+        m = self.host.mission
+        return (self.mission is None and not self.finished and self.species_param >= 0 and m is not None
+                and m.index(self.robot) is None)
 
     # ------------------------------------------------------------------------------------------
     def is_ready(self) -> bool:
@@ -231,8 +267,21 @@ class AgentNode(Node):
             self.get_logger().warning(text)
 
     def join(self, mission: Mission) -> None:
-        """Take part in a (new) mission: find this robot in it."""
+        """Take part in a (new) mission: find this robot in it. A mission of the same session
+        published again (robots were added) only replaces the mission this agent knows. A robot
+        not in the mission waits: with a species it asks the board to add it (heartbeat), without
+        one it waits until the board adds it (a scenario's add_robot event)."""
         idx = mission.index(self.robot) if self.index_param < 0 else self.index_param
+        if (self.mission is not None and mission.session == self.mission.session and idx == self.index
+                and idx is not None and idx < len(mission.robots) and mission.robots[idx] == self.robot):
+            self.mission = mission  # the same mission, grown: nothing to redo
+            return
+        if idx is None and self.index_param < 0:
+            self._warn_once(f"join {mission.session}",
+                            f"robot {self.robot!r} is not in mission {mission.instance.name}: "
+                            + (f"asking the board to add it (species {self.species_param})" if self.species_param >= 0
+                               else "waiting until the board adds it (start the agent with -p species:=S to join)"))
+            return
         if idx is None or not 0 <= idx < mission.instance.n_agents or mission.robots[idx] != self.robot:
             self.get_logger().error(f"robot {self.robot!r} (index {self.index_param}) is not in mission "
                                     f"{mission.instance.name} (robots {', '.join(mission.robots[:5])}...)")
@@ -262,6 +311,8 @@ class AgentNode(Node):
 
     def act(self, board, t_recv: float) -> None:
         """Follow the board: queue this robot's new legs, decide when it is its turn."""
+        if self.mission is None and board.phase == "done":  # never added: the mission is over
+            return self._finish()
         if self.mission is None or self.finished or not self.is_ready() or board.session != self.mission.session:
             return
         a = self.index

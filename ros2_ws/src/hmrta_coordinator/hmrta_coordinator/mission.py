@@ -98,6 +98,7 @@ class MissionProcesses:
     sim_ros_args: list[str] = field(default_factory=list)
     external: list[str] = field(default_factory=list)  # robots driven outside (not simulated)
     no_agent: list[str] = field(default_factory=list)  # robots whose agent runs elsewhere
+    added: list[str] = field(default_factory=list)  # robots a scenario adds later: their agents wait to be added
     agent_ros_args: dict[str, list[str]] = field(default_factory=dict)  # robot -> its own process with these
     keystore: Path | None = None  # mission keystore (hmrta keys create): board and agents authenticate
     board: Child | None = None
@@ -107,6 +108,8 @@ class MissionProcesses:
     journal: Path | None = None  # the board's journal: a board that dies is restarted on it
     incidents: list[str] = field(default_factory=list)  # what died and what was done about it
     last_board: str | None = None  # the latest board message seen by run_monitor (its text)
+    record: Path | None = None  # record the mission to this MCAP file (the recorder node)
+    recorder: Child | None = None  # started first, stopped last (not among children())
 
     def _spawn(self, name: str, module: str, args: list[str]) -> Child:
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -119,13 +122,50 @@ class MissionProcesses:
 
     def agent_groups(self) -> list[tuple[list[str], list[str]]]:
         """[(robots, extra ros args)] for the agent processes."""
-        own = [r for r in self.robots if r in self.agent_ros_args]
-        rest = [r for r in self.robots if r not in self.agent_ros_args and r not in self.no_agent]
+        everyone = self.robots + [r for r in self.added if r not in self.robots]
+        own = [r for r in everyone if r in self.agent_ros_args]
+        rest = [r for r in everyone if r not in self.agent_ros_args and r not in self.no_agent]
         n = max(1, self.agents_per_process)
         groups = [(rest[i:i + n], []) for i in range(0, len(rest), n)]
         return groups + [([r], self.agent_ros_args[r]) for r in own]
 
+    def start_recorder(self, timeout: float = 30.0) -> None:
+        """Start the recorder and wait (at most ``timeout`` s) until it has subscribed (its
+        ``.part`` file exists), so that it hears the mission from its first message."""
+        from hmrta_coordinator.recorder import part_path
+
+        out = Path(self.record).absolute()
+        part = part_path(out)
+        part.unlink(missing_ok=True)
+        self.recorder = self._spawn("recorder", "hmrta_coordinator.recorder",
+                                    ["--ros-args", *ros_params({"output": str(out), "robots": self.robots})])
+        deadline = time.monotonic() + timeout
+        while not part.exists() and self.recorder.proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+    def stop_recorder(self, timeout: float = 10.0) -> None:
+        """Stop the recorder (SIGINT: it finishes and renames its file), SIGKILL after ``timeout`` s."""
+        c = self.recorder
+        if c is None:
+            return
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGKILL, 5.0)):
+            if c.proc.poll() is not None:
+                break
+            try:
+                c.proc.send_signal(sig)
+            except ProcessLookupError:
+                break
+            try:
+                c.proc.wait(timeout=wait)
+            except subprocess.TimeoutExpired:
+                pass
+        if c._fh is not None:
+            c._fh.close()
+            c._fh = None
+
     def start(self) -> None:
+        if self.record is not None and self.recorder is None:
+            self.start_recorder()
         common = {"seed": self.seed, "method": self.method, **self.method_options}
         if self.keystore is not None:
             common["keystore"] = str(self.keystore)
@@ -210,6 +250,7 @@ class MissionProcesses:
             if c._fh is not None:
                 c._fh.close()
                 c._fh = None
+        self.stop_recorder()  # last: it has heard everything, the result included
 
 
 def exit_text(rc: int) -> str:
@@ -349,7 +390,8 @@ def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: 
         "robots": procs.robots,
         "tasks_done": n_done,
         "undone_tasks": [m for m, t in enumerate(sol.tasks) if t["finish"] != t["finish"]],
-        "lost_robots": [procs.robots[a] for a in b.lost] if b is not None else [],
+        "lost_robots": [(procs.robots + procs.added)[a] if a < len(procs.robots) + len(procs.added) else f"robot_{a}"
+                        for a in b.lost] if b is not None else [],
         "board_version": b.version if b is not None else None,
         "board_clock": b.clock if b is not None else None,
         "incidents": list(procs.incidents),
@@ -388,6 +430,10 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("instance", nargs="?", default=None,
                    help="instance YAML (or CTAS-D config.json); default: the built-in example mission")
+    p.add_argument("--scenario", default=None, metavar="FILE",
+                   help="play an hmrta-scenario/1 file's timed events live (instead of the instance argument); "
+                        "for each robot its add_robot events add, an agent robot_<n> starts and waits until the "
+                        "board adds it")
     p.add_argument("--seed", type=int, default=0, help="episode seed (decision order, sampling)")
     p.add_argument("--out", default="out/mission.json", help="solution JSON to write")
     methods.add_arguments(p, live=True)  # --method and its options, from the method table
@@ -409,6 +455,9 @@ def main(argv: list[str] | None = None) -> int:
                       help="authenticate robots with a fresh keystore made in the mission's log folder")
     p.add_argument("--no-journal", action="store_true",
                    help="no board journal (<out>_logs/journal.jsonl): a board that dies ends the mission")
+    p.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="record every /hmrta topic and the robots' goals and poses to this MCAP file "
+                        "(Foxglove, rosbag2; hmrta render --from FILE.mcap)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(remove_ros_args(argv)[1:])
 
@@ -416,7 +465,9 @@ def main(argv: list[str] | None = None) -> int:
     from hmrta.instance import InstanceError
     from hmrta.solution import Solution
 
-    path = Path(args.instance) if args.instance else default_instance()
+    if args.scenario and args.instance:
+        p.error("give the instance argument or --scenario, not both")
+    path = Path(args.scenario or args.instance) if (args.scenario or args.instance) else default_instance()
     try:
         inst = load_instance(path)
         # the live method every robot runs (a per-mission choice such as portfolio is made here)
@@ -441,6 +492,9 @@ def main(argv: list[str] | None = None) -> int:
     env.setdefault("PYTHONUNBUFFERED", "1")
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")})
     robots = [f"robot_{a}" for a in range(inst.n_agents)]
+    # robots the scenario's add_robot events add: the board names the k-th robot_<robots + k>; their
+    # agents start now and wait until the board adds them (sim_robot simulates them from then on)
+    added = [f"robot_{inst.n_agents + k}" for k in range(sum(e.get("type") == "add_agent" for e in inst.events))]
     from hmrta import keys as hkeys
 
     keystore = None
@@ -459,7 +513,8 @@ def main(argv: list[str] | None = None) -> int:
                              method_options=method_options, agents_per_process=args.agents_per_process,
                              time_scale=args.time_scale, keystore=keystore,
                              board_params={"heartbeat_timeout": args.heartbeat_timeout, "progress_period": 0.0},
-                             journal=None if args.no_journal else log_dir / "journal.jsonl")
+                             journal=None if args.no_journal else log_dir / "journal.jsonl",
+                             record=Path(args.record) if args.record else None, added=added)
     if procs.journal is not None and procs.journal.exists():
         procs.journal.unlink()  # a new mission: never resume a previous run's journal
     n_proc = 2 + len(procs.agent_groups())
@@ -495,6 +550,9 @@ def main(argv: list[str] | None = None) -> int:
     print_metrics(sol, sol.extra, inst)
     print(f"  total wall time {wall:.2f} s (including start-up of {n_proc} processes)")
     print(f"wrote {out}")
+    if procs.record is not None:
+        print(f"wrote {procs.record}" if procs.record.exists() else
+              f"hmrta-mission: the recording {procs.record} was not written (see {log_dir / 'recorder.log'})")
     if args.check_offline:
         from hmrta.methods import solve
 

@@ -8,6 +8,10 @@ horizon the board allows, at once (``time_scale`` 0: as fast as possible) or at 
 sim seconds per wall second. Robots named in ``external`` (real robots, drivers elsewhere) are
 not simulated; with every robot external this node is just the mission clock.
 
+Robots added during the mission (a robot that joined, a scenario's ``add_robot``) appear in the
+mission the board publishes again (same session); the node simulates the new ones from where the
+board's state has them (their first leg's start).
+
 Restart: the node starts from the latched mission and board, not from zero. The clock resumes at
 the board's horizon (the latest instant the board allowed; in as-fast-as-possible mode exactly
 where the previous process stopped) and each robot's position and in-flight legs are rebuilt from
@@ -54,6 +58,9 @@ class SimulatedRobot:
     base: tuple[float, float]  # where it is before its first remembered leg (its depot at first)
     pub: Any
     legs: list[Leg] = field(default_factory=list)  # in departure order; later goals replace later legs
+    index: int = -1  # its agent index in the mission
+    placed: bool = True  # a robot added during the mission: False until a board says where it is
+    early: list = field(default_factory=list)  # goals received before it was placed
 
     def position(self, t: float) -> tuple[float, float]:
         pos = self.base
@@ -86,6 +93,7 @@ class SimRobot(Node):
         self.now = 0.0
         self.horizon = 0.0
         self._early_board: String | None = None  # a board that came before the mission
+        self._last_board: String | None = None  # the latest board (robots added later are placed from it)
         self.synced = False  # clock and robots rebuilt from the first board (start or restart)
         self._early_goals: list[tuple[SimulatedRobot, PoseStamped]] = []  # goals before that
         self.done = Future()
@@ -107,6 +115,8 @@ class SimRobot(Node):
         if self.mission is not None:
             if m.session != self.mission.session:
                 self.get_logger().warning("a new mission session appeared; this node keeps its first mission")
+            elif len(m.robots) > len(self.mission.robots):
+                self._grown(m)
             return
         self.mission = m
         inst = m.instance
@@ -114,25 +124,63 @@ class SimRobot(Node):
         for n in names:
             a = m.index(n)
             if a is None:
-                self.get_logger().error(f"robot {n!r} is not in the mission; not simulating it")
+                if not self.only:
+                    self.get_logger().error(f"robot {n!r} is not in the mission; not simulating it")
                 continue
-            home = (float(inst.depots[a, 0]), float(inst.depots[a, 1]))
-            pub = self.create_publisher(PoseStamped, topics.robot_topic(n, topics.POSE), topics.POSE_PUB_QOS)
-            r = self.robots[n] = SimulatedRobot(n, home, pub)
-            self.create_subscription(PoseStamped, topics.robot_topic(n, topics.GOAL),
-                                     lambda g, r=r: self.on_goal(r, g), topics.GOAL_QOS)
+            self._simulate(n, a, placed=True)
         self.get_logger().info(f"simulating {len(self.robots)} robot(s) at velocity {inst.velocity:g}; "
                                + ("as fast as possible" if self.time_scale <= 0 else f"x{self.time_scale:g} real time"))
         if self._early_board is not None:
             self.on_board(self._early_board)
+
+    def _simulate(self, n: str, a: int, placed: bool) -> SimulatedRobot:
+        inst = self.mission.instance
+        home = (float(inst.depots[a, 0]), float(inst.depots[a, 1]))
+        pub = self.create_publisher(PoseStamped, topics.robot_topic(n, topics.POSE), topics.POSE_PUB_QOS)
+        r = self.robots[n] = SimulatedRobot(n, home, pub, index=a, placed=placed)
+        self.create_subscription(PoseStamped, topics.robot_topic(n, topics.GOAL),
+                                 lambda g, r=r: self.on_goal(r, g), topics.GOAL_QOS)
+        return r
+
+    def _grown(self, m: Mission) -> None:
+        """The mission was published again with robots added (a robot joined, a scenario's
+        add_robot): simulate the new ones (those this node simulates), each from where the board
+        says it was added (its first leg's start in the board's state)."""
+        old = set(self.mission.robots)
+        self.mission = m
+        new = [n for n in m.robots if n not in old and n not in self.external and (not self.only or n in self.only)]
+        for n in new:
+            self._simulate(n, m.index(n), placed=False)
+        if new:
+            self.get_logger().info(f"simulating {len(new)} robot(s) added to the mission: {', '.join(new)}")
+            if self._last_board is not None:
+                self.on_board(self._last_board)
+
+    def _place(self, b) -> None:
+        """Put robots added during the mission where the board's state has them (the start of
+        their current leg: where they were added, as long as they have not driven on), then give
+        them the goals that came first."""
+        frm = (b.state or {}).get("agents", {}).get("from", [])
+        for r in self.robots.values():
+            if r.placed or r.index >= len(frm):
+                continue
+            r.base, r.placed = (float(frm[r.index][0]), float(frm[r.index][1])), True
+            early, r.early = r.early, []
+            for g in early:
+                self.on_goal(r, g)
+            self._announce(r)
+            m = self.mission
+            r.pub.publish(pose_to_msg(r.position(self.now), self.now, m.frame_id, m.scale))
 
     def on_board(self, msg: String) -> None:
         if self.mission is None:
             self._early_board = msg  # the two latched topics may arrive in either order
             return
         self._early_board = None
+        self._last_board = msg
+        unplaced = any(not r.placed for r in self.robots.values())
         try:
-            b = board_from_msg(msg, legs=not self.synced, state=not self.synced)
+            b = board_from_msg(msg, legs=not self.synced, state=not self.synced or unplaced)
         except DecodeError as e:
             self.get_logger().error(f"ignoring malformed board: {e}")
             return
@@ -140,6 +188,8 @@ class SimRobot(Node):
             return
         if not self.synced:
             self.resync(b)
+        if unplaced:
+            self._place(b)
         self.horizon = max(self.horizon, b.horizon)
         if b.phase == "done":
             self.advance(max(self.now, b.clock))
@@ -190,6 +240,9 @@ class SimRobot(Node):
         if not self.synced:
             self._early_goals.append((r, msg))
             return
+        if not r.placed:
+            r.early.append(msg)
+            return
         try:
             x, y, t = pose_from_msg(msg, self.mission.scale)
         except DecodeError as e:
@@ -232,6 +285,8 @@ class SimRobot(Node):
         self.now = t
         m = self.mission
         for r in self.robots.values():
+            if not r.placed:
+                continue
             self._announce(r)
             if self.time_scale > 0 and r.moving(t):
                 r.pub.publish(pose_to_msg(r.position(t), t, m.frame_id, m.scale))
@@ -248,7 +303,8 @@ class SimRobot(Node):
             return
         m = self.mission
         for r in self.robots.values():
-            r.pub.publish(pose_to_msg(r.position(self.now), self.now, m.frame_id, m.scale))
+            if r.placed:
+                r.pub.publish(pose_to_msg(r.position(self.now), self.now, m.frame_id, m.scale))
         self.pub_clock.publish(clock_to_msg(self.now))
 
 

@@ -20,6 +20,12 @@ commitments are released, the others re-plan, tasks nobody left can satisfy are 
 result JSON (``hmrta-solution/1``, ``output`` parameter and ``/hmrta/result``) lists
 ``lost_robots`` and ``undone_tasks``.
 
+Robots joining: an agent whose robot is not in the mission announces it (name, species, its pose
+when its driver reports one) in its heartbeat; the board adds it at the mission clock
+(:meth:`hmrta.board.MissionBoard.join`), journals it, republishes the mission (same session, the
+grown robot list and instance) and follows the new robot's pose; it takes part in the next
+decisions. Robots a scenario's ``add_robot`` events add are published the same way.
+
 Authentication (``keystore`` parameter: a mission keystore folder, ``hmrta keys create``; empty:
 off): every choice and heartbeat must carry a valid MAC of the robot it speaks for with a fresh
 counter (``hmrta.keys``, docs/security.md). Choices that fail are rejected (``unsigned``,
@@ -66,8 +72,8 @@ from hmrta.methods import rules as method_rules
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (Board, DecodeError, MarkerView, Mission, Rejection, TaskEvent, board_to_msg,
                                  choice_from_msg, clock_from_msg, markers_to_msg, mission_to_msg, pose_from_msg,
-                                 rejection_to_msg, result_to_msg, status_from_msg, task_event_to_msg,
-                                 task_request_from_msg)
+                                 rejection_to_msg, request_id_of, result_to_msg, status_from_msg,
+                                 task_event_to_msg, task_request_from_msg)
 from hmrta_msgs_py.runtime import declare_method_parameters, spin_nodes
 
 
@@ -117,7 +123,7 @@ class TaskBoard(Node):
                                   tolerance=tolerance, heartbeat_timeout=heartbeat_timeout,
                                   decision_timeout=decision_timeout, startup_timeout=startup_timeout,
                                   wait_for_robots=wait_for_robots, journal=journal or None, log=self._log)
-        self.names = names
+        self.names = self.board.names  # the board's list: robots that join are appended to it
         self.mission = Mission(self.board.session, inst, tuple(names), self.seed, self.method, frame_id, scale,
                                rules=rules)
 
@@ -141,9 +147,8 @@ class TaskBoard(Node):
         self.create_subscription(String, topics.CHOICE, self.on_choice, _deeper(topics.CHOICE_QOS, queue_depth))
         self.create_subscription(String, topics.STATUS, self.on_status, _deeper(topics.STATUS_QOS, queue_depth))
         self.create_subscription(Clock, topics.CLOCK, self.on_clock, topics.CLOCK_QOS)
-        for a, n in enumerate(names):
-            self.create_subscription(PoseStamped, topics.robot_topic(n, topics.POSE), partial(self.on_pose, a),
-                                     topics.POSE_SUB_QOS)
+        self._pose_subs = 0
+        self._subscribe_poses()
         self.create_timer(0.1, self.on_watchdog)
         if marker_period > 0:
             self.create_timer(marker_period, self.on_markers)
@@ -169,8 +174,31 @@ class TaskBoard(Node):
     def finished(self) -> bool:
         return self.board.finished
 
+    def _subscribe_poses(self) -> None:
+        """Subscribe the pose of every robot not yet subscribed (robots that joined included)."""
+        for a in range(self._pose_subs, len(self.names)):
+            self.create_subscription(PoseStamped, topics.robot_topic(self.names[a], topics.POSE),
+                                     partial(self.on_pose, a), topics.POSE_SUB_QOS)
+        self._pose_subs = len(self.names)
+
+    def _republish_mission(self) -> None:
+        """Robots were added (a robot joined, a scenario's add_robot): publish the mission again,
+        same session, with the grown robot list and instance (the robots added, not the tasks:
+        those travel in the board's state), and follow the new robots' poses."""
+        b = self.board
+        b.robots_changed = False
+        inst = dataclasses.replace(b.state.inst, tasks=self.inst.tasks, _cache={})
+        self.mission = dataclasses.replace(self.mission, instance=inst, robots=tuple(self.names))
+        self.pub_mission.publish(mission_to_msg(self.mission))
+        self._subscribe_poses()
+        self.get_logger().info(f"mission republished with {len(self.names)} robots "
+                               f"(added: {', '.join(self.names[self.inst.n_agents:])})")
+
     def _flush(self) -> None:
-        """Publish the board's new version, if any (it is journaled before it returns)."""
+        """Publish the board's new version, if any (it is journaled before it returns); the
+        mission first when robots were added."""
+        if self.board.robots_changed:
+            self._republish_mission()
         v = self.board.poll()
         self._task_events()
         if v is None:
@@ -188,7 +216,8 @@ class TaskBoard(Node):
         events, self.board.task_events = self.board.task_events, []
         for e in events:
             self.pub_task_events.publish(task_event_to_msg(TaskEvent(e["id"], e["event"], e["t"], e.get("task"),
-                                                                     e.get("reason") or "", e.get("op", ""))))
+                                                                     e.get("reason") or "", e.get("op", ""),
+                                                                     e.get("request_id", ""))))
 
     def on_task_request(self, msg: String) -> None:
         try:
@@ -197,9 +226,10 @@ class TaskBoard(Node):
             self.board.malformed()
             self.get_logger().warning(f"rejected task request: {e}", throttle_duration_sec=1.0)
             self.pub_task_events.publish(task_event_to_msg(TaskEvent("", "rejected", self.board.clock,
-                                                                     reason=f"malformed request: {e}")))
+                                                                     reason=f"malformed request: {e}",
+                                                                     request_id=request_id_of(msg.data))))
             return
-        ans = self.board.task_request(r.op, r.id, r.task)
+        ans = self.board.task_request(r.op, r.id, r.task, r.request_id)
         self.get_logger().info(f"task request {r.op} {r.id!r}: {ans['event']}"
                                + (f" ({ans['reason']})" if ans.get("reason") else ""))
         self._flush()
@@ -244,7 +274,7 @@ class TaskBoard(Node):
         except DecodeError as e:
             self.board.malformed()
             return self._reject("malformed", f"malformed status: {e}")
-        warn = self.board.heartbeat(s.session, s.robots, s.payload)
+        warn = self.board.heartbeat(s.session, s.robots, s.payload, s.joining)
         if warn is not None:
             self.get_logger().warning(warn, throttle_duration_sec=5.0)
         self._flush()

@@ -5,8 +5,9 @@
     hmrta-task list
 
 ``add`` and ``cancel`` publish an ``hmrta-task-request/1`` on ``/hmrta/task_requests`` and wait
-for the board's answer on ``/hmrta/task_events`` (``hmrta-task-event/1``); ``list`` reads the
-latched board. Exit status: 0 accepted (or listed), 3 rejected by the board (the reason is
+for the board's answer on ``/hmrta/task_events`` (``hmrta-task-event/1``): the request carries a
+fresh ``request_id`` that the board echoes, so only the answer to this very request counts (never
+a stored answer to an earlier request for the same task id); ``list`` reads the latched board. Exit status: 0 accepted (or listed), 3 rejected by the board (the reason is
 printed), 1 no answer within ``--timeout`` seconds (no board on this ROS domain?), 2 user error.
 """
 from __future__ import annotations
@@ -87,13 +88,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.cmd == "add":
             task = {"location": args.location, "requirements": args.requirements, "duration": args.duration}
         answers: list = []
+        nonce = uuid.uuid4().hex  # this request's id: the board echoes it in its answer
 
         def on_event(msg: String) -> None:
             try:
                 e = task_event_from_msg(msg)
             except DecodeError:
                 return
-            if e.id == rid and e.event in ("accepted", "rejected") and e.op == args.cmd:
+            if e.request_id == nonce and e.event in ("accepted", "rejected"):
                 answers.append(e)
 
         node.create_subscription(String, topics.TASK_EVENTS, on_event, topics.TASK_EVENT_QOS)
@@ -104,9 +106,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"hmrta-task: no board listens on {topics.TASK_REQUESTS} (waited {args.timeout:g} s)",
                   file=sys.stderr)
             return 1
-        rclpy.spin_once(node, timeout_sec=0.2)  # latched answers of earlier requests arrive first
-        answers.clear()
-        pub.publish(task_request_to_msg(TaskRequest(args.cmd, rid, task)))
+        pub.publish(task_request_to_msg(TaskRequest(args.cmd, rid, task, nonce)))
         while not answers and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
         if not answers:

@@ -424,6 +424,17 @@ def choice_from_msg(msg: String) -> Choice:
 # agent status (heartbeat; one message per agent process lists the robots it hosts)
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
+class Join:
+    """A robot not in the mission that asks to join it (announced in the heartbeat): its name,
+    its species (an index of the mission's species) or a new trait vector, and its position
+    (mission coordinates) when its driver reports one."""
+    robot: str
+    species: int | None = None
+    traits: tuple[float, ...] | None = None
+    position: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
 class Status:
     robots: tuple[str, ...]
     session: str  # the board session (mission run) the robots take part in
@@ -431,13 +442,51 @@ class Status:
     host: str = ""
     # the decoded JSON object (signed messages: with ``counter`` and ``mac``), for verification
     payload: dict[str, Any] | None = field(default=None, compare=False, repr=False)
+    joining: tuple[Join, ...] = ()  # robots of the process that are not in the mission yet
+
+
+def _join_to_dict(j: Join) -> dict[str, Any]:
+    d: dict[str, Any] = {"robot": j.robot}
+    if j.species is not None:
+        d["species"] = j.species
+    if j.traits is not None:
+        d["traits"] = [float(x) for x in j.traits]
+    if j.position is not None:
+        d["position"] = [float(x) for x in j.position]
+    return d
+
+
+def _join_from(v: Any, where: str) -> Join:
+    if not isinstance(v, dict):
+        raise DecodeError(f"{where}: expected an object {{robot, species | traits, position}}, got {_short(v)}")
+    species = _get(v, "species", int, where, optional=True)
+    if species is not None and species < 0:
+        raise DecodeError(f"{where}.species: expected a species index >= 0, got {species}")
+    traits = _get(v, "traits", list, where, optional=True)
+    if (species is None) == (traits is None):
+        raise DecodeError(f"{where}: expected exactly one of species and traits")
+    def nums(xs: list, what: str) -> tuple[float, ...]:
+        return tuple(_num({"v": x}, "v", f"{where}.{what}[{i}]") for i, x in enumerate(xs))
+
+    if traits is not None:
+        traits = nums(traits, "traits")
+    pos = _get(v, "position", list, where, optional=True)
+    if pos is not None:
+        if len(pos) != 2:
+            raise DecodeError(f"{where}.position: expected [x, y], got {_short(pos)}")
+        pos = nums(pos, "position")
+    return Join(_name(v.get("robot"), f"{where}.robot"), species, traits, pos)
 
 
 def status_to_msg(s: Status, signer: Any = None) -> String:
     """With ``signer`` (holding the key of every robot listed) the message carries ``counter``
-    and one MAC per robot."""
-    return _str(_dumps(_signed({"format": STATUS_FORMAT, "robots": list(s.robots), "session": s.session,
-                                "seq": s.seq, "host": s.host}, signer)))
+    and one MAC per robot. ``joining`` (robots asking to join the mission) is written only when
+    it is not empty."""
+    d: dict[str, Any] = {"format": STATUS_FORMAT, "robots": list(s.robots), "session": s.session, "seq": s.seq,
+                         "host": s.host}
+    if s.joining:
+        d["joining"] = [_join_to_dict(j) for j in s.joining]
+    return _str(_dumps(_signed(d, signer)))
 
 
 def status_from_msg(msg: String) -> Status:
@@ -445,9 +494,11 @@ def status_from_msg(msg: String) -> Status:
     d = _obj(msg.data, w)
     _check_signature_fields(d, w)
     robots = _get(d, "robots", list, w)
+    joining = _get(d, "joining", list, w, optional=True, default=[])
     return Status(tuple(_name(r, f"{w}.robots[{i}]") for i, r in enumerate(robots)), _get(d, "session", str, w),
                   _get(d, "seq", int, w),
-                  _get(d, "host", str, w, optional=True, default=""), d)
+                  _get(d, "host", str, w, optional=True, default=""), d,
+                  tuple(_join_from(j, f"{w}.joining[{i}]") for i, j in enumerate(joining)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -492,12 +543,22 @@ class TaskRequest:
     op: str  # add | cancel
     id: str  # client-chosen task id
     task: dict[str, Any] | None = None  # add: {location: [x, y], requirements: [...], duration}
+    request_id: str = ""  # client-generated nonce, echoed in the board's answer (empty: none)
+
+
+def _request_id(d: dict[str, Any], w: str) -> str:
+    rq = _get(d, "request_id", str, w, optional=True, default="")
+    if len(rq) > 256:
+        raise DecodeError(f"{w}.request_id: expected at most 256 characters")
+    return rq
 
 
 def task_request_to_msg(r: TaskRequest) -> String:
     d: dict[str, Any] = {"format": TASK_REQUEST_FORMAT, "op": r.op, "id": r.id}
     if r.task is not None:
         d["task"] = r.task
+    if r.request_id:
+        d["request_id"] = r.request_id
     return _str(_dumps(d))
 
 
@@ -512,7 +573,18 @@ def task_request_from_msg(msg: String) -> TaskRequest:
     if not rid or len(rid) > 256:
         raise DecodeError(f"{w}.id: expected a non-empty id of at most 256 characters")
     task = _get(d, "task", dict, w, optional=(op == "cancel"))
-    return TaskRequest(op, rid, task)
+    return TaskRequest(op, rid, task, _request_id(d, w))
+
+
+def request_id_of(text: Any) -> str:
+    """The ``request_id`` of a task request that may not decode (for the rejection's answer);
+    '' when it has none or it is unreadable."""
+    try:
+        d = json.loads(text)
+    except (TypeError, ValueError, RecursionError):
+        return ""
+    rq = d.get("request_id") if isinstance(d, dict) else None
+    return rq if isinstance(rq, str) and len(rq) <= 256 else ""
 
 
 @dataclass(frozen=True)
@@ -523,6 +595,7 @@ class TaskEvent:
     task: int | None = None  # task index on the board
     reason: str = ""  # rejected: why
     op: str = ""  # accepted / rejected: the request's op
+    request_id: str = ""  # accepted / rejected: the request's request_id (empty: it had none)
 
 
 def task_event_to_msg(e: TaskEvent) -> String:
@@ -533,6 +606,8 @@ def task_event_to_msg(e: TaskEvent) -> String:
         d["reason"] = e.reason
     if e.op:
         d["op"] = e.op
+    if e.request_id:
+        d["request_id"] = e.request_id
     return _str(_dumps(d))
 
 
@@ -541,7 +616,7 @@ def task_event_from_msg(msg: String) -> TaskEvent:
     d = _obj(msg.data, w)
     return TaskEvent(_get(d, "id", str, w), _get(d, "event", str, w), _num(d, "t", w),
                      _get(d, "task", int, w, optional=True), _get(d, "reason", str, w, optional=True, default=""),
-                     _get(d, "op", str, w, optional=True, default=""))
+                     _get(d, "op", str, w, optional=True, default=""), _request_id(d, w))
 
 
 # ---------------------------------------------------------------------------------------------

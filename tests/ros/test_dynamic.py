@@ -1,0 +1,89 @@
+"""Dynamic missions over real DDS: ``hmrta-mission --scenario FILE`` plays a scenario's timed
+events (tasks added and cancelled, a robot lost) live, and in simulated time the mission equals the
+offline ``hmrta solve`` of the same scenario (routes and makespan)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import hmrta
+from hmrta.formats import load_instance
+from hmrta.methods import solve
+
+pytest.importorskip("rclpy")
+
+BIN = Path(sys.executable).parent
+EXAMPLE = Path(hmrta.__file__).resolve().parent / "data" / "example.yaml"
+
+
+def scenario(tmp_path: Path, *extra: str) -> Path:
+    p = tmp_path / "scenario.yaml"
+    p.write_text("\n".join([
+        "format: hmrta-scenario/1",
+        f"instance: {json.dumps(str(EXAMPLE))}",
+        "events:",
+        "  - {t: 0.5, type: add_task, id: inspect-1, location: [0.3, 0.6], requirements: [1, 0, 1, 0, 0], duration: 1}",
+        "  - {t: 1.0, type: add_task, id: inspect-2, location: [0.8, 0.2], requirements: [0, 1, 1, 0, 0], duration: 2}",
+        "  - {t: 1.5, type: cancel_task, id: inspect-2}",
+        "  - {t: 2.0, type: lose_robot, robot: 1}",
+        "  - {t: 2.5, type: add_robot, species: 1, position: [0.5, 0.5]}",
+        *extra, ""]))
+    return p
+
+
+def test_a_live_scenario_equals_the_offline_run(tmp_path, domain):
+    path = scenario(tmp_path)
+    out = tmp_path / "mission.json"
+    proc = subprocess.run([str(BIN / "hmrta-mission"), "--scenario", str(path), "--seed", "0", "--out", str(out),
+                           "--quiet", "--no-plot", "--check-offline", "--domain-id", str(domain),
+                           "--agents-per-process", "15", "--timeout", "200"],
+                          capture_output=True, text=True, timeout=260, env=dict(os.environ))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "same routes and makespan: yes" in proc.stdout
+    live = json.loads(out.read_text())
+    ref = solve(load_instance(path), "greedy", seed=0)
+    assert live["routes"] == ref.routes and live["makespan"] == ref.makespan
+    n = load_instance(EXAMPLE).n_tasks
+    assert len(live["tasks"]) == n + 2 and live["tasks"][n]["finish"] is not None  # inspect-1 done
+    assert live["undone_tasks"] == [n + 1]  # inspect-2, cancelled
+    assert live["lost_robots"] == ["robot_1"] and live["routes"][1] == ref.routes[1]
+    assert live["dynamic"]["tasks_lost"]["cancelled"] == 1
+    # the robot the scenario adds at t=2.5: its agent waited for it, sim_robot drove it from (0.5, 0.5)
+    A = load_instance(EXAMPLE).n_agents
+    assert len(live["routes"]) == A + 1 and live["robots"][A] == f"robot_{A}" and live["routes"][A]
+
+
+def test_a_robot_joins_a_running_mission_by_starting_its_agent(tmp_path, domain, graph, mission_procs):
+    """A robot that is not in the mission starts its agent with its species: the board adds it,
+    republishes the mission, sim_robot simulates it, and it does work."""
+    from hmrta_coordinator.mission import ros_params
+    from test_mission import BoardWatch, robots_of, wait_board_exit
+
+    inst = load_instance(EXAMPLE)
+    procs = mission_procs(EXAMPLE, robots_of(inst), seed=0, time_scale=2.0,
+                          board_params={"progress_period": 0.0, "heartbeat_timeout": 20.0})
+    watch = BoardWatch(graph.node("join_watch"))
+    graph.spin_until(lambda: watch.board is not None and watch.board.phase in ("decide", "wait"), 90, "the start")
+    env = {**procs.env, "ROS_LOG_DIR": str(tmp_path / "ros")}
+    log = open(tmp_path / "robot_new.log", "w")
+    new = subprocess.Popen([str(BIN / "agent_node"), "--ros-args", "-r", "__ns:=/robot_new",
+                            *ros_params({"species": 2, "method": "greedy", "seed": 0})],
+                           stdout=log, stderr=subprocess.STDOUT, env=env)
+    try:
+        wait_board_exit(graph, procs, 150)
+        new.wait(timeout=30)  # it exits with the mission, like every agent
+    finally:
+        if new.poll() is None:
+            new.kill()
+            new.wait()
+        log.close()
+    result = json.loads((tmp_path / "result.json").read_text())
+    A = inst.n_agents
+    assert result["success"] and result["robots"][A:] == ["robot_new"], (tmp_path / "robot_new.log").read_text()
+    assert len(result["routes"]) == A + 1 and result["routes"][A], "the robot that joined did no work"
+    assert "robot_new joined the mission" in (tmp_path / "logs" / "task_board.log").read_text()
