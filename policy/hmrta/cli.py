@@ -630,7 +630,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("solve", help="solve instances and write hmrta-solution/1 JSON", formatter_class=F)
     s.add_argument("instances", nargs="+", metavar="INSTANCE", help=INSTANCE_HELP)
-    add_method_arguments(s)
+    add_method_arguments(s, default="portfolio")
     s.add_argument("--seed", type=int, default=0, help="episode seed (decision order, sampling)")
     s.add_argument("--out", default=None, help="solution file (one instance) or folder (DIR/<stem>.json)")
     s.add_argument("--json", action="store_true", help="print the solution JSON instead of a summary")
@@ -737,7 +737,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="solve the built-in example mission and print its schedule", formatter_class=F)
     d.add_argument("--instance", default=None, help="another instance instead of the built-in example")
-    add_method_arguments(d)
+    add_method_arguments(d, default="portfolio")
     d.add_argument("--seed", type=int, default=0, help="episode seed")
     d.add_argument("--out", default=None, help="also write the solution JSON here")
     d.add_argument("--no-progress", action="store_true", help="no progress bar during a long solve")

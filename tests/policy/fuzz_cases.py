@@ -517,7 +517,7 @@ def materialise(case: Case, seeds: Seeds, where: Path) -> tuple[list[str], Path]
     base = str(seeds.base)
     argv = {
         "instance": ["solve", str(target), "--method", "greedy"],
-        "ctas": ["solve", str(target)],
+        "ctas": ["solve", str(target), "--method", "greedy"],
         "routes": ["evaluate", base, str(target)],
         "solution": (["render", base, str(target), "--out", str(where / "out.png")] if case.render
                      else ["bound", base, str(target)]),
