@@ -12,12 +12,21 @@ decoded messages and clock values, call :meth:`MissionBoard.poll` and publish th
   duplicate, version, released decision, turn, mask); a valid one is applied with
   ``MissionState.step``, anything else returns a :class:`Rejected` and changes nothing.
 * **The clock and the arrival gate**: the board releases a decision only when the mission clock
-  (``/clock``, :meth:`MissionBoard.set_clock`) has reached the decision's instant, and gives the
+  (:meth:`MissionBoard.set_clock`) has reached the decision's instant, and gives the
   clock a *horizon* it may not pass: the next decision instant, and the start of any task whose
   members have not yet reported (:meth:`MissionBoard.pose`) being at the task.
-* **Robot loss**: a robot whose heartbeat (:meth:`MissionBoard.heartbeat`) or pose stops for
-  ``heartbeat_timeout`` seconds, or that does not decide within ``decision_timeout`` seconds, is
+* **Robot loss**: a robot whose agent heartbeat (:meth:`MissionBoard.heartbeat`) stops for
+  ``heartbeat_timeout`` seconds (its pose may stay silent: poses only confirm arrivals), or that does not decide within ``decision_timeout`` seconds, is
   dropped (``MissionState.drop_agent``) by :meth:`MissionBoard.tick`.
+* **Arrivals and stuck robots**: a robot counts as arrived at a task (or home) once its leg
+  there has departed and its pose is within ``tolerance`` (mission units) of the goal. Each leg the
+  board waits for has a timeout of ``leg_timeout_factor`` x its planned travel time +
+  ``leg_timeout_floor``. The leg's timer runs on the mission clock from the leg's departure to its
+  planned arrival, then on wall seconds: in a real-time mission that is wall time throughout; in a
+  simulated one, a late robot holds the simulated clock at its task (the arrival gate), so mission
+  time stops and only wall time can measure how late it is. After one timeout the board re-sends
+  the goal (a ``RESEND`` leg: the agent publishes that goal again at once); after a second one it
+  drops the robot like a lost one (reason ``stuck: no arrival at task m within X s``).
 * **Robots joining** (:meth:`MissionBoard.join`, from the ``joining`` list of a heartbeat): a
   robot not in the mission that announces its species (or traits, and its position when its
   driver reports one) is added with ``add_agent`` at the mission clock, journaled, and named;
@@ -57,6 +66,7 @@ from .solution import Solution, solution_from_state
 EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
 LEG_WINDOW = 4  # legs per robot repeated on every board (a reader that skipped versions catches up)
 HOLD = -1  # leg node: stay where you are (0 = own depot, 1 + m = task m)
+RESEND = -2  # leg node: publish this goal again now (it repeats a leg the robot has not reached)
 JOURNAL_FORMAT = "hmrta-journal/1"
 PHASES = ("starting", "wait", "decide", "closing", "done")
 
@@ -75,6 +85,7 @@ class BoardState(MissionState):
 
     def __init__(self, inst, seed: int = 0, rules: Rules = Rules()):
         self.leg_log: list[list[tuple[int, float, float, float]]] = [[] for _ in range(inst.n_agents)]
+        self.leg_arrive: list[list[float]] = [[] for _ in range(inst.n_agents)]  # planned arrival of each leg
         self.until = 0.0  # live: the state never runs ahead of the mission clock (MissionState.advance_to)
         super().__init__(inst, seed=seed, rules=rules)
 
@@ -87,7 +98,16 @@ class BoardState(MissionState):
     def log_leg(self, a: int, node: int) -> None:
         while len(self.leg_log) <= a:  # a robot added during the mission
             self.leg_log.append([])
+        while len(self.leg_arrive) <= a:
+            self.leg_arrive.append([])
         self.leg_log[a].append((node, float(self.to_pos[a, 0]), float(self.to_pos[a, 1]), float(self.depart[a])))
+        self.leg_arrive[a].append(max(float(self.arrive[a]), float(self.depart[a])))
+
+    def log_resend(self, a: int, i: int) -> None:
+        """Repeat leg i of robot a as a RESEND leg (its agent publishes that goal again)."""
+        _, x, y, depart = self.leg_log[a][i]
+        self.leg_log[a].append((RESEND, x, y, depart))
+        self.leg_arrive[a].append(self.leg_arrive[a][i])
 
 
 @dataclass(frozen=True)
@@ -122,6 +142,17 @@ def percentile(xs: list[float], q: float) -> float:
         return math.nan
     s = sorted(xs)
     return s[min(len(s) - 1, max(0, math.ceil(q / 100 * len(s)) - 1))]
+
+
+@dataclass
+class LegTimer:
+    """The timeout of the leg (index ``leg`` in the robot's leg log) the board waits for."""
+    leg: int
+    depart: float
+    arrive: float
+    limit: float  # seconds: leg_timeout_factor x planned travel + leg_timeout_floor
+    reached: float | None = None  # wall time when the mission clock reached the planned arrival
+    resent: bool = False
 
 
 def _r(v: float | None) -> float | None:
@@ -200,7 +231,8 @@ class MissionBoard:
 
     def __init__(self, inst: Instance, names: Sequence[str] | None = None, *, seed: int = 0,
                  rules: Rules = Rules(), method: str = "greedy", session: str | None = None,
-                 verifier: Any = None, tolerance: float = 1e-3, heartbeat_timeout: float = 5.0,
+                 verifier: Any = None, tolerance: float = 0.25, heartbeat_timeout: float = 5.0,
+                 leg_timeout_factor: float = 3.0, leg_timeout_floor: float = 10.0, scale: float = 1.0,
                  decision_timeout: float = 30.0, startup_timeout: float = 120.0, wait_for_robots: bool = True,
                  journal: str | os.PathLike | None = None, now: Callable[[], float] = time.monotonic,
                  log: Callable[[str, str], None] | None = None):
@@ -212,6 +244,9 @@ class MissionBoard:
         self.index = {n: a for a, n in enumerate(names)}
         self.verifier = verifier
         self.tolerance, self.heartbeat_timeout = tolerance, heartbeat_timeout
+        self.leg_timeout_factor, self.leg_timeout_floor = leg_timeout_factor, leg_timeout_floor
+        self.scale = scale  # metres per mission unit (log messages only)
+        self.leg_timers: dict[int, LegTimer] = {}
         self.decision_timeout, self.startup_timeout = decision_timeout, startup_timeout
         self.now = now
         self.log = log or (lambda level, text: None)
@@ -312,6 +347,9 @@ class MissionBoard:
             elif kind == "arrival":
                 a = int(ev["robot"])
                 self.ptr[a] = max(self.ptr[a], int(ev["ptr"]))
+            elif kind == "resend":
+                st.log_resend(int(ev["robot"]), int(ev["leg"]))
+                self.rev += 1
             elif kind in ("add_task", "cancel_task", "add_agent"):
                 if kind == "add_agent" and "name" in ev:
                     self._joined(str(ev["name"]))  # before it is added: the name goes to this robot
@@ -509,12 +547,86 @@ class MissionBoard:
             for a in range(self.state.A):
                 if a in self.lost:
                     continue
-                for seen, what in ((self.seen_status[a], "agent heartbeat"), (self.seen_pose[a], "robot pose")):
-                    if now - max(seen or 0.0, self.t_start) > T:
-                        self.lose(a, f"no {what} for {T:g} s")
-                        break
+                # liveness is the agent's heartbeat: a silent pose (a robot standing still whose
+                # driver reports only on updates, as amcl does) drops nobody
+                if now - max(self.seen_status[a] or 0.0, self.t_start) > T:
+                    self.lose(a, f"no agent heartbeat for {T:g} s")
         if self.decision_timeout > 0 and self.phase == "decide" and now - self.released_at > self.decision_timeout:
             self.lose(self.state.agent, f"no decision within {self.decision_timeout:g} s")
+        self._check_legs(now)
+
+    # ------------------------------------------------------------------------------------------
+    # stuck robots: leg timeouts
+    # ------------------------------------------------------------------------------------------
+    def awaited(self, a: int) -> tuple[int, int] | None:
+        """(index in robot a's leg log, node) of the departed leg whose arrival the board waits
+        for (its next unconfirmed task, or its depot once every task is closed), or None."""
+        st = self.state
+        if a in self.lost or st.mode[a] == LOST or not self.started or self.finished:
+            return None
+        log = st.leg_log[a] if a < len(st.leg_log) else []
+        if st.done:
+            i = self._last_leg(a, lambda n: n != RESEND)
+            if i is None or log[i][0] != 0 or self._near(a, st.inst.depots[a]):
+                return None
+        else:
+            route = st.routes[a]
+            if self.ptr[a] >= len(route):
+                return None
+            node = 1 + int(route[self.ptr[a]])
+            i = self._last_leg(a, lambda n: n == node)
+            if i is None:
+                return None
+        return (i, log[i][0]) if log[i][3] <= self.clock + EPS else None
+
+    def _last_leg(self, a: int, want: Callable[[int], bool]) -> int | None:
+        log = self.state.leg_log[a]
+        return next((i for i in range(len(log) - 1, -1, -1) if want(log[i][0])), None)
+
+    def _check_legs(self, now: float) -> None:
+        """Re-send the goal of a robot whose leg timed out once; drop it after a second timeout."""
+        F, F0 = self.leg_timeout_factor, self.leg_timeout_floor
+        if F <= 0 and F0 <= 0:
+            return
+        st = self.state
+        for a in range(st.A):
+            w = self.awaited(a)
+            if w is None:
+                self.leg_timers.pop(a, None)
+                continue
+            i, node = w
+            tm = self.leg_timers.get(a)
+            if tm is None or tm.leg != i:
+                _, x, y, depart = st.leg_log[a][i]
+                arrive = st.leg_arrive[a][i]
+                resent = any(g == (RESEND, x, y, depart) for g in st.leg_log[a][i + 1:])  # replayed journal
+                tm = self.leg_timers[a] = LegTimer(i, depart, arrive, max(0.0, F) * (arrive - depart) + max(0.0, F0),
+                                                   resent=resent)
+            if tm.reached is None and self.clock >= tm.arrive - EPS:
+                tm.reached = now
+            elapsed = max(0.0, min(self.clock, tm.arrive) - tm.depart) + (now - tm.reached if tm.reached else 0.0)
+            what = "its depot" if node == 0 else f"task {node - 1}"
+            if elapsed > 2 * tm.limit and tm.resent:
+                self.lose(a, f"stuck: no arrival at {what} within {2 * tm.limit:.1f} s "
+                             f"(goal re-sent after {tm.limit:.1f} s; {self._away(a, i)})")
+                self.leg_timers.pop(a, None)
+            elif elapsed > tm.limit and not tm.resent:
+                tm.resent = True
+                st.log_resend(a, i)
+                self.rev += 1
+                self._events.append({"type": "resend", "t": float(self.clock), "robot": a, "leg": i})
+                self.log("warning", f"robot {self.names[a]} has not arrived at {what} {tm.limit:.1f} s after it "
+                                    f"departed (planned travel {tm.arrive - tm.depart:.1f} s; {self._away(a, i)}): "
+                                    f"re-sending its goal")
+
+    def _away(self, a: int, i: int) -> str:
+        """How far robot a's last pose is from the goal of its leg i, in metres."""
+        _, x, y, _ = self.state.leg_log[a][i]
+        p = self.last_pose[a]
+        if p is None:
+            return "no pose"
+        d = math.hypot(p[0] - x, p[1] - y) * self.scale
+        return f"last pose {d:.2f} m from the goal (tolerance {self.tolerance * self.scale:.2f} m)"
 
     def waiting(self) -> list[str]:
         """Robots whose agent heartbeat or pose was never seen (before the start)."""
@@ -671,6 +783,16 @@ class MissionBoard:
         p = self.last_pose[a]
         return p is not None and math.hypot(p[0] - xy[0], p[1] - xy[1]) <= self.tolerance
 
+    def _departed(self, a: int, node: int) -> bool:
+        """Whether robot a's leg to ``node`` has departed (a robot near a task before it set off
+        for it, a neighbour of its previous task, has not arrived there)."""
+        i = self._last_leg(a, lambda n: n == node)
+        return i is not None and self.state.leg_log[a][i][3] <= self.clock + EPS
+
+    def _m(self, xy) -> str:
+        """A mission position in metres, readably."""
+        return f"({float(xy[0]) * self.scale:.2f}, {float(xy[1]) * self.scale:.2f}) m"
+
     def gate(self) -> float:
         """Earliest start of a task with a member not yet confirmed there (inf: none)."""
         st = self.state
@@ -683,7 +805,7 @@ class MissionBoard:
             p = min(self.ptr[a], len(route))
             while p < len(route):
                 m = route[p]
-                if self._near(a, locs[m]):
+                if self._near(a, locs[m]) and self._departed(a, 1 + int(m)):
                     p += 1
                     continue
                 s = st.start[m]
@@ -702,16 +824,21 @@ class MissionBoard:
         if st.done:
             away = [self.names[a] for a in range(st.A)
                     if a not in self.lost and not self._near(a, st.inst.depots[a])]
-            return f"clock {self.clock:.3f}, robots not yet home: {away[:10]}"
+            return f"clock {self.clock:.3f} s, robots not yet home: {', '.join(away[:10]) or 'none'}"
         late = []
         for a in range(st.A):
             route = st.routes[a]
             if a not in self.lost and self.ptr[a] < len(route):
-                m = route[self.ptr[a]]
+                m = int(route[self.ptr[a]])
                 if st.start[m] == st.start[m]:
-                    late.append(f"{self.names[a]} at task {m} (starts {st.start[m]:.3f}, last pose {self.last_pose[a]}, "
-                                f"task at {tuple(locs[m])})")
-        return f"clock {self.clock:.3f}, next decision at {st.clock:.3f}; arrivals not confirmed: {late[:10]}"
+                    p = self.last_pose[a]
+                    where = "no pose yet" if p is None else (
+                        f"last pose {self._m(p)}, {math.hypot(p[0] - locs[m][0], p[1] - locs[m][1]) * self.scale:.2f} m "
+                        f"from the task")
+                    late.append(f"{self.names[a]} at task {m} (starts t={float(st.start[m]):.3f} s, {where}, "
+                                f"task at {self._m(locs[m])}, tolerance {self.tolerance * self.scale:.2f} m)")
+        return (f"clock {self.clock:.3f} s, next decision at {float(st.clock):.3f} s; arrivals not confirmed: "
+                f"{'; '.join(late[:10]) or 'none'}")
 
     def _target(self) -> tuple[str, int | None, float]:
         """(phase, decider, horizon) from the state, the clock and the confirmations; sets

@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from hmrta import keys as K
-from hmrta.board import JOURNAL_FORMAT, JournalError, MissionBoard, read_journal
+from hmrta.board import JOURNAL_FORMAT, RESEND, JournalError, MissionBoard, read_journal
 from hmrta.core import MissionState
 from hmrta.generators import ScenarioGenerator
 from hmrta.instance import instance_from_dict
@@ -46,7 +46,9 @@ def position(inst, legs, t: float) -> tuple[float, float]:
     """Where a robot driving ``legs`` (node, x, y, depart) from its depot is at time t (sim_robot's
     kinematics)."""
     pos = (float(legs[0][1]), float(legs[0][2]))
-    for _, x, y, dep in legs[1:]:
+    for node, x, y, dep in legs[1:]:
+        if node == RESEND:
+            continue  # a goal re-sent: the leg it repeats is listed already
         if dep > t:
             break
         start = pos
@@ -60,10 +62,11 @@ def position(inst, legs, t: float) -> tuple[float, float]:
 
 
 def drive(b: MissionBoard, steps: int | None = None, report: bool = True, max_iter: int = 20000,
-          clock: float = math.inf) -> int:
+          clock: float = math.inf, where=None, tick: float = 0.0) -> int:
     """Play agents (greedy on the board's snapshot) and robots that arrive at once, until the
     mission is over, ``steps`` choices were applied or the clock reached ``clock``; returns the
-    choices applied."""
+    choices applied. ``where(a, xy)``: where robot a reports itself when the sim puts it at xy;
+    ``tick``: wall seconds of the fake clock (``b.now``) per round, with the watchdog run."""
     decide = decider("greedy", SEED)[0]
     inst, names = b.inst, b.names
     n = 0
@@ -79,6 +82,13 @@ def drive(b: MissionBoard, steps: int | None = None, report: bool = True, max_it
             assert b.choice(c) is None
             n += 1
             continue
+        if tick:
+            b.now.t += tick
+            b.tick()
+            b.poll()
+            if b.finished:
+                return n
+            st = b.state
         horizon = b._key[3]
         b.set_clock(min(horizon, clock))
         added = {r["id"]: r["position"] for r in st.log if r["type"] == "add_agent" and "position" in r}
@@ -88,7 +98,8 @@ def drive(b: MissionBoard, steps: int | None = None, report: bool = True, max_it
                     # robots added during the mission start where they were added (default: depot)
                     x, y = added.get(a, st.inst.depots[a])
                     base = [(0, float(x), float(y), 0.0)]
-                    b.pose(a, *position(inst, base + st.leg_log[a], b.clock))
+                    xy = position(inst, base + st.leg_log[a], b.clock)
+                    b.pose(a, *(where(a, xy) if where else xy))
     raise AssertionError(f"stuck: {b.waiting_for()}")
 
 
@@ -462,3 +473,101 @@ def test_task_answers_echo_the_request_id():
     again = b.task_request("add", "a", task, request_id="n2")
     assert again["event"] == "rejected" and again["request_id"] == "n2"
     assert "request_id" not in b.task_request("cancel", "a")
+
+
+# ---------------------------------------------------------------------------------------------
+# arrival tolerance and stuck robots
+# ---------------------------------------------------------------------------------------------
+def short(d: float, who=None):
+    """``where`` of robots that stop ``d`` mission units short of every goal (``who``: only those)."""
+    def where(a, xy):
+        return (xy[0] - d / math.sqrt(2), xy[1] - d / math.sqrt(2)) if who is None or a in who else xy
+    return where
+
+
+def test_a_robot_within_tolerance_of_its_goal_has_arrived():
+    # 10 m per mission unit: 0.25 m of tolerance; every robot stops 0.2 m short of its goals
+    b = started_board(tolerance=0.025, scale=10.0, leg_timeout_factor=0.0, leg_timeout_floor=0.0)
+    drive(b, where=short(0.02))
+    sol = b.result()
+    same(sol, solve(INST, "greedy", SEED))
+    assert b.finished and sol.extra["lost_robots"] == []
+    # with 0.1 m of tolerance the same robots never arrive: the clock is held, and says why, readably
+    b = started_board(tolerance=0.01, scale=10.0, leg_timeout_factor=0.0, leg_timeout_floor=0.0)
+    with pytest.raises(AssertionError, match="stuck") as e:
+        drive(b, where=short(0.02), max_iter=300)
+    text = str(e.value)
+    assert "np.float64" not in text and "0.20 m from the task" in text and "tolerance 0.10 m" in text
+
+
+def test_a_robot_near_its_next_task_before_setting_off_has_not_arrived():
+    b = started_board(tolerance=0.5)  # half the mission area: every task is "near"
+    drive(b, steps=3)
+    for a in range(b.state.A):
+        for i, m in enumerate(b.state.routes[a][:b.ptr[a]]):
+            assert b._departed(a, 1 + int(m))
+
+
+def stuck_board(**kw):
+    logs: list[tuple[float, str, str]] = []
+    now = FakeTime()
+    b = started_board(now=now, leg_timeout_factor=1.0, leg_timeout_floor=2.0, heartbeat_timeout=0.0,
+                      log=lambda level, text: logs.append((now.t, level, text)), **kw)
+    return b, now, logs
+
+
+def test_a_robot_that_never_arrives_gets_its_goal_again_then_is_dropped_and_the_rest_finish(tmp_path):
+    j = tmp_path / "journal.jsonl"
+    b, now, logs = stuck_board(journal=j)
+    s = 0  # reports its depot whatever its goals
+    drive(b, tick=0.1, where=lambda a, xy: tuple(INST.depots[a]) if a == s else xy)
+    sol = b.result()
+    assert b.finished and list(b.lost) == [s]
+    reason = sol.extra["lost_reasons"][b.names[s]]
+    assert reason.startswith("stuck: no arrival at task ") and "goal re-sent after" in reason
+    assert "np.float64" not in reason
+    resend = [t for t, level, text in logs if "re-sending its goal" in text]
+    lost = [t for t, level, text in logs if "lost (stuck" in text]
+    assert len(resend) == 1 and len(lost) == 1
+    limit = float(reason.split("re-sent after ")[1].split(" s")[0])
+    assert lost[0] - resend[0] == pytest.approx(limit, abs=0.25)  # the second timeout: one more limit
+    log = b.state.leg_log[s]
+    again = [i for i, g in enumerate(log) if g[0] == RESEND]
+    assert len(again) == 1 and log[again[0]][1:] in [g[1:] for g in log[:again[0]] if g[0] > 0]  # a task's leg
+    # the others finished every task they can do without it
+    team = INST.traits[[a for a in range(INST.n_agents) if a != s]].sum(0)
+    for m in sol.extra["undone_tasks"]:
+        assert not (INST.requirements[m] <= team).all()
+    assert all(r["return_time"] is not None for a, r in enumerate(sol.to_dict()["agents"]) if a != s)
+    # the resend is journaled: a board replayed from the journal has the same legs and state
+    b.close()
+    r = MissionBoard(INST, seed=SEED, rules=RULES, journal=j, now=FakeTime())
+    assert r.state.leg_log == b.state.leg_log and r.rev == b.rev and r.finished
+
+
+def test_a_late_robot_that_arrives_after_its_goal_was_re_sent_is_kept():
+    b, now, logs = stuck_board()
+    s, late = 1, {}
+
+    def where(a, xy):
+        if a != s:
+            return xy
+        if any("re-sending" in text for _, _, text in logs):
+            late.setdefault("at", now.t)
+            return xy
+        return tuple(INST.depots[a]) if not late else xy
+
+    drive(b, tick=0.1, where=where)
+    sol = b.result()
+    assert b.finished and b.lost == {} and "at" in late
+    same(sol, solve(INST, "greedy", SEED))  # the clock waited: the plan is unchanged, only later
+
+
+def test_no_leg_timeout_when_factor_and_floor_are_zero():
+    b, now, logs = stuck_board()
+    b.leg_timeout_factor = b.leg_timeout_floor = b.decision_timeout = 0.0
+    drive(b, steps=2, report=False)  # nobody reports: the board waits for arrivals
+    for _ in range(50):
+        now.t += 100.0
+        b.tick()
+    assert b.lost == {} and not logs[1:]

@@ -1,7 +1,8 @@
 """agent_node: one robot's decision maker.
 
 Builds its view only from received topics: the mission (``/hmrta/mission``), the board
-(``/hmrta/board``) and the clock (``/clock``); the agents hosted in one process share one
+(``/hmrta/board``) and the mission clock (``clock_topic``, default ``/hmrta/clock``; never
+``/clock``); the agents hosted in one process share one
 subscription to each (decoded once) and one copy of the policy. When the board names this robot
 as the current decider, its agent rebuilds the mission state from the board's snapshot, runs its
 own copy of the policy and publishes its choice (``/hmrta/choice``, tagged with the board session
@@ -55,6 +56,7 @@ from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (BoardDecoder, Choice, DecodeError, Join, Mission, Status, choice_to_msg,
                                  clock_from_msg, mission_from_msg, pose_from_msg, pose_to_msg, status_to_msg)
 from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, spin_nodes
+from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 
 EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
@@ -114,7 +116,7 @@ class Host:
         self._node = node
         node.create_subscription(String, topics.MISSION, self._on_mission, topics.MISSION_QOS)
         node.create_subscription(String, topics.BOARD, self._on_board, topics.BOARD_QOS)
-        node.create_subscription(Clock, topics.CLOCK, self._on_clock, topics.CLOCK_QOS)
+        node.create_subscription(Clock, getattr(node, "clock_topic", topics.CLOCK), self._on_clock, topics.CLOCK_QOS)
         self._status_pub = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
         self._host = f"{socket.gethostname()}:{os.getpid()}"
         node.create_timer(period, self._beat)
@@ -210,6 +212,9 @@ class AgentNode(Node):
         self.decide, self.rules = host.decider(self.method, self.seed, options)
         keystore = self.declare_parameter("keystore", "").value
         key_file = self.declare_parameter("key_file", "").value
+        self.clock_topic = self.declare_parameter("clock_topic", "/hmrta/clock").value
+        if not self.clock_topic.startswith("/") or self.clock_topic.rstrip("/") == "/clock":
+            raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {self.clock_topic!r}")
         if keystore or key_file:
             host.add_key(self.robot, keystore, key_file)
 
@@ -333,14 +338,20 @@ class AgentNode(Node):
         if self.leg_seq is None:  # first board seen (start or restart): from the leg driven now on
             # (its driver gets the current goal again, and the legs that came due while this process
             # was down; without them an arrival the board waits for would never happen)
-            due = [i for i, g in enumerate(legs) if g[3] <= self.host.clock + EPS]
+            due = [i for i, g in enumerate(legs) if g[0] != RESEND and g[3] <= self.host.clock + EPS]
             self.leg_seq = seq - len(legs) + (due[-1] if due else 0)
         first = seq - len(legs) + 1
         new = [g for i, g in enumerate(legs) if first + i > self.leg_seq]
         if new:
             self.leg_seq = seq
-            self.pending += new
+            self.pending += [g for g in new if g[0] != RESEND]
             self.flush_goals()
+            m = self.mission
+            for node, x, y, depart in new:  # a goal the robot has not reached in time: published again now
+                if node == RESEND and not self.finished:
+                    self.goal_pub.publish(pose_to_msg((x, y), depart, m.frame_id, m.scale))
+                    self.get_logger().warning(f"{self.robot}: the board re-sends the goal ({x:.3f}, {y:.3f}) "
+                                              f"(departed t={depart:.3f}): the robot has not arrived in time")
 
     def flush_goals(self) -> None:
         """Publish the queued legs whose departure time the mission clock has reached."""

@@ -12,7 +12,7 @@ Fleet file (``fleet:=FILE.yaml``): the real robots and their topics::
         species: 0                 # checked against the mission (default: no check)
         namespace: /tb3_1          # the agent's namespace (default: /<name>)
         pose_topic: /tb3_1/pose    # where the robot's pose is published (default: /<name>/pose)
-        pose_type: PoseStamped     # its message type: PoseStamped (others need board support)
+        pose_type: PoseStamped     # its message type: PoseStamped, PoseWithCovarianceStamped, Odometry
         goal_topic: /tb3_1/goal_pose   # where its goals go (default: goal_pose in the namespace)
         key_file: keys/robots/robot_1.key.json   # sign with this key (default: none / keystore)
 """
@@ -139,11 +139,15 @@ def parse_remaps(text: str) -> list[tuple[str, str]]:
 
 def board_remaps(fleet: list[FleetRobot]) -> list[tuple[str, str]]:
     """The board reads each robot's pose on /<robot>/pose: point it at the fleet's pose topics."""
-    for r in fleet:
-        if r.pose_type != "PoseStamped" and "pose_types" not in {p.name for p in P.TASK_BOARD}:
-            raise ValueError(f"fleet: robot {r.name}: pose_type {r.pose_type}: the task board reads "
-                             "geometry_msgs/PoseStamped poses only")
     return [(f"/{r.name}/pose", r.pose_topic) for r in fleet if r.pose_topic != f"/{r.name}/pose"]
+
+
+def board_pose_types(fleet: list[FleetRobot], given: list[str]) -> list[str]:
+    """The board's ``pose_types`` (ROBOT:TYPE): those of the launch argument, then each fleet
+    robot's ``pose_type`` where it is not PoseStamped (the fleet file wins for its robots)."""
+    listed = {r.name: f"{r.name}:{r.pose_type}" for r in fleet if r.pose_type != "PoseStamped"}
+    out = [g for g in given if g.rpartition(":")[0].strip().strip("/") not in {r.name for r in fleet}]
+    return out + list(listed.values())
 
 
 def agent_node(robot: FleetRobot, common: dict[str, Any], output: str = "screen"):
@@ -160,11 +164,15 @@ def agent_node(robot: FleetRobot, common: dict[str, Any], output: str = "screen"
                 output=output, parameters=[params], remappings=remaps)
 
 
-def board_node(given: dict[str, str], robots: list[str], remaps: list[tuple[str, str]]):
+def board_node(given: dict[str, str], robots: list[str], remaps: list[tuple[str, str]],
+               fleet: list[FleetRobot] = ()):
     from launch.actions import Shutdown
     from launch_ros.actions import Node
 
     params = node_values("task_board", given)
+    pose_types = board_pose_types(list(fleet), params.get("pose_types", []))
+    if pose_types:
+        params["pose_types"] = pose_types
     if robots and "robot_names" not in params:
         params["robot_names"] = robots
     return Node(package="hmrta_coordinator", executable="task_board", name="task_board", output="screen",

@@ -293,7 +293,7 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
                bar_format="{desc}: {n_fmt}/{total_fmt} tasks |{bar}| {elapsed} {postfix}")
     told = [-1]  # without a terminal: one line per quarter of the tasks
 
-    seen = {"clock": math.nan, "phase": ""}  # mission clock (/clock), board phase
+    seen = {"clock": math.nan, "phase": ""}  # mission clock (topics.CLOCK), board phase
 
     def when() -> str:
         return f" at t={seen['clock']:.3f}" if seen["clock"] == seen["clock"] else " before the mission clock started"

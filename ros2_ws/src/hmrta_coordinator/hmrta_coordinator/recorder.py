@@ -1,8 +1,8 @@
 """recorder: record a mission to MCAP (rosbag2's default storage format), for Foxglove, rosbag2 and ``hmrta render --from``.
 
 Records every ``/hmrta/*`` topic (mission, board, choices, heartbeats, rejections, result, task
-requests and events, the mission clock; ``/hmrta/markers`` only with ``markers:=true``), the
-ROS ``/clock``, and each robot's goals and poses (``/<robot>/goal_pose``, ``/<robot>/pose``; the
+requests and events, the mission clock ``clock_topic``; ``/hmrta/markers`` only with
+``markers:=true``; another node's ``/clock`` only when listed in ``topics``), and each robot's goals and poses (``/<robot>/goal_pose``, ``/<robot>/pose``; the
 robots are named by the ``robots`` parameter or taken from the recorded mission message), plus
 any topic listed in ``topics``. Messages are stored as received (ROS 2 CDR, message encoding
 ``cdr``) with their message definitions as ``ros2msg`` schemas, read from the installed ``.msg``
@@ -120,7 +120,7 @@ def _qos(depth: int, reliable: bool, latched: bool) -> QoSProfile:
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
-def known_topics(markers: bool) -> dict[str, tuple[str, QoSProfile]]:
+def known_topics(markers: bool, clock_topic: str = topics.CLOCK) -> dict[str, tuple[str, QoSProfile]]:
     """The mission-wide HMRTA topics: name -> (type, a QoS compatible with their publishers).
     Latched topics are subscribed transient local (the latest sample arrives even when the
     recorder starts late); the rest reliable and deep enough for bursts."""
@@ -134,7 +134,7 @@ def known_topics(markers: bool) -> dict[str, tuple[str, QoSProfile]]:
         topics.REJECTIONS: (S, _qos(1000, True, False)),
         topics.TASK_REQUESTS: (S, _qos(1000, True, False)),
         topics.TASK_EVENTS: (S, _qos(100, True, True)),
-        topics.CLOCK: ("rosgraph_msgs/msg/Clock", _qos(100, True, True)),
+        clock_topic: ("rosgraph_msgs/msg/Clock", _qos(100, True, True)),
     }
     if markers:
         out[topics.MARKERS] = ("visualization_msgs/msg/MarkerArray", _qos(10, True, True))
@@ -169,6 +169,7 @@ class Recorder(Node):
         self.markers = bool(P("markers", False).value)
         period = float(P("discovery_period", 1.0).value)
         compression = str(P("compression", "zstd").value)
+        self.clock_topic = str(P("clock_topic", "/hmrta/clock").value)
         if compression not in COMPRESSION:
             raise ValueError(f"compression: expected one of {', '.join(COMPRESSION)}, got {compression!r}")
         self.output = Path(output or time.strftime("hmrta_%Y%m%d_%H%M%S.mcap")).absolute()
@@ -185,7 +186,7 @@ class Recorder(Node):
         self.skipped: set[str] = set()
         self.session: str | None = None
         self.closed = False
-        for name, (typ, qos) in known_topics(self.markers).items():
+        for name, (typ, qos) in known_topics(self.markers, self.clock_topic).items():
             self._subscribe(name, typ, qos)
         for r in self.robot_names:
             for name, (typ, qos) in robot_topics(r).items():
@@ -216,7 +217,7 @@ class Recorder(Node):
             return True
         if name == topics.MARKERS and not self.markers:
             return False
-        if name.startswith("/hmrta/") or name == "/clock":
+        if name.startswith("/hmrta/") or name == self.clock_topic:
             return True
         return any(name in robot_topics(r) for r in self.robot_names)
 

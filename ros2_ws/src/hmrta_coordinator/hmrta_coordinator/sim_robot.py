@@ -3,9 +3,10 @@
 Each simulated robot consumes goals on ``/<robot>/goal_pose`` (``geometry_msgs/PoseStamped``,
 stamp = departure time) and drives there in a straight line at the instance velocity; it
 publishes its pose on ``/<robot>/pose`` when it arrives, as a heartbeat, and (paced mode) while
-moving. The node publishes ``/clock`` (``rosgraph_msgs/Clock``): it advances sim time up to the
-horizon the board allows, at once (``time_scale`` 0: as fast as possible) or at ``time_scale``
-sim seconds per wall second. Robots named in ``external`` (real robots, drivers elsewhere) are
+moving. The node publishes the mission clock (``rosgraph_msgs/Clock`` on ``clock_topic``, default
+``/hmrta/clock``; never ``/clock``, which a simulator such as Gazebo may own): it advances mission
+time up to the horizon the board allows, at once (``time_scale`` 0: as fast as possible) or at
+``time_scale`` mission seconds per second of the system clock (1 for real robots). Robots named in ``external`` (real robots, drivers elsewhere) are
 not simulated; with every robot external this node is just the mission clock.
 
 Robots added during the mission (a robot that joined, a scenario's ``add_robot``) appear in the
@@ -39,6 +40,7 @@ from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (DecodeError, Mission, board_from_msg, clock_to_msg, mission_from_msg,
                                  pose_from_msg, pose_to_msg)
 from hmrta_msgs_py.runtime import spin_nodes
+from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 EPS = 1e-6
 
@@ -88,6 +90,9 @@ class SimRobot(Node):
         rate = P("rate", 20.0).value
         heartbeat = P("heartbeat_period", 1.0).value
         self.exit_on_done = P("exit_on_done", True).value
+        clock_topic = P("clock_topic", "/hmrta/clock").value
+        if not clock_topic.startswith("/") or clock_topic.rstrip("/") == "/clock":
+            raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {clock_topic!r}")
         self.mission: Mission | None = None
         self.robots: dict[str, SimulatedRobot] = {}
         self.now = 0.0
@@ -97,7 +102,7 @@ class SimRobot(Node):
         self.synced = False  # clock and robots rebuilt from the first board (start or restart)
         self._early_goals: list[tuple[SimulatedRobot, PoseStamped]] = []  # goals before that
         self.done = Future()
-        self.pub_clock = self.create_publisher(Clock, topics.CLOCK, topics.CLOCK_QOS)
+        self.pub_clock = self.create_publisher(Clock, clock_topic, topics.CLOCK_QOS)
         self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
         self.create_subscription(String, topics.BOARD, self.on_board, topics.BOARD_QOS)
         self.create_timer(heartbeat, self.on_heartbeat)
@@ -224,7 +229,9 @@ class SimRobot(Node):
                         r.base = (float(frm[0]), float(frm[1]))
                 except (KeyError, IndexError, TypeError):
                     pass
-            for _, x, y, depart in legs:
+            for node, x, y, depart in legs:
+                if node == RESEND:
+                    continue  # a goal re-sent to a late robot: the leg it repeats is listed already
                 self._add_leg(r, x, y, depart)
         if resumed or self.now > 0:
             self.get_logger().info(f"resuming the mission at t={self.now:.3f} (board version {b.version}, "
@@ -315,7 +322,12 @@ def main(args: list[str] | None = None) -> None:
 
     help_requested(argv, "sim_robot", __doc__.split("\n\n")[0], node_parameters("sim_robot"))
     rclpy.init(args=argv)
-    node = SimRobot()
+    try:
+        node = SimRobot()
+    except ValueError as e:  # a bad parameter: a user error
+        print(f"sim_robot: {e}", file=sys.stderr)
+        rclpy.try_shutdown()
+        raise SystemExit(2) from None
     spin_nodes([node], until=node.done if node.exit_on_done else None)
 
 

@@ -7,14 +7,23 @@ The board validates every message (schema, known and live robot, version, turn, 
 applies valid choices with ``MissionState.step``; anything else is rejected with a logged reason
 (also published on ``/hmrta/rejections``) and never changes the board.
 
-Time: the board follows ``/clock`` (driven by ``sim_robot``). It releases a decision only when
+Time: the board follows the mission clock (``clock_topic``, default ``/hmrta/clock``, driven by
+``sim_robot``: as fast as possible, or paced by the system clock for real robots; another node's
+``/clock`` moves nothing). It releases a decision only when
 the clock has reached the decision's instant, and gives the clock a *horizon* it may not pass:
 the next decision instant, and the start of any task whose members have not yet reported
 (``/<robot>/pose``) being at the task. Simulated robots report at once, so a sim-time mission is
 deterministic and equals the offline rollout; a real (or slower) robot holds the clock until it
 arrives.
 
-Robot loss: a robot whose agent heartbeat (``/hmrta/agent_status``) or pose stops for
+Poses: each robot's pose topic carries ``geometry_msgs/PoseStamped`` (default),
+``geometry_msgs/PoseWithCovarianceStamped`` (``amcl_pose``: subscribed reliable and transient
+local, as Nav2's amcl publishes it) or ``nav_msgs/Odometry``: ``pose_type`` for every robot,
+``pose_types`` (``ROBOT:TYPE``) per robot. A pose whose ``header.frame_id`` is not ``frame_id`` is
+rejected (reason ``wrong_frame``, logged and published rate-limited). Poses confirm arrivals
+only; a pose topic that stays silent (a robot standing still) drops nobody.
+
+Robot loss: a robot whose agent heartbeat (``/hmrta/agent_status``) stops for
 ``heartbeat_timeout`` seconds (wall time) is dropped (``MissionState.drop_agent``): its
 commitments are released, the others re-plan, tasks nobody left can satisfy are cancelled. The
 result JSON (``hmrta-solution/1``, ``output`` parameter and ``/hmrta/result``) lists
@@ -53,7 +62,6 @@ from functools import partial
 from typing import Any
 
 import rclpy
-from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
@@ -70,7 +78,8 @@ from hmrta.keys import Verifier, load_keystore
 from hmrta.methods import MethodError
 from hmrta.methods import rules as method_rules
 from hmrta_msgs_py import topics
-from hmrta_msgs_py.codec import (Board, DecodeError, MarkerView, Mission, Rejection, TaskEvent, board_to_msg,
+from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mission, Rejection, TaskEvent,
+                                 board_to_msg, pose_type,
                                  choice_from_msg, clock_from_msg, markers_to_msg, mission_to_msg, pose_from_msg,
                                  rejection_to_msg, request_id_of, result_to_msg, status_from_msg,
                                  task_event_to_msg, task_request_from_msg)
@@ -89,12 +98,20 @@ class TaskBoard(Node):
         self.output = P("output", "").value
         names = list(P("robot_names", Parameter.Type.STRING_ARRAY).value or [])
         frame_id = P("frame_id", "map").value
+        try:
+            self.pose_type = pose_type(P("pose_type", "PoseStamped").value)
+        except ValueError as e:  # a user error
+            raise ValueError(f"pose_type: {e}") from None
+        self.pose_types = _pose_types(list(P("pose_types", Parameter.Type.STRING_ARRAY).value or []))
+        clock_topic = P("clock_topic", "/hmrta/clock").value
         scale = P("scale", 1.0).value
         wait_for_robots = P("wait_for_robots", True).value
         startup_timeout = P("startup_timeout", 120.0).value
         heartbeat_timeout = P("heartbeat_timeout", 5.0).value
         decision_timeout = P("decision_timeout", 30.0).value
-        tolerance = P("arrival_tolerance", 1e-3).value
+        tolerance = P("arrival_tolerance", 0.25).value  # metres (Nav2's usual goal tolerance)
+        leg_timeout_factor = P("leg_timeout_factor", 3.0).value
+        leg_timeout_floor = P("leg_timeout_floor", 10.0).value
         self.exit_on_done = P("exit_on_done", True).value
         marker_period = P("marker_period", 0.5).value
         self.progress_period = P("progress_period", 5.0).value
@@ -109,6 +126,12 @@ class TaskBoard(Node):
 
         if not path:
             raise ValueError("task_board: set the mission file: -p instance:=PATH")
+        if not scale > 0:
+            raise ValueError(f"scale: expected a positive number of metres per mission unit, got {scale!r}")
+        for k, v in (("arrival_tolerance", tolerance), ("leg_timeout_factor", leg_timeout_factor),
+                     ("leg_timeout_floor", leg_timeout_floor)):
+            if not v >= 0:
+                raise ValueError(f"{k}: expected a number >= 0, got {v!r}")
         self.inst = inst = load_instance(path)
         rules = method_rules(self.method, **method_opts)  # from the checkpoint's config: no torch here
         if real_time:
@@ -117,10 +140,13 @@ class TaskBoard(Node):
         names = names or [f"robot_{a}" for a in range(A)]
         if len(names) != A or len(set(names)) != A:
             raise ValueError(f"robot_names: expected {A} distinct names, got {len(names)}")
+        if not clock_topic.startswith("/") or clock_topic.rstrip("/") == "/clock":
+            raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {clock_topic!r}")
         # KeystoreError (a ValueError, one line naming the file and field) is a user error
         verifier = Verifier(load_keystore(keystore, names)) if keystore else None
         self.board = MissionBoard(inst, names, seed=self.seed, rules=rules, method=self.method, verifier=verifier,
-                                  tolerance=tolerance, heartbeat_timeout=heartbeat_timeout,
+                                  tolerance=tolerance / scale, scale=scale, leg_timeout_factor=leg_timeout_factor,
+                                  leg_timeout_floor=leg_timeout_floor, heartbeat_timeout=heartbeat_timeout,
                                   decision_timeout=decision_timeout, startup_timeout=startup_timeout,
                                   wait_for_robots=wait_for_robots, journal=journal or None, log=self._log)
         self.names = self.board.names  # the board's list: robots that join are appended to it
@@ -146,7 +172,7 @@ class TaskBoard(Node):
         self.create_subscription(String, topics.TASK_REQUESTS, self.on_task_request, topics.TASK_REQUEST_QOS)
         self.create_subscription(String, topics.CHOICE, self.on_choice, _deeper(topics.CHOICE_QOS, queue_depth))
         self.create_subscription(String, topics.STATUS, self.on_status, _deeper(topics.STATUS_QOS, queue_depth))
-        self.create_subscription(Clock, topics.CLOCK, self.on_clock, topics.CLOCK_QOS)
+        self.create_subscription(Clock, clock_topic, self.on_clock, topics.CLOCK_QOS)
         self._pose_subs = 0
         self._subscribe_poses()
         self.create_timer(0.1, self.on_watchdog)
@@ -175,10 +201,12 @@ class TaskBoard(Node):
         return self.board.finished
 
     def _subscribe_poses(self) -> None:
-        """Subscribe the pose of every robot not yet subscribed (robots that joined included)."""
+        """Subscribe the pose of every robot not yet subscribed (robots that joined included),
+        with its pose type's message class and QoS."""
         for a in range(self._pose_subs, len(self.names)):
-            self.create_subscription(PoseStamped, topics.robot_topic(self.names[a], topics.POSE),
-                                     partial(self.on_pose, a), topics.POSE_SUB_QOS)
+            kind = self.pose_types.get(self.names[a], self.pose_type)
+            self.create_subscription(POSE_TYPES[kind], topics.robot_topic(self.names[a], topics.POSE),
+                                     partial(self.on_pose, a), topics.POSE_SUB_QOS_BY_TYPE[kind])
         self._pose_subs = len(self.names)
 
     def _republish_mission(self) -> None:
@@ -279,7 +307,12 @@ class TaskBoard(Node):
             self.get_logger().warning(warn, throttle_duration_sec=5.0)
         self._flush()
 
-    def on_pose(self, a: int, msg: PoseStamped) -> None:
+    def on_pose(self, a: int, msg: Any) -> None:
+        frame = msg.header.frame_id
+        if frame != self.mission.frame_id:
+            self.board.rejected["wrong_frame"] += 1
+            return self._reject("wrong_frame", f"pose of {self.names[a]} in frame {frame!r}, expected "
+                                               f"{self.mission.frame_id!r} (frame_id)", self.names[a])
         try:
             x, y, _ = pose_from_msg(msg, self.mission.scale)
         except DecodeError as e:
@@ -356,6 +389,21 @@ class TaskBoard(Node):
         self.board.close()
         if not self.done.done():
             self.done.set_result(True)
+
+
+def _pose_types(items: list[str]) -> dict[str, str]:
+    """``pose_types`` entries ``ROBOT:TYPE`` -> {robot: pose type}; ValueError naming the entry."""
+    out: dict[str, str] = {}
+    for item in items:
+        robot, sep, kind = item.rpartition(":")
+        robot = robot.strip().strip("/")
+        if not sep or not robot:
+            raise ValueError(f"pose_types: expected ROBOT:TYPE (robot_1:Odometry), got {item!r}")
+        try:
+            out[robot] = pose_type(kind)
+        except ValueError as e:
+            raise ValueError(f"pose_types: {item!r}: {e}") from None
+    return out
 
 
 def _deeper(qos: QoSProfile, depth: int) -> QoSProfile:

@@ -42,7 +42,7 @@ def _nodes(context):
     nodes = [L.agent_node(r, common) for r in fleet]
     if L.P.Param("board", L.P.BOOL, False, "").parse(arg["board"]):
         arg["instance"] = L.instance_path(arg["instance"])
-        nodes.insert(0, L.board_node(arg, [], L.board_remaps(fleet) + L.parse_remaps(arg["remaps"])))
+        nodes.insert(0, L.board_node(arg, [], L.board_remaps(fleet) + L.parse_remaps(arg["remaps"]), fleet))
     return nodes
 
 

@@ -22,7 +22,7 @@ from launch_ros.actions import Node
 from hmrta_coordinator import launching as L
 
 ARGS = {**L.args_of("task_board", "sim_robot"), **L.EXTRA_ARGS}
-AGENT_PARAMS = ("seed", "exit_on_done", "keystore", "method", *(p.name for p in L.P.method_parameters()))
+AGENT_PARAMS = ("seed", "exit_on_done", "keystore", "clock_topic", "method", *(p.name for p in L.P.method_parameters()))
 
 
 def _nodes(context):
@@ -38,7 +38,7 @@ def _nodes(context):
     unknown = sorted(set(external) - set(robots))
     if unknown:
         raise ValueError(f"external: {', '.join(unknown)} not among the mission's robots ({', '.join(robots[:5])}...)")
-    board = L.board_node(arg, robots, L.board_remaps(fleet) + L.parse_remaps(arg["remaps"]))
+    board = L.board_node(arg, robots, L.board_remaps(fleet) + L.parse_remaps(arg["remaps"]), fleet)
     sim_params = L.node_values("sim_robot", {**arg, "external": ",".join(dict.fromkeys(external))})
     sim = Node(package="hmrta_coordinator", executable="sim_robot", name="sim_robot", output="screen",
                parameters=[sim_params])

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, PoseStamped
+from geometry_msgs.msg import Point, PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker, MarkerArray
@@ -48,6 +49,7 @@ FORMATS = (MISSION_FORMAT, BOARD_FORMAT, STATE_FORMAT, CHOICE_FORMAT, STATUS_FOR
 
 PHASES = ("starting", "wait", "decide", "closing", "done")
 HOLD = -1  # leg node: stay where you are (0 = own depot, 1 + m = task m)
+RESEND = -2  # leg node: publish this goal again now (the robot has not reached it in time)
 
 
 class DecodeError(ValueError):
@@ -168,9 +170,27 @@ def pose_to_msg(xy: Sequence[float], stamp: float, frame_id: str = "map", scale:
     return msg
 
 
-def pose_from_msg(msg: PoseStamped, scale: float = 1.0) -> tuple[float, float, float]:
-    """-> (x, y, stamp seconds) in mission coordinates."""
-    x, y = msg.pose.position.x, msg.pose.position.y
+# the robot pose message types the board reads (its ``pose_type`` / ``pose_types`` parameters)
+POSE_TYPES: dict[str, type] = {"PoseStamped": PoseStamped, "PoseWithCovarianceStamped": PoseWithCovarianceStamped,
+                               "Odometry": Odometry}
+
+
+def pose_type(text: str) -> str:
+    """The name in :data:`POSE_TYPES` of a pose message type given as ``PoseStamped``,
+    ``geometry_msgs/msg/PoseStamped``, ``odometry`` (any case); ValueError naming the choices."""
+    leaf = str(text).strip().rsplit("/", 1)[-1].lower()
+    for name in POSE_TYPES:
+        if name.lower() == leaf:
+            return name
+    raise ValueError(f"expected a pose type ({', '.join(POSE_TYPES)}), got {text!r}")
+
+
+def pose_from_msg(msg: PoseStamped | PoseWithCovarianceStamped | Odometry,
+                  scale: float = 1.0) -> tuple[float, float, float]:
+    """-> (x, y, stamp seconds) in mission coordinates, from any of :data:`POSE_TYPES` (the
+    frame is ``msg.header.frame_id``)."""
+    pose = msg.pose.pose if hasattr(msg.pose, "covariance") else msg.pose
+    x, y = pose.position.x, pose.position.y
     if not (math.isfinite(x) and math.isfinite(y)):
         raise DecodeError(f"pose: non-finite position ({x}, {y})")
     return x / scale, y / scale, stamp_to_time(msg.header.stamp)

@@ -56,13 +56,23 @@ TASK_BOARD: tuple[Param, ...] = (
     Param("seed", INTEGER, 0, "episode seed (decision order)"),
     Param("output", STRING, "", "where to write the hmrta-solution/1 JSON (empty: only /hmrta/result)"),
     Param("robot_names", STRING_ARRAY, [], "robot names in the mission's agent order (empty: robot_<i>)"),
-    Param("frame_id", STRING, "map", "frame of goals, poses and markers"),
+    Param("frame_id", STRING, "map", "frame of goals, poses and markers; a pose in another frame is rejected"),
+    Param("pose_type", STRING, "PoseStamped",
+          "message type of every robot's pose topic: PoseStamped, PoseWithCovarianceStamped (amcl_pose) or Odometry"),
+    Param("pose_types", STRING_ARRAY, [], "per-robot pose types overriding pose_type, ROBOT:TYPE (robot_1:Odometry)"),
+    Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic (rosgraph_msgs/Clock, published by sim_robot); never /clock"),
     Param("scale", DOUBLE, 1.0, "metres per mission unit (positions on the wire = mission coordinates x scale)"),
     Param("wait_for_robots", BOOL, True, "start the mission only once every robot's agent and pose are up"),
     Param("startup_timeout", DOUBLE, 120.0, "wall seconds to wait for the robots at start (0: forever)"),
-    Param("heartbeat_timeout", DOUBLE, 5.0, "wall seconds before a silent robot is dropped"),
+    Param("heartbeat_timeout", DOUBLE, 5.0,
+          "wall seconds without its agent's heartbeat before a robot is dropped (a silent pose drops nobody)"),
     Param("decision_timeout", DOUBLE, 30.0, "wall seconds an agent has to answer its turn before it is dropped"),
-    Param("arrival_tolerance", DOUBLE, 1e-3, "distance from its goal within which a robot counts as arrived"),
+    Param("arrival_tolerance", DOUBLE, 0.25,
+          "metres from its goal within which a robot counts as arrived (Nav2's usual goal tolerance)"),
+    Param("leg_timeout_factor", DOUBLE, 3.0,
+          "a leg times out after this x its planned travel time + leg_timeout_floor: the goal is re-sent once, "
+          "then the robot is dropped as stuck (factor and floor 0: never)"),
+    Param("leg_timeout_floor", DOUBLE, 10.0, "seconds added to every leg's timeout (see leg_timeout_factor)"),
     Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
     Param("marker_period", DOUBLE, 0.5, "wall seconds between /hmrta/markers updates"),
     Param("progress_period", DOUBLE, 5.0, "wall seconds between progress log lines"),
@@ -79,6 +89,7 @@ SIM_ROBOT: tuple[Param, ...] = (
     Param("time_scale", DOUBLE, 0.0, "sim seconds per wall second (0: as fast as possible)"),
     Param("rate", DOUBLE, 20.0, "pose and clock updates per wall second while paced (time_scale > 0)"),
     Param("heartbeat_period", DOUBLE, 1.0, "wall seconds between pose and clock heartbeats"),
+    Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic to publish (rosgraph_msgs/Clock); never /clock"),
     Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
 )
 
@@ -90,6 +101,7 @@ AGENT_NODE: tuple[Param, ...] = (
     Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
     Param("keystore", STRING, "", "mission keystore folder: sign with the hosted robots' keys (empty: unsigned)"),
     Param("key_file", STRING, "", "one robot's key file (robots/<robot>.key.json) to sign with"),
+    Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic (goals are sent when it passes their departure)"),
 )
 
 RECORDER: tuple[Param, ...] = (
@@ -99,6 +111,7 @@ RECORDER: tuple[Param, ...] = (
     Param("markers", BOOL, False, "also record /hmrta/markers (RViz markers; large)"),
     Param("discovery_period", DOUBLE, 1.0, "wall seconds between looks for new topics to record"),
     Param("compression", STRING, "zstd", "chunk compression: zstd, lz4 or none"),
+    Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic to record"),
 )
 
 NODES: dict[str, tuple[Param, ...]] = {"task_board": TASK_BOARD, "sim_robot": SIM_ROBOT, "agent_node": AGENT_NODE,

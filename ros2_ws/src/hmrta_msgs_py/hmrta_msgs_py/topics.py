@@ -18,11 +18,14 @@ RESULT = "/hmrta/result"  # std_msgs/String hmrta-solution/1        board -> all
 MARKERS = "/hmrta/markers"  # visualization_msgs/MarkerArray        board -> RViz
 TASK_REQUESTS = "/hmrta/task_requests"  # std_msgs/String hmrta-task-request/1  operators -> board
 TASK_EVENTS = "/hmrta/task_events"  # std_msgs/String hmrta-task-event/1  board -> operators
-CLOCK = "/clock"  # rosgraph_msgs/Clock                              sim_robot -> all
+# the mission clock (sim_robot -> all; ``clock_topic`` parameter): inside the /hmrta namespace, so
+# another node's /clock (a simulator such as Gazebo) never moves a mission
+CLOCK = "/hmrta/clock"  # rosgraph_msgs/Clock
 
 # ---- per-robot topics (relative: resolved in the robot's namespace) -----------------------------
 GOAL = "goal_pose"  # geometry_msgs/PoseStamped  agent -> robot driver (Nav2's goal topic)
-POSE = "pose"  # geometry_msgs/PoseStamped       robot driver -> board (position + heartbeat)
+POSE = "pose"  # robot driver -> board (position): geometry_msgs/PoseStamped (default),
+# geometry_msgs/PoseWithCovarianceStamped (amcl_pose) or nav_msgs/Odometry (the board's pose_type)
 
 
 def robot_topic(robot: str, leaf: str) -> str:
@@ -53,3 +56,8 @@ GOAL_QOS = _qos(10)
 # (sensor-data QoS included) can feed it; poses repeat as heartbeats, so a lost sample only delays
 POSE_PUB_QOS = _qos(10)
 POSE_SUB_QOS = _qos(10, reliable=False)
+# amcl_pose (PoseWithCovarianceStamped) is published reliable + transient local and only on filter
+# updates: subscribed the same way, a robot standing still is seen at once from its latest pose
+AMCL_POSE_SUB_QOS = _qos(1, latched=True)
+POSE_SUB_QOS_BY_TYPE = {"PoseStamped": POSE_SUB_QOS, "PoseWithCovarianceStamped": AMCL_POSE_SUB_QOS,
+                        "Odometry": POSE_SUB_QOS}
