@@ -27,7 +27,7 @@ $(STAMP): requirements.txt policy/pyproject.toml $(wildcard ros2_ws/src/*/setup.
 # the main job: a live decentralised mission over ROS 2 (board, simulated robots, one agent process
 # per robot, learned policy) on the built-in example; writes out/mission.json and out/mission.png
 demo: setup
-	$(VENV)/bin/hmrta-mission --method rl --out out/mission.json --check-offline
+	$(VENV)/bin/hmrta-mission --method portfolio --out out/mission.json --check-offline
 
 test: setup
 	$(VENV)/bin/pytest -q tests

@@ -68,7 +68,8 @@ def test_missing_or_foreign_keys_are_user_errors(tmp_path, domain):
           f"key_file:={ks / 'robots' / 'robot_0.key.json'}"], "the key of 'robot_0', not of 'robot_1'"),
         (["hmrta_coordinator.task_board", "--ros-args", "-p", f"instance:={inst}", "-p", f"keystore:={ks}"],
          "no key for robot_2"),
-        (["hmrta_coordinator.mission", str(inst), "--keystore", str(ks), "--out", str(tmp_path / "m.json")],
+        (["hmrta_coordinator.mission", str(inst), "--method", "greedy", "--keystore", str(ks), "--out",
+          str(tmp_path / "m.json")],
          "no key for robot_2"),
     ]
     for args, text in cases:

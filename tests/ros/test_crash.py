@@ -35,7 +35,8 @@ def launch(tmp_path: Path, domain: int, *extra: str) -> tuple[subprocess.Popen, 
     out = tmp_path / "mission.json"
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     env.pop("ROS_DOMAIN_ID", None)
-    proc = subprocess.Popen([str(BIN / "hmrta-mission"), "--agents-per-process", "5", "--time-scale", str(TIME_SCALE),
+    proc = subprocess.Popen([str(BIN / "hmrta-mission"), "--method", "greedy", "--agents-per-process", "5",
+                             "--time-scale", str(TIME_SCALE),
                              "--out", str(out), "--no-plot", "--quiet", "--domain-id", str(domain), "--timeout", "90",
                              "--heartbeat-timeout", "10", *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,

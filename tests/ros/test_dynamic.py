@@ -39,7 +39,8 @@ def scenario(tmp_path: Path, *extra: str) -> Path:
 def test_a_live_scenario_equals_the_offline_run(tmp_path, domain):
     path = scenario(tmp_path)
     out = tmp_path / "mission.json"
-    proc = subprocess.run([str(BIN / "hmrta-mission"), "--scenario", str(path), "--seed", "0", "--out", str(out),
+    proc = subprocess.run([str(BIN / "hmrta-mission"), "--scenario", str(path), "--method", "greedy", "--seed", "0",
+                           "--out", str(out),
                            "--quiet", "--no-plot", "--check-offline", "--domain-id", str(domain),
                            "--agents-per-process", "15", "--timeout", "200"],
                           capture_output=True, text=True, timeout=260, env=dict(os.environ))

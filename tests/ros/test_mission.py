@@ -85,7 +85,7 @@ def test_sim_time_mission_equals_offline_solve(tmp_path, domain, per_process):
     path = save_instance(inst, tmp_path / "inst.yaml")
     out = tmp_path / "mission.json"
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE=os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"])
-    proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", "3", "--out", str(out), "--quiet",
+    proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--method", "greedy", "--seed", "3", "--out", str(out), "--quiet",
                            "--no-plot", "--check-offline", "--domain-id", str(domain),
                            "--agents-per-process", str(per_process), "--timeout", "150"],
                           capture_output=True, text=True, timeout=200, env=env)

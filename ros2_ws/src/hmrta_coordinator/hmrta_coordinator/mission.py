@@ -436,7 +436,7 @@ def main(argv: list[str] | None = None) -> int:
                         "board adds it")
     p.add_argument("--seed", type=int, default=0, help="episode seed (decision order, sampling)")
     p.add_argument("--out", default="out/mission.json", help="solution JSON to write")
-    methods.add_arguments(p, live=True)  # --method and its options, from the method table
+    methods.add_arguments(p, live=True, default="portfolio")  # --method and its options, from the method table
     p.add_argument("--agents-per-process", type=int, default=1, metavar="N",
                    help="robots hosted per agent process (lean nodes on one executor)")
     p.add_argument("--time-scale", type=float, default=0.0,
