@@ -32,7 +32,7 @@ from .instance import Instance, atomic_write_text
 
 PAPER_NAME = {"greedy": "Greedy", "rl": "RL(g.)", "rl-s10": "RL(s.10)", "cpsat": "CTAS-D"}  # paper counterpart
 DISPLAY_NAME = {"greedy": "Greedy", "greedy-coalition": "Greedy-coalition", "rl": "RL(g.)", "rl-s10": "RL(s.10)",
-                "rl-lookahead": "RL-lookahead",
+                "rl-lookahead": "RL-lookahead", "portfolio": "Portfolio",
                 "cpsat": "CP-SAT (vs paper CTAS-D)"}
 TABLE_TITLES = {"SA-BT": "Table I: SA-BT", "SA-AT": "Table II: SA-AT", "MA-AT": "Table III: MA-AT",
                 "MA-AT-large": "Table IV: MA-AT, large"}
