@@ -60,6 +60,66 @@ def _matching(folder: Path, inst_file: Path, what: str) -> Path:
     return p
 
 
+THREADS_HELP = ("torch CPU threads of the learned policy's methods (rl, rl-sample, rl-lookahead, portfolio). "
+                "One suits inference: a decision's forward pass is too small to share between threads, and "
+                "torch's own choice (a thread per core) collapses when other processes keep the cores busy "
+                "(on 2 cores beside two busy processes, 10 to 100 times slower than one thread)")
+
+
+def set_torch_threads(torch, n: int) -> None:
+    """``n`` intra-op and (when still possible) inter-op threads for ``torch``."""
+    torch.set_num_threads(n)
+    try:
+        torch.set_num_interop_threads(n)
+    except RuntimeError:  # only before any inter-op parallel work, and once per process
+        pass
+
+
+class TorchThreads:
+    """Sets torch's CPU threads as soon as torch is imported, without importing it (greedy-only
+    runs never load torch): a meta-path finder that, the first time ``torch`` is imported, lets the
+    other finders locate it and sets the threads right after the module has run. Where torch is
+    already imported, the threads are set at once. ``remove()`` uninstalls the finder."""
+
+    def __init__(self, n: int):
+        self.n = n
+        if "torch" not in sys.modules:
+            sys.meta_path.insert(0, self)
+        elif sys.modules["torch"] is not None:  # (None: an import of torch is blocked)
+            set_torch_threads(sys.modules["torch"], n)
+
+    def remove(self) -> None:
+        if self in sys.meta_path:
+            sys.meta_path.remove(self)
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "torch":
+            return None
+        import importlib.util
+
+        self.remove()  # once, and the other finders locate torch
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        run, n = spec.loader.exec_module, self.n
+
+        def exec_module(module) -> None:
+            run(module)
+            set_torch_threads(module, n)
+
+        spec.loader.exec_module = exec_module  # this spec's own loader object
+        return spec
+
+
+def _threads(args) -> TorchThreads | None:
+    n = getattr(args, "threads", None)
+    if n is None or args.cmd == "train":  # training sets its own (cmd_train)
+        return None
+    if n < 1:
+        raise UserError(f"--threads: expected a positive integer, got {n}")
+    return TorchThreads(n)
+
+
 def _progress_on(args) -> bool:
     return not getattr(args, "no_progress", False)
 
@@ -386,8 +446,14 @@ def _mission_sets(paths: list[str]) -> list:
 
 
 def cmd_train(args) -> int:
+    import os
+
     from .deps import require
 
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads: expected a positive integer, got {args.threads}")
+    # idle OpenMP threads sleep instead of spinning: read once, when torch loads its OpenMP runtime
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     torch = require("torch", "hmrta train")
 
     from .rl.train import Trainer, check_config, load_config, write_config
@@ -637,6 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--schedule", action="store_true", help="also print the per-task schedule and routes")
     s.add_argument("--no-progress", action="store_true",
                    help="no progress bars (per instance with several, per decision or second in a long solve)")
+    s.add_argument("--threads", type=int, default=1, metavar="N", help=THREADS_HELP)
     s.set_defaults(fn=cmd_solve)
 
     e = sub.add_parser("evaluate", help="re-simulate given routes and print the metrics", formatter_class=F)
@@ -684,9 +751,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "(--suite default: docs/results/<suite>)")
     b.add_argument("--json", action="store_true", help="print the results as JSON instead of Markdown")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
+    b.add_argument("--threads", type=int, default=1, metavar="N",
+                   help=THREADS_HELP + "; recorded in the results' provenance")
     b.set_defaults(fn=cmd_bench)
 
-    t = sub.add_parser("train", help="train the policy (REINFORCE + constrained flashforward)", formatter_class=F)
+    t = sub.add_parser("train", help="train the policy (REINFORCE + constrained flashforward)", formatter_class=F,
+                       description="Train the policy. Idle OpenMP threads wait passively (OMP_WAIT_POLICY=PASSIVE "
+                                   "is set before torch loads, unless the environment already sets it), so a run "
+                                   "does not spin on cores that other processes need.")
     t.add_argument("--config", default="policy/configs/default.yaml", help="training config YAML")
     t.add_argument("--resume", action="store_true", help="continue the run in --run-dir (model, optimiser, RNG)")
     t.add_argument("--init", default=None, help="with --resume: start from this checkpoint instead of last.pt")
@@ -697,7 +769,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--max-minutes", type=float, default=None, help="stop after this many minutes (checkpointed)")
     t.add_argument("--iterations", type=int, default=None, help="override train.iterations")
     t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
-    t.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    t.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="torch CPU threads (default: torch's, one per core; fewer beside other busy processes)")
     t.add_argument("--export", default=None, help="after training, write the best weights + config here")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.add_argument("--check", action="store_true", help="only validate the config, then exit (no training)")
@@ -741,6 +814,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0, help="episode seed")
     d.add_argument("--out", default=None, help="also write the solution JSON here")
     d.add_argument("--no-progress", action="store_true", help="no progress bar during a long solve")
+    d.add_argument("--threads", type=int, default=1, metavar="N", help=THREADS_HELP)
     d.set_defaults(fn=cmd_demo)
 
     k = sub.add_parser("keys", help="mission keystore: one secret key per robot (signed choices and statuses)",
@@ -761,7 +835,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # for the provenance of results
+    threads = None
     try:
+        threads = _threads(args)
         return args.fn(args)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -775,6 +851,9 @@ def main(argv: list[str] | None = None) -> int:
         traceback.print_exc()
         print(f"hmrta: internal error: {type(e).__name__}: {e}", file=sys.stderr)
         return 1
+    finally:
+        if threads is not None:
+            threads.remove()
 
 
 if __name__ == "__main__":
