@@ -396,12 +396,32 @@ def _row_size(row) -> list:
     return list(row.size) if hasattr(row, "size") else [row.agents, row.species, row.tasks, row.skills]
 
 
+def _solve_record(job: tuple) -> dict:
+    """One cache record: ``job`` = (row key, method, instance identity, seed, variant, instance,
+    options); the instance is solved with ``seed=0`` (a module-level function: it runs in
+    :mod:`hmrta.fanout` workers as well as here)."""
+    row_key, method, ident, row_seed, variant, inst, opts = job
+    from . import methods as M
+
+    sol = M.solve(inst, method, seed=0, **opts)
+    r = {"row": row_key, "method": method, "index": ident, "seed": row_seed,
+         "variant": variant, "success": sol.success,
+         "makespan": sol.makespan, "awt": sol.awt, "redundancy": sol.redundancy,
+         "compute_seconds": sol.compute_seconds, "response": response_record(sol)}
+    lb = sol.extra.get("lower_bound")
+    if lb is not None:
+        r["solver_bound"] = lb
+    return r
+
+
 def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Path | None,
               solve_opts: dict[str, Any], progress: bool = True, with_bounds: bool = False,
               log: Callable[[str], None] = print, compare: Iterable[tuple[str, str]] | None = None,
-              command: str | None = None) -> dict:
+              command: str | None = None, workers: int = 1, ray_address: str | None = None) -> dict:
     """Run every method on every row (:class:`Row` or :class:`MissionSet`); returns the summary
-    (see :func:`save`). ``compare``: method pairs for paired comparisons (None: the defaults)."""
+    (see :func:`save`). ``compare``: method pairs for paired comparisons (None: the defaults).
+    ``workers`` > 1 or ``ray_address``: the uncached solves run as Ray tasks (:mod:`hmrta.fanout`,
+    torch on one thread per task), then the tables are made exactly as in a serial run."""
     from tqdm import tqdm
 
     from . import methods as M
@@ -412,6 +432,9 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
         rec = M.get(M.parse(m)[0])
         for mod in rec.needs:
             require(mod, f"method {rec.name}")
+    from .fanout import Fanout
+
+    fan = Fanout(workers, ray_address)  # a missing Ray is reported before any work, too
     cache: dict[tuple, dict] = {}
     cache_path = out_dir / "cache.jsonl" if out_dir else None
     if cache_path and cache_path.exists():
@@ -431,7 +454,35 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
     summary: dict[str, Any] = {"seed": seed, "count": count, "methods": methods, "rows": []}
     opts = {m: _options_for(m, solve_opts) for m in methods}
     variants = {m: method_variant(m, opts[m]) for m in methods}
+
+    def store(key: tuple, r: dict) -> None:
+        cache[key] = r
+        if fh:
+            fh.write(json.dumps(r) + "\n")
+            fh.flush()
+
     try:
+        if fan.distributed:  # the uncached solves fanned out; the loop below then finds them cached
+            jobs: dict[tuple, tuple] = {}
+            for row, insts in sets:
+                row_seed = 0 if getattr(row, "kind", "generated") == "missions" else seed
+                for method in methods:
+                    for ident, inst in insts:
+                        key = (row.key, method, ident, row_seed, variants[method])
+                        if key not in cache:
+                            jobs.setdefault(key, (row.key, method, ident, row_seed, variants[method], inst,
+                                                  opts[method]))
+            keys = list(jobs)
+            if keys:
+                log(f"solving {len(keys)} uncached items on {fan.slots()} Ray CPUs")
+
+            def arrived(i: int, r: dict) -> None:
+                store(keys[i], r)
+                bar.update(1)
+                bar.set_postfix(row=r["row"], method=r["method"])
+
+            fan.map(_solve_record, [jobs[k] for k in keys], on_result=arrived)
+            bar.reset(total=total)
         for row, insts in sets:
             kind = getattr(row, "kind", "generated")
             row_seed = 0 if kind == "missions" else seed
@@ -446,18 +497,8 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
                 for ident, inst in insts:
                     key = (row.key, method, ident, row_seed, variants[method])
                     if key not in cache:
-                        sol = M.solve(inst, method, seed=0, **opts[method])
-                        r = {"row": row.key, "method": method, "index": ident, "seed": row_seed,
-                             "variant": variants[method], "success": sol.success,
-                             "makespan": sol.makespan, "awt": sol.awt, "redundancy": sol.redundancy,
-                             "compute_seconds": sol.compute_seconds, "response": response_record(sol)}
-                        lb = sol.extra.get("lower_bound")
-                        if lb is not None:
-                            r["solver_bound"] = lb
-                        cache[key] = r
-                        if fh:
-                            fh.write(json.dumps(r) + "\n")
-                            fh.flush()
+                        store(key, _solve_record((row.key, method, ident, row_seed, variants[method], inst,
+                                                  opts[method])))
                     res.append(dict(cache[key]))
                     bar.update(1)
                     bar.set_postfix(row=row.key, method=method)
@@ -485,9 +526,12 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
             summary["rows"].append(entry)
     finally:
         bar.close()
+        fan.close()
         if fh:
             fh.close()
     summary["provenance"] = provenance(methods, solve_opts, command)
+    if fan.distributed:  # solves ran side by side: their compute seconds shared the machine(s)
+        summary["provenance"]["fanout"] = {"workers": workers, "ray_address": ray_address}
     return summary
 
 

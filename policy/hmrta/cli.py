@@ -397,13 +397,15 @@ def cmd_bench(args) -> int:
             rows[0].generator()
         except ValueError as e:
             raise UserError(str(e)) from None
+    if args.jobs < 1:
+        raise UserError(f"--jobs: expected a positive integer, got {args.jobs}")
     if args.suite and not args.out:
         args.out = f"docs/results/{args.suite}"  # the suite's tables live in docs/results/
     out_dir = Path(args.out) if args.out else None
     summary = bench.run_bench(rows, methods, args.count, args.seed, out_dir, _solve_opts(args),
                               progress=_progress_on(args), with_bounds=args.bounds,
                               log=lambda s: print(s, file=sys.stderr), compare=compare,
-                              command=_command_line(args))
+                              command=_command_line(args), workers=args.jobs, ray_address=args.ray_address)
     if args.json:
         print(json.dumps(bench.clean(summary), indent=1))
     else:
@@ -751,6 +753,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "(--suite default: docs/results/<suite>)")
     b.add_argument("--json", action="store_true", help="print the results as JSON instead of Markdown")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
+    b.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help="solve the uncached items as Ray tasks on a local Ray with N CPUs (one torch thread "
+                        "each; needs pip install 'hmrta[ray]'); 1: in this process (not to be confused with "
+                        "--workers, CP-SAT's search workers per solve)")
+    b.add_argument("--ray-address", default=None, metavar="HOST:PORT",
+                   help="solve on an existing Ray cluster instead (started with ray start --head / "
+                        "ray start --address HOST:PORT; docs/training.md)")
     b.add_argument("--threads", type=int, default=1, metavar="N",
                    help=THREADS_HELP + "; recorded in the results' provenance")
     b.set_defaults(fn=cmd_bench)

@@ -1,0 +1,180 @@
+"""Work fanned out over processes or machines: one function mapped over work items, in this
+process or as Ray tasks (the only module that talks to Ray).
+
+- ``workers=1`` and no address: the items run here, one after the other (Ray is not needed).
+- ``workers=N > 1``: a local Ray with ``N`` CPUs is started (``ray.init(num_cpus=N)``) and shut
+  down again when the :class:`Fanout` closes.
+- ``address="HEAD:6379"``: the items run on an existing Ray cluster (``ray start --head`` on one
+  machine, ``ray start --address HEAD:6379`` on the others; hmrta installed on every node).
+
+Each Ray task takes one CPU and runs torch on ``threads`` threads (default one: many small
+solves in parallel beat one solve on many threads). Results come back in the items' order;
+``on_result(i, result)`` is called as each arrives (in completion order), so callers can write a
+resumable cache as they go. Every wait has a timeout: no result for ``timeout`` seconds is an
+error and the outstanding tasks are cancelled. An exception raised by the function in a worker is
+raised again here as itself (a user error stays a user error).
+"""
+from __future__ import annotations
+
+import logging
+import sys
+from typing import Any, Callable, Iterable, Sequence
+
+DEFAULT_TIMEOUT = 3600.0  # seconds without any result before a fanned-out map gives up
+WHAT = "work fanned out on Ray (--jobs N > 1 / --ray-address)"
+
+
+class FanoutTimeout(RuntimeError):
+    """No result came back within the timeout (an internal error: a worker hung or died)."""
+
+
+def _set_threads(n: int) -> None:
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+
+
+def _call(fn: Callable, item: Any, threads: int) -> Any:
+    """Run ``fn(item)`` in a worker with torch on ``threads`` threads (set before the call when
+    torch is loaded already, and again after it in case the call loaded torch: OMP_NUM_THREADS,
+    set for the workers, covers the first call)."""
+    _set_threads(threads)
+    try:
+        return fn(item)
+    finally:
+        _set_threads(threads)
+
+
+class Fanout:
+    """Maps picklable functions over picklable items; see the module docstring. Use as a context
+    manager (or call :meth:`close`): a Ray started here is shut down on exit. ``use_ray``: Ray
+    (True) or this process (False) whatever the workers; None: Ray when ``workers > 1`` or an
+    address is given."""
+
+    def __init__(self, workers: int = 1, address: str | None = None, threads: int = 1,
+                 timeout: float = DEFAULT_TIMEOUT, use_ray: bool | None = None):
+        if workers < 1:
+            raise ValueError(f"workers: expected a positive integer, got {workers}")
+        if threads < 1:
+            raise ValueError(f"threads: expected a positive integer, got {threads}")
+        self.workers, self.address, self.threads, self.timeout = workers, address, threads, timeout
+        self._ray = None
+        self._started = False
+        self._remote = None
+        if use_ray or (use_ray is None and (workers > 1 or address)):
+            from .deps import require
+
+            self._ray = require("ray", WHAT)
+
+    @property
+    def distributed(self) -> bool:
+        return self._ray is not None
+
+    def _ensure_ray(self):
+        ray = self._ray
+        if self._remote is not None:
+            return ray
+        if not ray.is_initialized():
+            env = {"env_vars": {"OMP_NUM_THREADS": str(self.threads), "MKL_NUM_THREADS": str(self.threads)}}
+            kw: dict[str, Any] = dict(include_dashboard=False, log_to_driver=False, runtime_env=env,
+                                       logging_level=logging.WARNING)
+            if self.address:
+                ray.init(address=self.address, **kw)
+            else:
+                ray.init(num_cpus=self.workers, **kw)
+            self._started = True
+        self._remote = ray.remote(num_cpus=1, max_retries=0)(_call)
+        return ray
+
+    def slots(self) -> int:
+        """How many items run at once: the CPUs Ray has (1 in-process)."""
+        if not self.distributed:
+            return 1
+        ray = self._ensure_ray()
+        return max(1, int(ray.cluster_resources().get("CPU", self.workers)))
+
+    def map(self, fn: Callable[[Any], Any], items: Iterable[Any],
+            on_result: Callable[[int, Any], None] | None = None,
+            progress: bool | str = False) -> list:
+        """``[fn(x) for x in items]``, fanned out; ``on_result(i, r)`` as each result arrives;
+        ``progress``: a progress bar on stderr (a string: its label)."""
+        items = list(items)
+        bar = None
+        if progress and items:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(items), desc=progress if isinstance(progress, str) else "fanout",
+                       unit="item", file=sys.stderr)
+        try:
+            if not self.distributed:
+                out = []
+                for i, x in enumerate(items):
+                    r = _call(fn, x, self.threads)
+                    out.append(r)
+                    if on_result:
+                        on_result(i, r)
+                    if bar:
+                        bar.update(1)
+                return out
+            return self._ray_map(fn, items, on_result, bar)
+        finally:
+            if bar:
+                bar.close()
+
+    def _ray_map(self, fn, items: Sequence, on_result, bar) -> list:
+        ray = self._ensure_ray()
+        window = 2 * self.slots()  # tasks in flight: every CPU busy, the rest queued here
+        fn_ref = ray.put(fn)
+        results: list = [None] * len(items)
+        pending: dict = {}
+        nxt = 0
+        try:
+            while nxt < len(items) or pending:
+                while nxt < len(items) and len(pending) < window:
+                    pending[self._remote.remote(fn_ref, items[nxt], self.threads)] = nxt
+                    nxt += 1
+                done, _ = ray.wait(list(pending), num_returns=1, timeout=self.timeout)
+                if not done:
+                    raise FanoutTimeout(f"no result from the Ray workers in {self.timeout:g} s "
+                                        f"({len(pending)} tasks outstanding)")
+                for ref in done:
+                    i = pending.pop(ref)
+                    try:
+                        r = ray.get(ref, timeout=self.timeout)
+                    except ray.exceptions.RayTaskError as e:
+                        cause = getattr(e, "cause", None)
+                        if isinstance(cause, BaseException):
+                            raise cause from None
+                        raise
+                    results[i] = r
+                    if on_result:
+                        on_result(i, r)
+                    if bar:
+                        bar.update(1)
+        finally:
+            for ref in pending:
+                try:
+                    ray.cancel(ref, force=True)
+                except Exception:  # already finished or gone
+                    pass
+        return results
+
+    def close(self) -> None:
+        if self._started and self._ray is not None and self._ray.is_initialized():
+            self._ray.shutdown()
+        self._started = False
+        self._remote = None
+
+    def __enter__(self) -> "Fanout":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def fanout_map(fn: Callable[[Any], Any], items: Iterable[Any], workers: int = 1, address: str | None = None,
+               threads: int = 1, timeout: float = DEFAULT_TIMEOUT,
+               on_result: Callable[[int, Any], None] | None = None, progress: bool | str = False) -> list:
+    """One-shot :meth:`Fanout.map` (a local Ray is started and shut down around it)."""
+    with Fanout(workers, address, threads, timeout) as f:
+        return f.map(fn, items, on_result=on_result, progress=progress)
