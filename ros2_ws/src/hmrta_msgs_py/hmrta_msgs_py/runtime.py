@@ -29,38 +29,24 @@ def local_env(env: dict[str, str] | None = None, domain_id: int | None = None) -
     return out
 
 
-def _param_default(o) -> object:
-    """A ROS parameter's default for a method option (ROS has no None: empty string / 0)."""
-    if o.default is not None:
-        return o.default
-    return {str: "", int: 0, float: 0.0}[o.type]
-
-
 def declare_method_parameters(node) -> tuple[str, dict]:
-    """Declare ``method`` and every live method option (from :data:`hmrta.methods.METHODS`) on
-    ``node``; return the method and the options given (unset ones omitted). Raises MethodError
+    """Declare ``method`` and every live method option (the table
+    :func:`hmrta_msgs_py.params.method_parameters`, generated from :data:`hmrta.methods.METHODS`)
+    on ``node``; return the method and the options given (unset ones omitted). Raises MethodError
     for an unknown method or an option it does not take."""
-    from hmrta.methods import get, live_options, parse
+    from hmrta.methods import get, parse
 
-    method = node.declare_parameter("method", "greedy").value
+    from .params import method_parameters
+
+    method_param, *option_params = method_parameters()
+    method = node.declare_parameter(method_param.name, method_param.default).value
     name, implied = parse(method)
-    rec = get(name)
     opts = dict(implied)
-    for o in live_options().values():
-        value = node.declare_parameter(o.name, _param_default(o)).value
-        if value != _param_default(o):
-            opts[o.name] = value
-    return method, rec.check(opts, live=True)
-
-
-def method_parameters_help() -> str:
-    """The ROS parameters of :func:`declare_method_parameters`, for ``--help``."""
-    from hmrta.methods import help_text, live_methods, live_options
-
-    lines = [f"  method (string, default greedy): {help_text(live_methods())}"]
-    for o in live_options().values():
-        lines.append(f"  {o.name} ({o.type.__name__}, default {_param_default(o)!r}): {o.help}")
-    return "\n".join(lines)
+    for p in option_params:
+        value = node.declare_parameter(p.name, p.default).value
+        if value != p.default:  # ROS has no None: the default stands for "not given"
+            opts[p.name] = value
+    return method, get(name).check(opts, live=True)
 
 
 def parameters_help(params) -> str:
