@@ -340,7 +340,7 @@ def provenance(methods: list[str], solve_opts: dict[str, Any], command: str | No
     from . import __version__
 
     checkpoint = None
-    if any(m.startswith("rl") for m in methods):
+    if any(uses_checkpoint(m) for m in methods):
         from .rl.checkpoint_info import DEFAULT_CHECKPOINT, checkpoint_path
 
         path = checkpoint_path(solve_opts.get("checkpoint"))
@@ -362,12 +362,20 @@ def provenance(methods: list[str], solve_opts: dict[str, Any], command: str | No
     }
 
 
+def uses_checkpoint(method: str) -> bool:
+    """Whether a method's results depend on the policy checkpoint (it takes a checkpoint option:
+    the rl methods and portfolio)."""
+    from .methods import get, parse
+
+    return get(parse(method)[0]).option("checkpoint") is not None
+
+
 def method_variant(method: str, solve_opts: dict[str, Any]) -> str:
     """What a cached result depends on besides (row, method, instance, seed): the solve options and,
     for the learned policy, the checkpoint's content. A retrained checkpoint or another time limit
     therefore never reuses stale cached results."""
     parts: dict[str, Any] = {"opts": {k: solve_opts[k] for k in sorted(solve_opts)}}
-    if method.startswith("rl"):
+    if uses_checkpoint(method):
         from .rl.checkpoint_info import checkpoint_path
 
         path = checkpoint_path(solve_opts.get("checkpoint"))

@@ -347,6 +347,8 @@ def cmd_bench(args) -> int:
     from .generators import PAPER_ROWS
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if not methods:
+        raise UserError(f"--methods: expected a comma list of methods, got {args.methods!r}")
     from .methods import METHODS, MethodError, options_for, parse
 
     for m in methods:

@@ -45,6 +45,22 @@ def _call(fn: Callable, item: Any, threads: int) -> Any:
         _set_threads(threads)
 
 
+def _reachable(address: str, timeout: float = 10.0) -> None:
+    """A one-line user error, within ``timeout`` seconds, when nothing listens at HOST:PORT (Ray
+    itself would wait for the cluster without a limit)."""
+    import socket
+
+    from .errors import MethodError
+
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout).close()
+    except ValueError:
+        raise MethodError(f"--ray-address: expected HOST:PORT, got {address!r}") from None
+    except OSError as e:
+        raise MethodError(f"--ray-address {address}: no Ray cluster reachable within {timeout:g} s ({e})") from None
+
+
 class Fanout:
     """Maps picklable functions over picklable items; see the module docstring. Use as a context
     manager (or call :meth:`close`): a Ray started here is shut down on exit. ``use_ray``: Ray
@@ -79,6 +95,7 @@ class Fanout:
             kw: dict[str, Any] = dict(include_dashboard=False, log_to_driver=False, runtime_env=env,
                                        logging_level=logging.WARNING)
             if self.address:
+                _reachable(self.address)
                 ray.init(address=self.address, **kw)
             else:
                 ray.init(num_cpus=self.workers, **kw)

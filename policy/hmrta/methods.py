@@ -160,6 +160,19 @@ def options_for(spec: str, options: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in options.items() if m.option(k) is not None}
 
 
+def _merge(m: Method, implied: dict[str, Any], options: dict[str, Any], live: bool = False) -> dict[str, Any]:
+    """The options of a run: those implied by a shorthand (``rl-s10``: samples=10) and those
+    given. A given option contradicting the shorthand is an error; live, a shorthand's offline-only
+    options are dropped (live ``rl-sN`` decodes by sampling, there are no rollouts to keep)."""
+    given = {k: v for k, v in options.items() if v is not None}
+    for k, v in implied.items():
+        if k in given and given[k] != v:
+            raise MethodError(f"{label(m.name, implied)} means {k}={v}, but {k}={given[k]} was given too")
+    if live:
+        implied = {k: v for k, v in implied.items() if m.option(k) is not None and m.option(k).live}
+    return {**implied, **given}
+
+
 def _needs(m: Method) -> None:
     for mod in m.needs:
         require(mod, f"method {m.name}")
@@ -170,8 +183,8 @@ def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **
     ``progress`` (optional) is passed to solvers that report progress."""
     name, implied = parse(method)
     m = get(name)
-    opts = m.check({**implied, **{k: v for k, v in options.items() if v is not None}})
-    if m.decide is None and getattr(inst, "dynamic", False):
+    opts = m.check(_merge(m, implied, options))
+    if m.decide is None and m.choose is None and getattr(inst, "dynamic", False):
         raise MethodError(f"method {name} is an offline solver: it cannot plan a scenario whose tasks or robots "
                           f"change over time (use greedy, greedy-coalition or an rl method)")
     _needs(m)
@@ -202,9 +215,8 @@ def decider(method: str, seed: int = 0, **options: Any):
     name, implied = parse(method)
     m = get(name)
     if m.decide is None:
-        live = [k for k, v in METHODS.items() if v.decide is not None]
-        raise MethodError(f"method {name} has no per-decision form (live methods: {', '.join(live)})")
-    opts = m.check({**implied, **{k: v for k, v in options.items() if v is not None}}, live=True)
+        raise MethodError(f"method {name} has no per-decision form (live methods: {', '.join(live_methods())})")
+    opts = m.check(_merge(m, implied, options, live=True), live=True)
     _needs(m)
     return _resolve(m.decide)(seed=seed, **opts), rules(name, **opts)
 
@@ -225,13 +237,12 @@ def resolve(inst, method: str, seed: int = 0, **options: Any) -> tuple[str, dict
     options it takes and ``{candidate: makespan}`` of the choice."""
     name, implied = parse(method)
     m = get(name)
-    given = {**implied, **{k: v for k, v in options.items() if v is not None}}
     if m.decide is not None:
-        return name, m.check(given, live=True), None
+        return name, m.check(_merge(m, implied, options, live=True), live=True), None
     if m.choose is None:
         raise MethodError(f"method {name} has no per-decision form (live missions run: "
                           f"{', '.join(mission_methods())})")
-    opts = m.check(given)
+    opts = m.check(_merge(m, implied, options))
     _needs(m)
     chosen, scores = _resolve(m.choose)(inst, seed=seed, **opts)
     name2, _ = parse(chosen)  # live, rl-sN decodes by sampling (no rollouts to keep the best of)

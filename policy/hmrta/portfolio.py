@@ -24,9 +24,6 @@ from .errors import MethodError
 from .instance import Instance
 from .solution import Solution
 
-DEFAULT_CANDIDATES = "greedy,greedy-coalition,rl"
-
-
 def initial_view(inst: Instance) -> Instance:
     """The mission as known at time 0: tasks released at 0, no timed events or added robots."""
     if not inst.dynamic:
@@ -35,21 +32,26 @@ def initial_view(inst: Instance) -> Instance:
                                added_agents=())
 
 
-def _candidates(candidates: str) -> list[str]:
+def _candidates(candidates: str | None) -> list[str]:
+    """The candidate methods (default: the method table's default of the ``candidates`` option).
+    Each must have a per-decision form, so that a live mission can run the one chosen."""
     from . import methods
 
+    if candidates is None:
+        candidates = methods.get("portfolio").option("candidates").default
     names = [c.strip() for c in candidates.split(",") if c.strip()]
     if not names:
         raise MethodError("portfolio: option candidates: expected a comma list of methods, got nothing")
     for c in names:
         name, _ = methods.parse(c)
-        if name == "portfolio":
-            raise MethodError("portfolio: option candidates: a portfolio cannot contain itself")
+        if methods.get(name).decide is None:
+            raise MethodError(f"portfolio: option candidates: {c} cannot be a candidate (it has no per-decision "
+                              f"form; candidates: {', '.join(methods.live_methods())})")
     return names
 
 
 def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
-             candidates: str = DEFAULT_CANDIDATES) -> dict[str, Solution]:
+             candidates: str | None = None) -> dict[str, Solution]:
     """Each candidate's solution on the initial view of ``inst`` (candidates whose optional
     dependency is missing, e.g. torch for rl, are left out)."""
     from . import methods
@@ -75,21 +77,28 @@ def choose(results: dict[str, Solution]) -> str:
 
 
 def select(inst: Instance, seed: int = 0, checkpoint: str | None = None,
-           candidates: str = DEFAULT_CANDIDATES) -> tuple[str, dict[str, float]]:
-    """(the method to run the mission with, makespan of every candidate on the initial view)."""
+           candidates: str | None = None) -> tuple[str, dict[str, float]]:
+    """(the method to run the mission with, makespan of every candidate on the initial view).
+    With no task known at time 0 there is nothing to compare: the first candidate runs, and the
+    scores are empty."""
+    if initial_view(inst).n_tasks == 0:
+        return _candidates(candidates)[0], {}
     results = evaluate(inst, seed, checkpoint, candidates)
     return choose(results), {c: s.makespan for c, s in results.items()}
 
 
 def solve_portfolio(inst: Instance, seed: int = 0, checkpoint: str | None = None,
-                    candidates: str = DEFAULT_CANDIDATES) -> Solution:
+                    candidates: str | None = None) -> Solution:
     from . import methods
 
     t0 = time.perf_counter()
-    results = evaluate(inst, seed, checkpoint, candidates)
-    chosen = choose(results)
-    sol = results[chosen]
-    if inst.dynamic:  # the choice saw only the initial mission: now run the real one, events and all
+    if initial_view(inst).n_tasks == 0:  # nothing known at time 0 to choose by
+        chosen, results = _candidates(candidates)[0], {}
+    else:
+        results = evaluate(inst, seed, checkpoint, candidates)
+        chosen = choose(results)
+    sol = results.get(chosen)
+    if inst.dynamic or sol is None:  # the choice saw only the initial mission: now run the real one, events and all
         sol = methods.solve(inst, chosen, seed=seed, **methods.options_for(chosen, {"checkpoint": checkpoint}))
     sol.compute_seconds = time.perf_counter() - t0
     sol.extra["portfolio"] = {"chosen": chosen, "candidates": {c: s.makespan for c, s in results.items()}}

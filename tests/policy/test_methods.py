@@ -208,7 +208,56 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
     assert methods.resolve(inst, "greedy", 0) == ("greedy", {}, None)
     only = methods.solve(inst, "portfolio", candidates="greedy,greedy-coalition")
     assert set(only.extra["portfolio"]["candidates"]) == {"greedy", "greedy-coalition"}
-    with pytest.raises(MethodError, match="cannot contain itself"):
+    with pytest.raises(MethodError, match="portfolio cannot be a candidate"):
         methods.solve(inst, "portfolio", candidates="greedy,portfolio")
     with pytest.raises(MethodError, match="method cpsat has no per-decision form"):
         methods.resolve(inst, "cpsat")
+
+
+def test_portfolio_on_missions_that_change_and_its_candidates():
+    pytest.importorskip("torch")
+    import dataclasses
+
+    inst = load_instance(EXAMPLE)
+    late = dataclasses.replace(inst, tasks=tuple(dataclasses.replace(t, release=3.0) if m % 4 == 0 else t
+                                                 for m, t in enumerate(inst.tasks)))
+    assert late.dynamic
+    sol = methods.solve(late, "portfolio", seed=0)  # chosen on the tasks known at 0, then run online
+    chosen = sol.extra["portfolio"]["chosen"]
+    assert sol.success and sol.makespan == methods.solve(late, chosen, seed=0).makespan
+    everything_late = dataclasses.replace(inst, tasks=tuple(dataclasses.replace(t, release=1.0) for t in inst.tasks))
+    assert methods.resolve(everything_late, "portfolio")[:2] == ("greedy", {})  # nothing to compare: first
+    with pytest.raises(MethodError, match="cpsat cannot be a candidate"):
+        methods.solve(inst, "portfolio", candidates="greedy,cpsat")
+
+
+def test_shorthand_live_and_in_conflict():
+    pytest.importorskip("torch")
+    inst = load_instance(EXAMPLE)
+    assert methods.resolve(inst, "rl-s10")[:2] == ("rl-sample", {})  # live rl-sN decodes by sampling
+    decide, _ = methods.decider("rl-s10")
+    assert callable(decide)
+    with pytest.raises(MethodError, match="rl-s3 means samples=3, but samples=5 was given too"):
+        methods.solve(inst, "rl-s3", samples=5)
+    assert methods.solve(inst, "rl-s3", samples=3).method == "rl-s3"
+
+
+def test_checkpoint_reader_refuses_oversized_pickles_before_reading_them(tmp_path):
+    import resource
+
+    from hmrta.rl.checkpoint_info import MAX_PICKLE_BYTES, CheckpointError, read_config
+
+    bomb = tmp_path / "bomb.pt"
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("ck/data.pkl", b"(" * (MAX_PICKLE_BYTES + 1))
+    assert bomb.stat().st_size < 100_000
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(CheckpointError, match="unpacks to"):
+        read_config(bomb)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 64 * 1024  # KiB: nothing unpacked
+
+
+def test_bench_keys_portfolio_results_on_the_checkpoint():
+    from hmrta.bench import uses_checkpoint
+
+    assert uses_checkpoint("portfolio") and uses_checkpoint("rl-s10") and not uses_checkpoint("greedy")

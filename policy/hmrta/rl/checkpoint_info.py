@@ -21,6 +21,9 @@ from ..errors import MethodError
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "default.pt"
 
+MAX_FILE_BYTES = 512 * 2**20  # larger files are not taken for checkpoints
+MAX_PICKLE_BYTES = 16 * 2**20  # the pickle holds the config and tensor references only (kilobytes)
+
 # (module, name) pairs torch.save writes for a dict of tensors and plain data
 _ALLOWED = {("collections", "OrderedDict"), ("torch._utils", "_rebuild_tensor_v2"),
             ("torch._utils", "_rebuild_parameter"), ("torch", "Size")}
@@ -53,12 +56,18 @@ def _tensor_placeholder(*_: Any, **__: Any) -> None:
 
 @functools.lru_cache(maxsize=16)
 def _read(path: str, mtime_ns: int) -> dict:
+    if os.path.getsize(path) > MAX_FILE_BYTES:
+        raise CheckpointError(f"{path}: larger than {MAX_FILE_BYTES // 2**20} MiB: not an hmrta checkpoint")
     try:
         with zipfile.ZipFile(path) as z:
-            pkl = [n for n in z.namelist() if n.endswith("/data.pkl") or n == "data.pkl"]
+            pkl = [i for i in z.infolist() if i.filename.endswith("/data.pkl") or i.filename == "data.pkl"]
             if len(pkl) != 1:
                 raise CheckpointError(f"{path}: not an hmrta checkpoint (no single data.pkl in the archive)")
-            data = _Unpickler(io.BytesIO(z.read(pkl[0]))).load()
+            if pkl[0].file_size > MAX_PICKLE_BYTES:  # checked before anything is decompressed
+                raise CheckpointError(f"{path}: its data.pkl unpacks to {pkl[0].file_size} bytes (at most "
+                                      f"{MAX_PICKLE_BYTES}): not an hmrta checkpoint")
+            with z.open(pkl[0]) as fh:  # reads at most the declared size
+                data = _Unpickler(io.BytesIO(fh.read(MAX_PICKLE_BYTES + 1))).load()
     except CheckpointError:
         raise
     except (zipfile.BadZipFile, pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
