@@ -38,7 +38,7 @@ def launch(tmp_path: Path, domain: int, *extra: str) -> tuple[subprocess.Popen, 
     proc = subprocess.Popen([str(BIN / "hmrta-mission"), "--method", "greedy", "--agents-per-process", "5",
                              "--time-scale", str(TIME_SCALE),
                              "--out", str(out), "--no-plot", "--quiet", "--domain-id", str(domain), "--timeout", "90",
-                             "--heartbeat-timeout", "10", *extra],
+                             "--heartbeat-timeout", "20", *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                             start_new_session=True)
     return proc, out

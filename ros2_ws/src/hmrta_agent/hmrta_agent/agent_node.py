@@ -409,11 +409,11 @@ def robots_arg(text: str) -> list[str]:
 
 
 def _set_torch_threads(n: int) -> None:
-    try:
-        import torch
-    except ImportError:  # greedy-only install
-        return
-    torch.set_num_threads(n)
+    """Set torch's threads if a method loaded torch (a greedy agent never imports it: a restarted
+    agent process must be back before its heartbeat times out)."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(n)
 
 
 def main(args: list[str] | None = None) -> None:
@@ -435,7 +435,6 @@ def main(args: list[str] | None = None) -> None:
     cli = p.parse_args(remove_ros_args(argv)[1:])
     if cli.torch_threads < 1:
         p.error("--torch-threads: expected a positive integer")
-    _set_torch_threads(cli.torch_threads)
     rclpy.init(args=argv)
     host = Host()
     try:
@@ -449,6 +448,7 @@ def main(args: list[str] | None = None) -> None:
         print(f"agent_node: {e}", file=sys.stderr)
         rclpy.try_shutdown()
         raise SystemExit(2) from None
+    _set_torch_threads(cli.torch_threads)  # the deciders are built: torch is loaded if they use it
     host.attach(nodes[0], cli.heartbeat_period)
     spin_nodes(nodes, until=host.all_done)
 
