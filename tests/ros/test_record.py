@@ -37,6 +37,10 @@ def test_recorded_sim_mission_reads_back_with_the_same_routes(tmp_path, domain):
     out, rec_file, seed = tmp_path / "mission.json", tmp_path / "mission.mcap", 1
     r = subprocess.run([str(BIN / "hmrta-mission"), "--method", "greedy", "--seed", str(seed), "--out", str(out),
                         "--no-plot", "--quiet", "--agents-per-process", "15", "--timeout", "150",
+                        # paced: volatile messages (choices, goals) sent before the recorder has
+                        # discovered their publishers are not recorded, and an unpaced mission can
+                        # be over within the 1-2 s that discovery takes on a loaded machine
+                        "--time-scale", "5",
                         "--domain-id", str(domain), "--record", str(rec_file)],
                        capture_output=True, text=True, timeout=200, env=_env(domain, tmp_path), cwd=tmp_path)
     assert r.returncode == 0, f"mission exited {r.returncode}:\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
@@ -61,7 +65,9 @@ def test_recorded_sim_mission_reads_back_with_the_same_routes(tmp_path, domain):
     visits = rec.visits()
     assert [[v["task"] for v in rows] for rows in visits] == result["routes"]
     arrivals = [v for rows in visits for v in rows]
-    assert all(v["actual_arrival"] >= v["arrival"] - 1e-6 for v in arrivals), arrivals  # never early
+    # never early, up to the replay's mapping of receive times onto the paced mission clock (its
+    # clock messages come at intervals: measured up to 0.06 at time scale 5)
+    assert all(v["actual_arrival"] >= v["arrival"] - 0.1 for v in arrivals), arrivals
     on_time = [v for v in arrivals if abs(v["actual_arrival"] - v["arrival"]) < 1e-6]
     assert len(on_time) >= len(arrivals) // 2, f"{len(on_time)}/{len(arrivals)} arrivals seen on time"
     # a standard ROS 2 MCAP: ros2 profile, CDR messages, ros2msg schemas
