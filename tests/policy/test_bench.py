@@ -8,6 +8,8 @@ import json
 import math
 import shutil
 
+from pathlib import Path
+
 import pytest
 
 from hmrta.bench import (Row, comparison_pairs, method_variant, paired_comparison, provenance, run_bench, save,
@@ -141,18 +143,7 @@ def test_only_paper_rows_get_the_paper_title():
     assert "### Table III: MA-AT (1 instances per row, seed 5)" in paper and "paper makespan" in paper
 
 
-MISSION = """format: hmrta-instance/1
-requirement_type: additive
-velocity: 0.2
-skills: 2
-species:
-  - {traits: [1, 0], count: 2, depot: [0.0, 0.0]}
-  - {traits: [0, 1], count: 2, depot: [1.0, 1.0]}
-tasks:
-  - {location: [0.5, 0.1], requirements: [1, 0], duration: 2}
-  - {location: [0.2, 0.8], requirements: [1, 1], duration: 3}
-  - {location: [0.9, 0.4], requirements: [0, 2], duration: 1}
-"""
+MISSION = (Path(__file__).parent / "data" / "two_species.yaml").read_text()  # shared with test_scenario
 SCENARIO = """format: hmrta-scenario/1
 instance: mission.yaml
 events:

@@ -18,18 +18,7 @@ from hmrta.generators import ScenarioGenerator
 from hmrta.instance import InstanceError
 from hmrta.scenario import ScenarioError, scenario_from_dict
 
-MISSION = """format: hmrta-instance/1
-requirement_type: additive
-velocity: 0.2
-skills: 2
-species:
-  - {traits: [1, 0], count: 2, depot: [0.0, 0.0]}
-  - {traits: [0, 1], count: 2, depot: [1.0, 1.0]}
-tasks:
-  - {location: [0.5, 0.1], requirements: [1, 0], duration: 2}
-  - {location: [0.2, 0.8], requirements: [1, 1], duration: 3}
-  - {location: [0.9, 0.4], requirements: [0, 2], duration: 1}
-"""
+MISSION = (Path(__file__).parent / "data" / "two_species.yaml").read_text()  # shared with test_bench
 EVENTS = """  - {t: 3.0, type: add_task, id: inspect-7, location: [0.3, 0.6], requirements: [1, 1], duration: 2}
   - {t: 4.0, type: add_task, id: extra, location: [0.6, 0.6], requirements: [2, 0], duration: 1}
   - {t: 5.0, type: cancel_task, id: extra}
