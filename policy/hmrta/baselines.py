@@ -24,11 +24,19 @@ class Greedy:
     name = "greedy"
 
     def __call__(self, state: MissionState) -> int:
-        mask = state.mask()[1:]  # [M]
+        cand = np.flatnonzero(state.mask()[1:])  # [C] admissible tasks
+        if len(cand) == 0:
+            return 1  # (never asked: a decider always has an admissible task)
         here = state.position(state.agent)  # [2]
-        d = np.hypot(*(state.inst.task_locations - here).T)  # [M]
-        d = np.where(mask, d, np.inf)
-        return 1 + int(np.argmin(d))
+        loc = state.inst.task_locations
+        rel = loc[cand] - here  # [C, 2]
+        if len(cand) > 64:
+            # the squared distance is within a few ulps of the distance squared: only candidates
+            # within a relative 1e-9 of the nearest can be nearest by np.hypot (ties: lowest id)
+            d2 = rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1]  # [C]
+            near = d2 <= d2.min() * (1.0 + 1e-9) + 1e-300  # [C]
+            cand, rel = cand[near], rel[near]  # [C'] ascending ids
+        return 1 + int(cand[np.argmin(np.hypot(rel[:, 0], rel[:, 1]))])
 
 
 class CoalitionGreedy:

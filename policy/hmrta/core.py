@@ -278,6 +278,7 @@ class MissionState:
         self.routes: list[list[int]] = [[] for _ in range(A)]
         self.depot_stops = np.zeros(A, dtype=np.int64)  # [A] returns home while work remained
         self.pool = self.cap.sum(0)  # [K] capability of agents not waiting at an open task
+        self._exact = self._arithmetic_exact()  # masks may take the fast path of _safe
         self.n_open = 0
         self.n_done = 0
         self.n_cancelled = 0  # tasks closed by drop_agent (no longer satisfiable)
@@ -334,19 +335,63 @@ class MissionState:
         return self._mask
 
     def _task_mask(self, a: int) -> np.ndarray:
-        """bool [M]: tasks agent a may join now (ability, max-open and safety rules)."""
+        """bool [M]: tasks agent a may join now (ability, max-open and safety rules).
+
+        Same values as :meth:`_task_mask_reference`, at a cost that hardly grows with the mission:
+        one product over the tasks for the ability rule (remaining entries are never negative, so
+        a positive sum over a's skills is a positive entry a reduces) and the banker's check of
+        :meth:`_safe` in a few passes over the open tasks instead of one per candidate."""
+        ca = self.cap[a]  # [K]
+        contrib = (self.rem @ (ca > 0).astype(np.float64)) > 0  # [M] reduces a positive remaining entry
+        if self.open_cap is not None and self.n_open >= self.open_cap:
+            contrib &= self.status == OPEN
+        if self.rules.safety and contrib.any():
+            contrib = self._safe(a, contrib) if self._exact else self._safe_reference(a, contrib)
+        return contrib
+
+    def _task_mask_reference(self, a: int) -> np.ndarray:
+        """The rules of :meth:`_task_mask` computed directly: every task, and one banker's check
+        per candidate (the definition the fast path is tested against)."""
         ca = self.cap[a]  # [K]
         contrib = (np.minimum(self.rem, ca) > 0).any(1)  # [M] reduces a positive remaining entry
         if self.open_cap is not None and self.n_open >= self.open_cap:
             contrib &= self.status == OPEN
         if self.rules.safety and contrib.any():
-            contrib = self._safe(a, contrib)
+            contrib = self._safe_reference(a, contrib)
         return contrib
+
+    def _mask_reference(self) -> np.ndarray:
+        """bool [1 + M]: the mask of the pending decision recomputed by :meth:`_task_mask_reference`
+        (for tests: equal to :meth:`mask`)."""
+        if self._mask is None:
+            raise RuntimeError("no decision is pending (episode done)")
+        mask = np.empty(self.M + 1, dtype=bool)
+        mask[0] = not self._stall
+        mask[1:] = self._task_mask_reference(self.agent)
+        return mask
 
     # ---- deadlock avoidance (banker's algorithm over open tasks) -------------------------------
     def _fits(self, rem: np.ndarray, pool: np.ndarray) -> np.ndarray:
         """bool [...]: remaining requirement rows that `pool` could satisfy alone."""
         return (rem <= (pool if self.additive else (pool > 0))).all(-1)
+
+    def _rows_within(self, bound: np.ndarray) -> np.ndarray:
+        """bool [M]: tasks whose remaining requirement is <= bound [K] in every skill."""
+        rem = self.rem
+        ok = np.ones(self.M, dtype=bool)
+        for k in range(self.K):  # a column at a time: K is small, the tasks many
+            ok &= rem[:, k] <= bound[k]
+        return ok
+
+    def _arithmetic_exact(self) -> bool:
+        """True when every capability, requirement, held and pool entry is a multiple of 2^-24
+        and their sums stay below 2^28: then every sum and difference the masks compute (pools,
+        remaining requirements) is exact, whatever the order of the additions (:meth:`_safe`)."""
+        vals = (self.cap, self.req, self.rem, self.held, self.pool)
+        total = sum(float(np.abs(v).sum()) for v in vals)
+        if not math.isfinite(total) or total >= 2.0 ** 28:
+            return False
+        return all(bool((np.ldexp(v, 24) % 1.0 == 0).all()) for v in vals)
 
     def _closure(self, rems: np.ndarray, helds: np.ndarray, pool: np.ndarray):
         """Complete open tasks greedily with the pool; returns (all done, final pool, alive [O])."""
@@ -360,6 +405,73 @@ class MissionState:
         return not alive.any(), pool, alive
 
     def _safe(self, a: int, cand: np.ndarray) -> np.ndarray:
+        """:meth:`_safe_reference` in a few closures instead of one per open candidate, valid when
+        the arithmetic is exact (``_exact``: every capability and requirement a multiple of 2^-24
+        and their sums far below 2^53, so the closures add and compare exact values).
+
+        The closure is a monotone least fixpoint (a larger pool or a smaller remaining requirement
+        never completes fewer tasks), so with F = closure(open tasks, pool - c_a):
+
+        * a joins open task X without satisfying it (X: remaining r_X - c_a, held h_X + c_a, pool
+          pool - c_a): everything F completes still completes. If X is among them, the pool is
+          then F's final pool + c_a and the rest is F's stuck tasks, the same for every such X
+          (and the same check as for an empty candidate). If X is stuck in F, the rest is F's
+          stuck tasks with X changed, from F's final pool.
+        * a satisfies open task X (X starts, its holders come back later: open tasks without X,
+          pool + h_X): with G = closure(open tasks, pool), every other task G completes still
+          completes, after which the pool is G's final pool (+ h_X if G left X stuck). So X is
+          safe when G completes everything, never when G completes X but not everything, and
+          otherwise as the closure of G's other stuck tasks from G's final pool + h_X.
+
+        Tested against the reference, decision by decision, in tests/policy/test_fast_paths.py."""
+        ca = self.cap[a]  # [K]
+        out = cand.copy()
+        open_ids = np.flatnonzero(self.status == OPEN)  # [O]
+        rems, helds = self.rem[open_ids], self.held[open_ids]  # [O, K]
+        pool = self.pool  # a is in the pool (it is not waiting at an open task)
+        empty = np.flatnonzero(cand & (self.status == EMPTY))  # [E]
+        on_open = cand[open_ids]  # [O] open candidates
+        r_open = np.maximum(rems - ca, 0.0)  # [O, K] remaining of each open task if a joins
+        starts = (r_open <= 0).all(1)  # [O] a satisfies the task
+        joins = on_open & ~starts  # [O]
+        starts &= on_open
+        if len(empty) or joins.any():
+            f_done, f_pool, f_alive = self._closure(rems, helds, pool - ca)  # F
+            # F's completions, then the stuck ones with a back in the pool (X done in F)
+            after = f_done or self._closure(rems[f_alive], helds[f_alive], f_pool + ca)[0]
+            if len(empty):
+                # a opens X: safe if a alone satisfies X (remaining <= c_a), or if X's remaining
+                # after a fits F's final pool (remaining <= f_pool + c_a; binary: <= (f_pool > 0)
+                # + c_a) and the stuck ones complete after it. The second bound is >= c_a, so it
+                # covers the first when it applies.
+                if after and (not self.additive or (f_pool >= 0).all()):
+                    bound = f_pool + ca if self.additive else (f_pool > 0) + ca  # [K]
+                else:
+                    bound = ca
+                out[empty] = self._rows_within(bound)[empty]
+            if joins.any():
+                out[open_ids[joins & ~f_alive]] = after
+                stuck = np.flatnonzero(f_alive)  # [L] F's stuck tasks (open rows)
+                for j in np.flatnonzero(joins & f_alive):  # X stuck in F: the rest with X changed
+                    rems2, helds2 = rems[stuck], helds[stuck]  # [L, K] (copies)
+                    x = int(np.searchsorted(stuck, j))
+                    rems2[x], helds2[x] = r_open[j], helds[j] + ca
+                    out[open_ids[j]] = self._closure(rems2, helds2, f_pool)[0]
+        if starts.any():
+            g_done, g_pool, g_alive = self._closure(rems, helds, pool)  # G
+            if g_done:
+                out[open_ids[starts]] = True
+            else:
+                out[open_ids[starts & ~g_alive]] = False
+                stuck = np.flatnonzero(g_alive)  # [L]
+                for j in np.flatnonzero(starts & g_alive):  # X stuck in G: G's other stuck tasks
+                    keep = stuck[stuck != j]
+                    out[open_ids[j]] = self._closure(rems[keep], helds[keep], g_pool + helds[j])[0]
+        return out
+
+    def _safe_reference(self, a: int, cand: np.ndarray) -> np.ndarray:
+        """The deadlock-avoidance mask by definition: for each candidate, the state after a's
+        commitment must let the greedy closure complete every open task."""
         ca = self.cap[a]
         out = cand.copy()
         open_ids = np.flatnonzero(self.status == OPEN)  # [O]
@@ -553,11 +665,9 @@ class MissionState:
 
     def _requeue(self, freed: list[int]) -> None:
         self.rng.shuffle(freed)
-        waiting = [a for a in range(self.A) if self.mode[a] == WAIT]
-        waiting.sort(key=lambda a: (self.free_since[a], a))
-        parked = [a for a in range(self.A) if self.mode[a] == HOME]
-        if self._all_claimed():
-            parked = []  # nothing left to offer them
+        waiting = np.flatnonzero(self.mode == WAIT)  # [W]
+        waiting = waiting[np.lexsort((waiting, self.free_since[waiting]))].tolist()  # by (free_since, id)
+        parked = [] if self._all_claimed() else np.flatnonzero(self.mode == HOME).tolist()  # nothing to offer them
         order = freed + waiting + parked
         self.queue = order[::-1]
 
@@ -725,11 +835,11 @@ class MissionState:
         out, freed = self._apply(rec)  # EventRejected leaves the state unchanged
         self.log.append({**rec, **self._outcome(rec, out)})
         if not self.done:
-            waiting = [b for b in range(self.A) if self.mode[b] == WAIT and b not in self.queue]
-            parked = [b for b in range(self.A) if self.mode[b] == HOME and b not in self.queue]
-            if self._all_claimed():
-                parked = []
-            order = [b for b in sorted(set(freed)) if b not in self.queue] + waiting + parked
+            queued = set(self.queue)
+            waiting = [b for b in np.flatnonzero(self.mode == WAIT).tolist() if b not in queued]
+            parked = [] if self._all_claimed() else [b for b in np.flatnonzero(self.mode == HOME).tolist()
+                                                     if b not in queued]
+            order = [b for b in sorted(set(freed)) if b not in queued] + waiting + parked
             self.queue = order[::-1] + self.queue  # after the deciders already queued
             self._stall = False
             self._advance()
@@ -831,6 +941,7 @@ class MissionState:
         self.release = np.append(self.release, t)
         self.names.append(name)
         self.by_operator = np.append(self.by_operator, False)
+        self._exact = self._exact and self._arithmetic_exact()
         return m, []
 
     def _task_id(self, rec: dict) -> int:
@@ -913,6 +1024,7 @@ class MissionState:
         self.routes.append([])
         self.depot_stops = np.append(self.depot_stops, 0)
         self.pool = self.pool + cap
+        self._exact = self._exact and self._arithmetic_exact()
         return a, [a]
 
     def _stop(self, a: int) -> None:
@@ -1130,6 +1242,7 @@ class MissionState:
         self.n_done = int((self.status == DONE).sum())
         self.n_cancelled = int((self.status == CANCELLED).sum())
         self.n_hidden = int((self.status == UNRELEASED).sum())
+        self._exact = self._arithmetic_exact()
         pending = d.get("pending") or []
         log = d.get("log") or []
         if not isinstance(pending, list) or not isinstance(log, list) or not all(isinstance(x, dict) for x in log):

@@ -118,7 +118,7 @@ def lookahead_choices(model: torch.nn.Module, states: list[MissionState], t_max:
     of all states as one batch), and the action with the lowest final cost T + W is chosen; ties go
     to the policy's own choice. Never worse than the policy alone (Bertsekas' cost improvement).
     The states themselves are not changed."""
-    obs, nodes = batch_observations(states)
+    obs, nodes = batch_observations(states, scale=model.cfg.scale)
     with torch.inference_mode(), forward_threads(len(states)):  # threaded as a rollout of these states
         own = model(**obs).argmax(-1).tolist()  # [b] the policy's choice (action rows)
     mask = obs["action_mask"].numpy()  # [b, T]
@@ -163,7 +163,7 @@ class RLDecider:
 
     def __call__(self, state: MissionState) -> int:
         with torch.inference_mode(), forward_threads(1):  # the same bits as a rollout of one mission
-            obs, nodes = batch_observations([state])
+            obs, nodes = batch_observations([state], scale=self.pol.model.cfg.scale)
             logits = self.pol.model(**obs)[0]  # [T]
             if self.sample:
                 row = int(torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen)[0])

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..reading import short
-from .features import AGENT_FEATURES, K_MAX, TASK_FEATURES
+from .features import AGENT_FEATURES, K_MAX, SCALES, TASK_FEATURES
 
 TASK_POS = slice(2 * K_MAX, 2 * K_MAX + 2)  # task rows: position relative to the decider
 AGENT_POS = slice(K_MAX + 3, K_MAX + 5)  # agent rows: position relative to the decider
@@ -31,6 +31,9 @@ class ModelConfig:
     # robot-task distance to each head's attention scores (slopes learnt, starting at 0, so a
     # checkpoint without them loads unchanged and starts from the same function)
     travel_bias: bool = False
+    # units of the observation (rl/features.py): "fixed" (the paper generators' scales) or
+    # "mission" (scale-free: times, lengths and capabilities in units of the mission itself)
+    scale: str = "fixed"
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -65,6 +68,8 @@ class ModelConfig:
             raise ValueError(f"{where}.clip: expected a number in (0, 10000], got {short(c.clip)}")
         if not isinstance(c.travel_bias, bool):
             raise ValueError(f"{where}.travel_bias: expected true or false, got {short(c.travel_bias)}")
+        if c.scale not in SCALES:
+            raise ValueError(f"{where}.scale: expected one of {', '.join(SCALES)}, got {short(c.scale)}")
         return c
 
 

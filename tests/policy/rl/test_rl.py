@@ -430,7 +430,7 @@ def test_shipped_checkpoint_solves():
         assert evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
 
 
-CHECKPOINTS = [("default.pt", "team"), ("coalition-open.pt", None)]
+CHECKPOINTS = [("default.pt", "team"), ("coalition-open.pt", None), ("broad.pt", None)]
 
 
 @pytest.mark.parametrize("name,max_open", CHECKPOINTS)
@@ -710,3 +710,52 @@ def test_typed_config_round_trips_and_names_bad_keys():
 
     with pytest.raises(ValueError, match="distill.teacher: expected one of policy"):
         DistillConfig(teacher="oracle")  # validated on construction
+
+
+def _rescaled(inst, time=1.0, length=1.0, skill=None):
+    """The same mission with every time x ``time`` (durations up, speed down), the map x ``length``
+    (positions and speed), and capabilities and requirements of skill k x ``skill[k]``."""
+    from dataclasses import replace
+    f = np.ones(inst.skills) if skill is None else np.asarray(skill, float)
+    sp = tuple(replace(s, traits=tuple(float(v) for v in np.asarray(s.traits) * f),
+                       depot=tuple(float(v) * length for v in s.depot)) for s in inst.species)
+    tk = tuple(replace(t, location=tuple(float(v) * length for v in t.location),
+                       requirements=tuple(float(v) for v in np.asarray(t.requirements) * f),
+                       duration=t.duration * time) for t in inst.tasks)
+    return replace(inst, velocity=inst.velocity * length / time, species=sp, tasks=tk, _cache={})
+
+
+@pytest.mark.parametrize("change", [dict(time=2.0), dict(time=0.37), dict(length=0.5),
+                                    dict(skill=[2.0, 3.0, 1.0, 0.5, 4.0]),
+                                    dict(time=3.0, length=0.6, skill=[2.0, 2.0, 2.0, 2.0, 2.0])])
+def test_mission_scale_observation_is_scale_free(change):
+    """Under scale "mission", a mission and the same mission with times, map or capabilities and
+    requirements rescaled are observed alike at every decision; under "fixed" they are not."""
+    from hmrta.baselines import BASELINES
+    from hmrta.rl.features import observe
+    base = ScenarioGenerator("MA-AT", 9, 3, 12, 5).instance(11, 1)
+    other = _rescaled(base, **change)
+    teacher = BASELINES["greedy-coalition"]()
+    a, b = MissionState(base, seed=3, rules=RULES), MissionState(other, seed=3, rules=RULES)
+    differs = 0
+    while not a.done:
+        for i, (x, y) in enumerate(zip(observe(a, scale="mission"), observe(b, scale="mission"))):
+            np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5, err_msg=f"output {i} at t={a.clock}")
+        fx, fy = observe(a)[:2], observe(b)[:2]
+        differs += not all(np.allclose(x, y, rtol=1e-4, atol=1e-5) for x, y in zip(fx, fy))
+        n = teacher(a)
+        a.step(n)
+        b.step(n)
+    assert b.done and math.isclose(b.makespan, a.makespan * change.get("time", 1.0), rel_tol=1e-9)
+    assert differs > 0  # the fixed scales do see the change
+
+
+def test_mission_scale_is_the_fixed_scale_on_paper_missions():
+    """The mission units come out near the fixed ones on the paper's missions (module docstring of
+    hmrta.rl.features), so a fixed-scale network observes them almost unchanged."""
+    from hmrta.rl.features import mission_scales
+    insts = ScenarioGenerator("MA-AT", 25, 5, 50, 5).generate(20, 7)
+    sc = [mission_scales(MissionState(i, seed=0)) for i in insts]
+    assert abs(np.mean([s.time for s in sc]) - 10.0) < 0.6
+    assert abs(np.mean([s.length for s in sc]) - 1.0) < 0.06
+    assert all(np.allclose(s.cap, 1.0) for s in sc)

@@ -1,0 +1,264 @@
+"""The per-decision fast paths equal straightforward references, decision by decision, on random
+seeded missions with mission events (tasks released, added and cancelled, robots added and lost,
+scheduled and immediate): the core's masks (:meth:`MissionState._task_mask` against
+``_task_mask_reference``, the old full recomputation), greedy's choice, and the rl observation
+(window chosen first, features built for its rows only) against features of every task and agent
+windowed afterwards."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hmrta.baselines import GREEDY_RULES, Greedy
+from hmrta.core import LOST, UNRELEASED, EventRejected, MissionState, Rules
+from hmrta.generators import SCENARIOS, ScenarioGenerator
+from hmrta.instance import Task, instance_from_dict
+
+RULES = [Rules(), Rules(max_open=2), Rules(max_open="team"), Rules(safety=False), Rules(max_open=1, backdate=False)]
+FRACTIONS = [0.1, 0.25, 0.3, 0.7, 1.0, 1.5]  # 0.1, 0.3, 0.7: masks take the reference path (inexact sums)
+
+
+def _instance(rng: np.random.Generator):
+    if rng.random() < 0.2:  # fractional traits and requirements
+        K, S = int(rng.integers(1, 4)), int(rng.integers(1, 4))
+        species = [{"traits": [float(rng.choice(FRACTIONS)) for _ in range(K)], "count": int(rng.integers(1, 4)),
+                    "depot": rng.random(2).tolist()} for _ in range(S)]
+        team = np.sum([np.array(sp["traits"]) * sp["count"] for sp in species], 0)  # [K]
+        tasks = []
+        for _ in range(int(rng.integers(2, 12))):
+            req = [float(min(team[k], rng.choice(FRACTIONS))) if rng.random() < 0.6 else 0.0 for k in range(K)]
+            if not any(req):
+                req[int(np.argmax(team))] = float(min(team.max(), 0.3))
+            tasks.append({"location": rng.random(2).tolist(), "requirements": req, "duration": float(rng.random() * 3)})
+        return instance_from_dict({"format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2,
+                                   "skills": K, "species": species, "tasks": tasks})
+    scenario = SCENARIOS[int(rng.integers(len(SCENARIOS)))]
+    K = int(rng.integers(2, 5))
+    S = int(rng.integers(K if scenario.startswith("SA") else 1, min(6, 2 ** K - 1) + 1))
+    inst = ScenarioGenerator(scenario, S * int(rng.integers(2, 4)), S, int(rng.integers(3, 25)), K).sample(rng)
+    if rng.random() < 0.5:  # some tasks released later
+        grid = rng.random() < 0.5  # shared locations on a coarse grid: distance ties
+        tasks = tuple(dataclasses.replace(t, release=float(rng.random() * 10) if rng.random() < 0.3 else 0.0,
+                                          location=tuple(float(x) for x in rng.integers(0, 3, 2) / 2) if grid
+                                          else t.location) for t in inst.tasks)
+        inst = dataclasses.replace(inst, tasks=tasks, _cache={})
+    return inst
+
+
+def _event(rng: np.random.Generator, s: MissionState) -> None:
+    """A random mission event, now or scheduled for later (rejections are part of the mix)."""
+    kind = ("add_task", "cancel_task", "add_agent", "drop_agent")[int(rng.integers(4))]
+    rec: dict = {"type": kind, "t": s.clock + (float(rng.random() * 5) if rng.random() < 0.4 else 0.0)}
+    if kind == "add_task":
+        req = [float(rng.integers(0, 3)) for _ in range(s.K)]
+        req[0] = req[0] if any(req) else 1.0
+        rec["task"] = {"location": rng.random(2).tolist(), "requirements": req, "duration": float(rng.random() * 4)}
+    elif kind == "cancel_task":
+        rec["task"] = int(rng.integers(s.M))
+    elif kind == "add_agent":
+        if rng.random() < 0.7:
+            rec["species"] = int(rng.integers(s.inst.n_species))
+        else:
+            rec["traits"] = [float(rng.integers(0, 3)) for _ in range(s.K)]
+            rec["position"] = rng.random(2).tolist()
+    else:
+        rec["agent"] = int(rng.integers(s.A))
+    try:
+        if rec["t"] > s.clock:
+            s.schedule(rec)
+        elif kind == "add_task":
+            d = rec["task"]
+            s.add_task(Task(tuple(d["location"]), tuple(d["requirements"]), d["duration"]))
+        elif kind == "cancel_task":
+            s.cancel_task(rec["task"])
+        elif kind == "add_agent":
+            s.add_agent(rec.get("species"), rec.get("traits"), rec.get("position"))
+        else:
+            s.drop_agent(rec["agent"])
+    except EventRejected:
+        pass
+
+
+def missions(seed: int, n: int):
+    """n random missions: (state, rng)."""
+    for i in range(n):
+        rng = np.random.default_rng([seed, i])
+        inst = _instance(rng)
+        yield MissionState(inst, seed=int(rng.integers(100)), rules=RULES[int(rng.integers(len(RULES)))]), rng
+
+
+def drive(s: MissionState, rng: np.random.Generator, check, policy=None) -> None:
+    """Run s to the end with random events, calling check(s) before every decision; the policy
+    picks at random among the admissible nodes by default."""
+    while not s.done:
+        if rng.random() < 0.08:
+            _event(rng, s)
+            if s.done:
+                return
+        check(s)
+        if policy is None:
+            cand = np.flatnonzero(s.mask())
+            s.step(int(cand[int(rng.integers(len(cand)))]))
+        else:
+            s.step(policy(s))
+
+
+def _all_robots_match(s: MissionState) -> None:
+    for a in range(s.A):  # every robot, not only the decider: many more states of the check
+        if s.mode[a] != LOST:
+            assert np.array_equal(s._task_mask(a), s._task_mask_reference(a)), (s.decisions, a)
+
+
+def _masks_match(s: MissionState) -> None:
+    assert np.array_equal(s.mask(), s._mask_reference()), (s.decisions, s.agent)
+    _all_robots_match(s)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_masks_equal_the_reference_at_every_decision(seed):
+    exact = inexact = 0
+    for s, rng in missions(seed, 35):
+        exact += s._exact
+        inexact += not s._exact
+        drive(s, rng, _masks_match)
+    assert exact > 20 and inexact > 3  # both paths of _task_mask ran
+
+
+def _with_safety(s: MissionState) -> MissionState:
+    d = s.snapshot()
+    d["rules"]["safety"] = True
+    return MissionState.from_snapshot(s.inst, d)  # its pending mask is the one without the rule
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_masks_equal_the_reference_in_unsafe_states(seed):
+    """States reached without the deadlock-avoidance rule, checked with it: the fast banker's
+    check has branches for open tasks that cannot all complete, which a mission under the rule
+    never reaches. Every unsafe state met is checked; one state per mission runs on with the rule."""
+    unsafe = 0
+    for s, rng in missions(seed, 40):
+        s = MissionState(s.inst, seed=s.seed, rules=dataclasses.replace(s.rules, safety=False))
+        go_on = int(rng.integers(1, 40))
+        while not s.done and s.decisions < go_on:
+            o = s.status == 1  # open tasks
+            if not s._closure(s.rem[o], s.held[o], s.pool)[0]:
+                unsafe += 1
+                _all_robots_match(_with_safety(s))
+            cand = np.flatnonzero(s.mask()[1:]) + 1  # tasks only: many open at once
+            s.step(int(cand[int(rng.integers(len(cand)))]) if len(cand) else 0)
+        if not s.done:
+            s = _with_safety(s)
+            _all_robots_match(s)
+            cand = np.flatnonzero(s.mask())
+            s.step(int(cand[int(rng.integers(len(cand)))]))
+            drive(s, rng, _masks_match)
+    assert unsafe >= 5
+
+
+def test_exact_arithmetic_flag():
+    inst = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(1, 0)
+    s = MissionState(inst, seed=0)
+    assert s._exact
+    s.add_agent(traits=[0.5, 0.25, 0], position=[0.5, 0.5])  # dyadic: sums stay exact
+    assert s._exact
+    s.add_agent(traits=[0.1, 0, 0], position=[0.5, 0.5])  # 0.1 is not: the reference path from now on
+    assert not s._exact
+    assert not MissionState.from_snapshot(s.inst, s.snapshot())._exact
+    assert MissionState.from_snapshot(inst, MissionState(inst, seed=0).snapshot())._exact
+
+
+def _greedy_reference(state: MissionState) -> int:
+    """Greedy by definition: the admissible task nearest the decider, ties to the lowest id."""
+    mask = state.mask()[1:]  # [M]
+    here = state.position(state.agent)  # [2]
+    d = np.hypot(*(state.inst.task_locations - here).T)  # [M]
+    return 1 + int(np.argmin(np.where(mask, d, np.inf)))
+
+
+def test_greedy_equals_its_definition():
+    greedy = Greedy()
+
+    def same(s):
+        assert greedy(s) == _greedy_reference(s)
+
+    for s, rng in missions(4, 80):
+        s = MissionState(s.inst, seed=s.seed, rules=GREEDY_RULES if rng.random() < 0.5 else s.rules)
+        drive(s, rng, same, policy=greedy)
+    inst = ScenarioGenerator("MA-AT", 150, 10, 500, 5).instance(1, 0)
+    s = MissionState(inst, seed=0, rules=GREEDY_RULES)
+    while not s.done:
+        node = greedy(s)
+        assert node == _greedy_reference(s)
+        s.step(node)
+
+
+# ---- the rl observation -------------------------------------------------------------------------
+def _observe_reference(state, a, max_tasks, max_agents, scale):
+    """Features of every task and agent, then the window (admissible tasks first, then nearest;
+    nearest agents, the decider always), by stable sorts."""
+    from hmrta.rl.features import _observe_full
+
+    a = state.agent if a is None else a
+    pos = state.positions()  # [A, 2]
+    tf, af, mask = _observe_full(state, a, pos, scale)
+    nodes = np.arange(state.M + 1)
+    if state.n_hidden:
+        nodes = np.concatenate([[0], np.flatnonzero(state.status != UNRELEASED) + 1])
+        tf, mask = tf[nodes], mask[nodes]
+    here = pos[a]
+    if len(nodes) - 1 > max_tasks:
+        d = np.hypot(*(state.inst.task_locations[nodes[1:] - 1] - here).T)
+        key = np.where(mask[1:], d, d + 1e6)
+        rows = np.concatenate([[0], np.sort(np.argsort(key, kind="stable")[:max_tasks]) + 1])
+        tf, mask, nodes = tf[rows], mask[rows], nodes[rows]
+    if state.A > max_agents:
+        d = np.hypot(*(pos - here).T)
+        d[a] = -1.0
+        keep = np.sort(np.argsort(d, kind="stable")[:max_agents])
+        af, a = af[keep], int(np.flatnonzero(keep == a)[0])
+    return tf, af, mask, nodes, a
+
+
+def test_observation_equals_features_of_everything_windowed():
+    pytest.importorskip("torch")
+    from hmrta.rl.features import observe
+
+    checked = 0
+
+    def same(s):
+        nonlocal checked
+        if s.K > 5:
+            return
+        for max_tasks, max_agents in ((50, 25), (3, 2)):
+            for scale in ("fixed", "mission"):
+                for a in {s.agent, s.A - 1}:  # the decider, and a robot in any mode
+                    got, want = observe(s, a, max_tasks, max_agents, scale), _observe_reference(
+                        s, a, max_tasks, max_agents, scale)
+                    for x, y in zip(got[:4], want[:4]):
+                        assert x.dtype == y.dtype and np.array_equal(x, y)
+                    assert got[4] == want[4]
+                    checked += 1
+
+    for s, rng in missions(5, 20):
+        drive(s, rng, same)
+    assert checked > 1000
+    inst = ScenarioGenerator("MA-AT", 150, 10, 500, 5).instance(1, 0)  # the real window (50 / 25)
+    s = MissionState(inst, seed=0, rules=Rules(max_open="team"))
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        same(s)
+        cand = np.flatnonzero(s.mask())
+        s.step(int(cand[int(rng.integers(len(cand)))]))
+
+
+def test_smallest_is_the_stable_sort_prefix():
+    from hmrta.rl.features import _smallest
+
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 5, 60, 400):
+        for k in (1, 3, 25, 50):
+            key = rng.integers(0, 7, n).astype(float) if n % 2 else rng.random(n)
+            key[rng.random(n) < 0.2] = -1.0
+            assert np.array_equal(_smallest(key, k), np.sort(np.argsort(key, kind="stable")[:k]))
