@@ -534,6 +534,31 @@ def cmd_checkpoint(args) -> int:
     return 0
 
 
+def cmd_schedules(args) -> int:
+    from .rl.schedules import ScheduleSet, generate
+
+    if args.count < 1:
+        raise UserError(f"--count: expected a positive integer, got {args.count}")
+    if not args.min_tasks <= args.max_tasks or args.min_tasks < 1 or args.max_tasks > 200:
+        raise UserError(f"--min-tasks/--max-tasks: expected 1 <= min <= max <= 200, got {args.min_tasks}..{args.max_tasks}")
+    if not args.time_limit > 0:
+        raise UserError(f"--time-limit: expected a positive number of seconds, got {args.time_limit}")
+    if args.jobs < 1 or args.workers < 1:
+        raise UserError("--jobs and --workers: expected positive integers")
+    out = Path(args.out)
+    if out.is_dir():
+        raise UserError(f"--out {out}: is a folder, expected a .jsonl file name")
+    spec = {"kind": args.generator, "min_tasks": args.min_tasks, "max_tasks": args.max_tasks}
+    n = generate(out, spec, args.seed, args.count, args.time_limit, args.workers, args.jobs, args.ray_address,
+                 progress=not args.no_progress)
+    ss = ScheduleSet(out)
+    mk = [r["makespan"] for r in ss.rows.values()]
+    print(json.dumps({"out": str(out), "solved_now": n, "schedules": len(ss),
+                      "mean_makespan": round(sum(mk) / len(mk), 4) if mk else None,
+                      "bytes": out.stat().st_size}))
+    return 0
+
+
 def cmd_bound(args) -> int:
     from .bounds import bound_report, format_report
     from .solution import check_solution
@@ -795,6 +820,31 @@ def build_parser() -> argparse.ArgumentParser:
     ca.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT", help="checkpoint files (.pt)")
     ca.add_argument("--out", required=True, help="checkpoint to write (atomically)")
     ca.set_defaults(fn=cmd_checkpoint)
+
+    sc = sub.add_parser("schedules", help="solve seeded training missions with the anytime solver and store "
+                                          "their routes (a teacher dataset for pretrain.schedules)",
+                        formatter_class=F,
+                        description="Solve missions 0..COUNT-1 of a seeded generator with cpsat (list scheduler, "
+                                    "annealing and CP-SAT within --time-limit seconds each) and append their "
+                                    "pruned routes to a JSON-lines file (hmrta-schedules/1; instances are "
+                                    "regenerated from the seed, not stored). Resumable: a rerun skips the "
+                                    "missions the file holds. See docs/training.md.")
+    sc.add_argument("--out", required=True, help="schedules file (.jsonl), created or resumed")
+    sc.add_argument("--count", type=int, required=True, help="missions 0..COUNT-1")
+    sc.add_argument("--seed", type=int, default=1, help="generator seed (keep it apart from dev and test seeds)")
+    sc.add_argument("--generator", choices=("broad", "paper"), default="broad",
+                    help="broad: every family axis (hmrta.families.BroadGenerator); paper: the paper's "
+                         "training distribution (MA-AT, 3-5 species of 3-5 robots)")
+    sc.add_argument("--min-tasks", type=int, default=10, help="fewest tasks per mission")
+    sc.add_argument("--max-tasks", type=int, default=30, help="most tasks per mission")
+    sc.add_argument("--time-limit", type=float, default=1.5, help="solver seconds per mission")
+    sc.add_argument("--workers", type=int, default=1, help="CP-SAT search workers per mission")
+    sc.add_argument("--jobs", type=int, default=1, metavar="N",
+                    help="solve on a local Ray with N CPUs (needs pip install 'hmrta[ray]'); 1: in this process")
+    sc.add_argument("--ray-address", default=None, metavar="HOST:PORT",
+                    help="solve on an existing Ray cluster instead (docs/training.md)")
+    sc.add_argument("--no-progress", action="store_true", help="no progress bar")
+    sc.set_defaults(fn=cmd_schedules)
 
     lb = sub.add_parser("bound", help="lower bounds on the makespan (and the gap of given solutions)",
                         formatter_class=F)

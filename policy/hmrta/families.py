@@ -249,3 +249,86 @@ def family_suite(families: Iterable[str] | None = None, max_tasks: int | None = 
         raise ValueError(f"unknown family {unknown[0]!r} (expected one of {', '.join(FAMILY_NAMES)})")
     return [FamilyRow(g) for g in FAMILY_ROWS
             if g.family in wanted and (max_tasks is None or g.tasks <= max_tasks)]
+
+
+# ---- broad training distribution (domain randomisation over the family axes) --------------------
+BROAD_SALT = 0x62726F64  # "brod": keeps broad-training streams apart from the family and paper sets
+
+
+@dataclass(frozen=True)
+class BroadGenerator:
+    """Training missions drawn across every axis of the families (domain randomisation): each
+    instance first draws a :class:`FamilyGenerator` (team shape, skills, trait kind, requirement kind
+    and range, layout, depots, speed, durations, 10..``max_tasks`` tasks), then a mission of it.
+
+    Team shapes, each with probability ``1/4``: ``paper`` (3-5 species of 3-5 robots, binary traits,
+    K = 5, requirements 0..2: the paper's training distribution), ``homog`` (one species of 6-25
+    robots with one skill, requirements 1..5), ``few-large`` (2-3 species of 4-10), ``many-small``
+    (6-10 species of 1-2). Outside ``paper``: K in 1..5 (as the shape allows), traits one-hot, binary
+    or multi (entries 0..2-3, requirements up to 4), 20% binary tasks, 25% clustered tasks, 20% one
+    shared depot, speed log-uniform in [0.05, 1], durations [0, 5) or, one time in five, [10, 30).
+
+    Instance ``i`` of seed ``s`` is a pure function of ``(max_tasks, s, i)`` on a salted stream
+    (``BROAD_SALT``), never one of a family's or a paper row's.
+    """
+
+    max_tasks: int = 30
+    min_tasks: int = 10
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.min_tasks <= self.max_tasks:
+            raise ValueError(f"broad generator: expected 1 <= min_tasks <= max_tasks, got "
+                             f"{self.min_tasks}..{self.max_tasks}")
+
+    @property
+    def name(self) -> str:
+        return f"broad-{self.min_tasks}-{self.max_tasks}"
+
+    def family(self, rng: np.random.Generator) -> FamilyGenerator:
+        """The family of one instance (drawn from ``rng``)."""
+        m = int(rng.integers(self.min_tasks, self.max_tasks + 1))
+        shape = ("paper", "homog", "few-large", "many-small")[int(rng.integers(4))]
+        if shape == "paper":
+            s, n = int(rng.integers(3, 6)), int(rng.integers(3, 6))
+            return FamilyGenerator("broad", m, (n,) * s, 5)
+        if shape == "homog":
+            return FamilyGenerator("broad", m, (int(rng.integers(6, 26)),), 1, traits="one-hot",
+                                   req_min=1, req_max=int(rng.integers(2, 6)), **self._world(rng))
+        if shape == "few-large":
+            counts = tuple(int(c) for c in rng.integers(4, 11, size=int(rng.integers(2, 4))))
+        else:
+            counts = tuple(int(c) for c in rng.integers(1, 3, size=int(rng.integers(6, 11))))
+        traits = ("one-hot", "binary", "multi")[int(rng.integers(3))]
+        k_hi = min(MAX_SKILLS, len(counts)) if traits == "one-hot" else MAX_SKILLS
+        K = int(rng.integers(1, k_hi + 1))
+        trait_max = int(rng.integers(2, 4)) if traits == "multi" else 1
+        req = ({"requirement": "binary"} if rng.random() < 0.2 else
+               {"req_max": int(rng.integers(2, 5)) if traits == "multi" else 2})
+        return FamilyGenerator("broad", m, counts, K, traits=traits, trait_max=trait_max, **req,
+                               **self._world(rng))
+
+    @staticmethod
+    def _world(rng: np.random.Generator) -> dict:
+        return {"layout": "clustered" if rng.random() < 0.25 else "uniform",
+                "clusters": int(rng.integers(2, 5)),
+                "depots": "shared" if rng.random() < 0.2 else "separate",
+                "velocity": float(np.exp(rng.uniform(np.log(0.05), np.log(1.0)))),
+                "duration": (10.0, 30.0) if rng.random() < 0.2 else (0.0, 5.0)}
+
+    def sample(self, rng: np.random.Generator, name: str | None = None) -> Instance:
+        for _ in range(100):  # a drawn family whose requirements the team can never cover is redrawn
+            fam = self.family(rng)
+            try:
+                return fam.sample(rng, name or self.name)
+            except ValueError:
+                continue
+        raise ValueError(f"{self.name}: no feasible family in 100 draws")
+
+    def rng(self, seed: int, index: int) -> np.random.Generator:
+        return np.random.default_rng([seed, index, BROAD_SALT, self.min_tasks, self.max_tasks])
+
+    def instance(self, seed: int, index: int) -> Instance:
+        return self.sample(self.rng(seed, index), f"{self.name}_s{seed}_{index}")
+
+    def generate(self, count: int, seed: int) -> list[Instance]:
+        return [self.instance(seed, i) for i in range(count)]

@@ -220,9 +220,15 @@ class PretrainConfig:
     # expert iteration: > 0 policy samples compete with the teacher's trajectory, the best is cloned
     samples: int = _f(0, _integer(0))
     temperature: float = _f(1.0, _number(0, lo_open=True))
+    # the solver as teacher: a schedules dataset (hmrta schedules; rl/schedules.py, relative paths
+    # from the working directory). Teacher-driven missions come from it and are labelled by their
+    # routes; where a route's choice is not admissible, and on DAgger states, ``teacher`` labels.
+    schedules: Any = _f(None, _optional(lambda v: None if isinstance(v, str) and v.strip() else "expected a path"))
 
     def __post_init__(self) -> None:
         _validate(self, "pretrain.")
+        if self.schedules is not None and self.tau > 0:
+            raise ValueError("pretrain.tau: soft targets are not defined for pretrain.schedules (use tau: 0)")
         if not isinstance(self.teacher, str) or self.teacher not in TEACHERS:
             raise ValueError(f"pretrain.teacher: expected one of {', '.join(TEACHERS)}, got {short(self.teacher)}")
         if self.tau > 0 and not hasattr(TEACHERS[self.teacher], "estimates"):
@@ -238,6 +244,12 @@ class ValidationConfig:
     every: int = _f(25, _integer(1))
     seed: int = _f(990001, _SEED)
     rows: list = _f([[9, 3, 20, 3, 16], [25, 5, 50, 5, 16]], _rows)
+    # > 0: that many broad-distribution missions (hmrta.families.BroadGenerator, 10-50 tasks) join
+    # the validation set
+    broad: int = _f(0, _integer(0))
+    # what best.pt keeps the lowest of: the mean makespan, or the mean ratio of the makespan to
+    # greedy-coalition's on the same mission (comparable across missions of different time scales)
+    metric: str = _f("makespan", lambda v: None if v in ("makespan", "ratio") else "expected makespan or ratio")
 
     def __post_init__(self) -> None:
         _validate(self, "validation.")

@@ -22,6 +22,7 @@ from ..core import MissionState
 from .config import TEACHERS
 from .features import collate, observe
 from .rollout import returns, rollout
+from .schedules import RouteTeacher
 
 if TYPE_CHECKING:
     from .train import Trainer
@@ -37,14 +38,19 @@ class Imitation:
     def step(self) -> dict:
         run, lr_ = self.run, self.run.learner
         p = run.cfg.pretrain
-        insts = run._instances(p.instances_per_iter)
+        if p.schedules:  # the solver as teacher: missions with their routes
+            items = run.schedule_items(p.instances_per_iter)
+        else:
+            items = [(inst, None) for inst in run._instances(p.instances_per_iter)]
+        insts = [inst for inst, _ in items]
         obs, deciders, acts, soft = [], [], [], []
         teacher = TEACHERS[p.teacher]()
         tau = p.tau
+        followed = [0, 0]  # decisions labelled by a schedule's routes, by the fallback teacher
 
-        def label(st: MissionState) -> int:  # record the teacher's choice at st; returns it
-            tf, af, mask, nodes, row = observe(st)
-            n = teacher(st)
+        def label(st: MissionState, decide=teacher) -> int:  # record the teacher's choice at st; returns it
+            tf, af, mask, nodes, row = observe(st, scale=lr_.model.cfg.scale)
+            n = decide(st)
             hit = np.flatnonzero(nodes == n)
             if len(hit):  # (outside the observation window only on missions beyond the training scale)
                 obs.append((tf, af, mask))
@@ -55,14 +61,18 @@ class Imitation:
             return n
 
         on_policy, pool = [], []  # DAgger states; (teacher's finished state, its label range) per pooled instance
-        for inst in insts:
+        for inst, routes in items:
             st = MissionState(inst, seed=int(lr_.np_rng.integers(2**31)), rules=run.train_rules)
             if lr_.np_rng.random() < p.dagger:
                 on_policy.append(st)  # DAgger: the policy drives, the teacher labels
                 continue
             first = len(acts)
+            decide = teacher if routes is None else RouteTeacher(routes, teacher)
             while not st.done:
-                st.step(label(st))
+                st.step(label(st, decide))
+            if routes is not None:
+                followed[0] += decide.hits
+                followed[1] += decide.misses
             pool.append((st, first, len(acts)))
         lr_.model.eval()
         if on_policy:
@@ -95,8 +105,9 @@ class Imitation:
                 lr_.optimizer_step()
                 losses.append(loss.item())
         run.pretrain_done += 1
+        extra = {"route_share": followed[0] / max(1, sum(followed))} if p.schedules else {}
         return {"iteration": run.pretrain_done, "bc_loss": float(np.mean(losses)), "labels": n,
-                "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, **pool_stats}
+                "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, **pool_stats, **extra}
 
     def pool(self, pool: list[tuple[MissionState, int, int]], obs: list, deciders: list, acts: list) -> dict:
         """Expert iteration (``pretrain.samples``): ``samples`` sampled rollouts of the policy compete

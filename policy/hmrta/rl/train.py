@@ -47,10 +47,14 @@ DEFAULTS = defaults()  # every key with its default (a config file names only wh
 
 
 def validation_set(cfg: TrainConfig) -> list:
+    from ..families import BroadGenerator
+
     v = cfg.validation
     out = []
     for a, s, m, k, n in v.rows:
         out += ScenarioGenerator("MA-AT", a, s, m, k).generate(n, v.seed)
+    if v.broad:
+        out += BroadGenerator(max_tasks=50).generate(v.broad, v.seed)
     return out
 
 
@@ -72,7 +76,9 @@ class Trainer:
         self.decisions = 0
         self.best_val = math.inf
         self.greedy_val: float | None = None
+        self._coalition_val: np.ndarray | None = None
         self.val_set = validation_set(self.cfg)
+        self._schedules = None  # (file size, ScheduleSet) of pretrain.schedules, reloaded as it grows
         self.train_rules = self.eval_rules = self.cfg.rule_set()
         self.imitation = Imitation(self)
         self.distill = Distill(self)
@@ -203,6 +209,28 @@ class Trainer:
         checkpoint.export(path, self.cfg.to_dict(), self.policy_weights(), meta, summary)
 
     # ---- data --------------------------------------------------------------------------------
+    def schedule_items(self, n: int) -> list[tuple]:
+        """``n`` (instance, routes) of the ``pretrain.schedules`` dataset, drawn uniformly with the
+        run's random stream. The file is read again when it has grown (generation may still run)."""
+        from .schedules import ScheduleError, ScheduleSet
+
+        path = Path(self.cfg.pretrain.schedules)
+        try:
+            size = path.stat().st_size
+        except OSError as e:
+            raise ScheduleError(f"pretrain.schedules: {path}: cannot read ({e.strerror})") from None
+        if self._schedules is None or self._schedules[0] != size:
+            self._schedules = (size, ScheduleSet(path))
+        ss = self._schedules[1]
+        idx = ss.indices()
+        if not idx:
+            raise ScheduleError(f"pretrain.schedules: {path}: no schedules yet")
+        out = []
+        for j in self.np_rng.integers(0, len(idx), size=n):
+            inst, routes, _ = ss.item(idx[int(j)])
+            out.append((inst, routes))
+        return out
+
     def _lr(self) -> float:
         return self.reinforce.lr()
 
@@ -232,8 +260,14 @@ class Trainer:
         states = [MissionState(i, seed=0, rules=self.eval_rules) for i in self.val_set]
         rollout(self.eval_model(), states, sample=False)
         mk = np.array([s.makespan if s.success else self.cfg.train.t_max for s in states])
-        return {"val_makespan": float(mk.mean()), "val_success": float(np.mean([s.success for s in states])),
-                "greedy_makespan": self.greedy_val}
+        out = {"val_makespan": float(mk.mean()), "val_success": float(np.mean([s.success for s in states])),
+               "greedy_makespan": self.greedy_val}
+        if self.cfg.validation.metric == "ratio":  # scored by the ratio to greedy-coalition per mission
+            if self._coalition_val is None:
+                self._coalition_val = np.array([solve(i, "greedy-coalition", 0).makespan for i in self.val_set])
+            out["val_ratio"] = float(np.mean(mk / np.maximum(self._coalition_val, 1e-9)))
+            out["val_makespan"], out["val_mean_makespan"] = out["val_ratio"], out["val_makespan"]
+        return out
 
     def _run_phase(self, desc: str, phase: str, total: int, counter: Callable[[], int], step: Callable[[], dict],
                    postfix: Callable[[dict], dict], *, w, f, start: float, deadline: float, progress: bool) -> None:
@@ -259,8 +293,9 @@ class Trainer:
             v = self.validate()
             w.writerow({**v, "phase": "val", "iteration": it, "wall": time.time() - start})
             f.flush()
-            self.log(f"{phase} iteration {it}: validation makespan {v['val_makespan']:.3f} "
-                     f"(greedy {v['greedy_makespan']:.3f}, best {min(self.best_val, v['val_makespan']):.3f})")
+            what = "ratio to greedy-coalition" if "val_ratio" in v else "makespan"
+            self.log(f"{phase} iteration {it}: validation {what} {v['val_makespan']:.3f} "
+                     f"(greedy makespan {v['greedy_makespan']:.3f}, best {min(self.best_val, v['val_makespan']):.3f})")
             if v["val_makespan"] < self.best_val:
                 self.best_val = v["val_makespan"]
                 self.save(self.run_dir / "best.pt")
@@ -276,7 +311,7 @@ class Trainer:
                   "decisions_per_s", "episodes_per_s", "sil_loss", "best_makespan", "lookahead_gain", "changed",
                   "labels", "tasks", "agents", "seconds", "bc_loss", "teacher_makespan", "pool_makespan",
                   "teacher_wins",
-                  "val_makespan", "val_success", "greedy_makespan", "wall"]
+                  "val_makespan", "val_success", "greedy_makespan", "wall", "route_share", "val_mean_makespan"]
         new = not log_path.exists()
         f = open(log_path, "a", newline="")
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
@@ -287,7 +322,7 @@ class Trainer:
         last, best = self.run_dir / "last.pt", self.run_dir / "best.pt"
         try:
             phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
-            phase(f"pretrain (BC of {p.teacher})", "bc", p.iterations, lambda: self.pretrain_done,
+            phase(f"pretrain (BC of {'schedules' if p.schedules else p.teacher})", "bc", p.iterations, lambda: self.pretrain_done,
                   self.pretrain_step, lambda r: {"loss": f"{r['bc_loss']:.3f}", "best": f"{self.best_val:.2f}"})
             if self.iteration == 0 and self.best_val == math.inf:
                 v = self.validate()

@@ -1,0 +1,131 @@
+"""The solver as teacher: schedules datasets (generation, resume, validation), the route-following
+labeller and behaviour cloning on a dataset."""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hmrta.baselines import BASELINES
+from hmrta.core import MissionState, Rules
+from hmrta.families import BroadGenerator
+from hmrta.rl.schedules import FORMAT, RouteTeacher, ScheduleError, ScheduleSet, generate, read_schedules
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from test_schemas import assert_valid, errors  # noqa: E402
+
+SPEC = {"kind": "broad", "min_tasks": 6, "max_tasks": 10}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("sched") / "s.jsonl"
+    assert generate(p, SPEC, 3, 4, time_limit=0.3, progress=False) == 4
+    return p
+
+
+def test_broad_generator_is_seeded_and_spans_the_axes():
+    g = BroadGenerator(max_tasks=30)
+    a, b = g.generate(60, 5), g.generate(60, 5)
+    assert [x.to_dict() for x in a] == [x.to_dict() for x in b]
+    assert a[0].to_dict() != g.instance(6, 0).to_dict()
+    assert {i.skills for i in a} >= {1, 5} and {i.n_species for i in a} >= {1, 3}
+    assert all(10 <= i.n_tasks <= 30 and i.infeasibility() is None for i in a)
+    assert len({round(i.velocity, 6) for i in a}) > 10
+
+
+def test_routes_replay_exactly_without_a_cap(dataset):
+    ss = ScheduleSet(dataset)
+    assert len(ss) == 4
+    for _, inst, routes, mk in ss.items():
+        st = MissionState(inst, seed=0, rules=Rules(max_open=None))
+        t = RouteTeacher(routes, BASELINES["greedy-coalition"]())
+        while not st.done:
+            st.step(t(st))
+        assert st.success and t.misses == 0 and math.isclose(st.makespan, mk, rel_tol=1e-6)
+        gc = MissionState(inst, seed=0, rules=Rules(max_open=None))
+        coalition = BASELINES["greedy-coalition"]()
+        while not gc.done:
+            gc.step(coalition(gc))
+        assert mk <= gc.makespan + 1e-6  # never worse than its greedy incumbent
+
+
+def test_generation_resumes_and_drops_a_torn_line(dataset, tmp_path):
+    p = tmp_path / "r.jsonl"
+    p.write_bytes(dataset.read_bytes())
+    lines = p.read_text().splitlines()
+    p.write_text("\n".join(lines[:3]) + "\n" + lines[3][:17])  # header, 2 rows, a torn third
+    h, rows, torn = read_schedules(p)
+    assert torn and len(rows) == 2
+    assert generate(p, SPEC, 3, 5, time_limit=0.3, progress=False) == 3
+    h, rows, torn = read_schedules(p)
+    assert not torn and sorted(rows) == [0, 1, 2, 3, 4]
+    with pytest.raises(ScheduleError, match="another generator, seed or solver"):
+        generate(p, SPEC, 4, 5, time_limit=0.3, progress=False)
+
+
+def test_dataset_lines_validate_against_the_schema(dataset):
+    lines = [json.loads(x) for x in dataset.read_text().splitlines()]
+    assert lines[0]["format"] == FORMAT
+    assert_valid("hmrta-schedules/1", lines[0])
+    for r in lines[1:]:
+        assert_valid("hmrta-schedules/1#/$defs/row", r)
+    assert errors("hmrta-schedules/1", {**lines[0], "format": "hmrta-schedules/2"})
+
+
+@pytest.mark.parametrize("text, message", [
+    ("", "empty"),
+    ('{"format": "hmrta-schedules/2"}\n', ":1: expected a header with format"),
+    ('{"format": "hmrta-schedules/1", "generator": {"kind": "x", "min_tasks": 1, "max_tasks": 2}, "seed": 1, '
+     '"solver": {"time_limit": 1}}\n', ":1: generator.kind"),
+    ('{"format": "hmrta-schedules/1", "generator": {"kind": "broad", "min_tasks": 1, "max_tasks": 2}, "seed": 1, '
+     '"solver": {"time_limit": 1}}\n{"index": -1, "makespan": 1, "routes": []}\n', ":2: index"),
+    ('{"format": "hmrta-schedules/1", "generator": {"kind": "broad", "min_tasks": 1, "max_tasks": 2}, "seed": 1, '
+     '"solver": {"time_limit": 1}}\nnot json\n', ":2: not a JSON line"),
+])
+def test_bad_files_are_one_line_errors(tmp_path, text, message):
+    p = tmp_path / "bad.jsonl"
+    p.write_text(text)
+    with pytest.raises(ScheduleError, match=message):
+        ScheduleSet(p)
+
+
+def test_cli_writes_and_resumes(tmp_path, capsys):
+    from hmrta.cli import main
+
+    out = tmp_path / "c.jsonl"
+    args = ["schedules", "--out", str(out), "--count", "2", "--min-tasks", "5", "--max-tasks", "6",
+            "--time-limit", "0.2", "--no-progress"]
+    assert main(args) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["solved_now"] == 2 and first["schedules"] == 2
+    assert main(args[:4] + ["3"] + args[5:]) == 0
+    assert json.loads(capsys.readouterr().out)["solved_now"] == 1
+    assert main(args[:-2] + ["0.5", "--no-progress"]) == 2  # another solver setting: refused
+    assert "another generator" in capsys.readouterr().err
+
+
+def test_cloning_the_schedules_follows_the_routes(dataset, tmp_path):
+    """BC on a schedules dataset labels teacher-driven missions by their routes (route share 1 without
+    a cap) and lowers the loss."""
+    import torch
+
+    from hmrta.rl.train import Trainer
+
+    torch.manual_seed(0)
+    cfg = {"name": "sched", "seed": 1, "model": {"d_model": 32, "heads": 4, "ff_hidden": 32, "scale": "mission"},
+           "rules": {"max_open": None, "safety": True},
+           "pretrain": {"iterations": 12, "instances_per_iter": 4, "lr": 2e-3, "epochs": 2, "batch": 64,
+                        "teacher": "greedy-coalition", "schedules": str(dataset)},
+           "train": {"iterations": 0},
+           "validation": {"every": 100, "seed": 5, "rows": [[6, 2, 8, 3, 2]], "broad": 2, "metric": "ratio"}}
+    tr = Trainer(cfg, tmp_path / "run", device="cpu", log=lambda s: None)
+    rows = [tr.pretrain_step() for _ in range(12)]
+    assert all(r["route_share"] == 1.0 for r in rows)
+    assert np.mean([r["bc_loss"] for r in rows[-3:]]) < np.mean([r["bc_loss"] for r in rows[:3]])
+    v = tr.validate()
+    assert v["val_makespan"] == v["val_ratio"] and v["val_ratio"] > 0.5
