@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     env = local_env()
     env["ROS_LOG_DIR"] = str(work / "ros_logs")
     procs = MissionProcesses(path, robots, work / "result.json", work / "logs", env, seed=args.seed,
-                             policy=args.policy, checkpoint=args.checkpoint, agents_per_process=inst.n_agents,
+                             method=args.policy, method_options=opts, agents_per_process=inst.n_agents,
                              board_params={"progress_period": 10.0, "startup_timeout": 300.0})
     print(f"{inst.name}: {inst.n_agents} robots, {inst.n_tasks} tasks, policy {args.policy}, seed {args.seed}; "
           f"ROS domain {env['ROS_DOMAIN_ID']}; logs in {work}", flush=True)

@@ -41,11 +41,19 @@ decoded messages and clock values, call :meth:`MissionBoard.poll` and publish th
   from there. A torn last line (a write cut short) is detected (no newline, or not a JSON object)
   and dropped before anything is appended; it is never applied in part, since one line holds all
   the events of one version.
+* **Stream and keyframes** (:meth:`MissionBoard.poll`, :class:`View`): each version is published
+  as a header with the events applied since the previous version (the records of its journal
+  line) and the state's digest (:func:`state_digest`); some versions are also keyframes (legs and
+  full state): the first, after a restart, after robots were added, the last, periodically and
+  when a replica asks (:meth:`MissionBoard.request`). Replicas (:mod:`hmrta.replica`) apply the
+  events with the same code as the board (:class:`BoardCore`).
 * **Result** (:meth:`MissionBoard.result`): the ``hmrta-solution/1`` of the mission with the
-  board's extras (lost robots and reasons, undone tasks, latencies, rejections).
+  board's extras (lost robots and reasons, undone tasks, latencies, rejections, keyframes).
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import hashlib
 import json
 import math
@@ -58,6 +66,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+import numpy as np
+
 from .core import DONE, LOST, STATUS_NAMES, EventRejected, MissionState, Rules, apply_event
 from .instance import Instance
 from .keys import rejection_code
@@ -68,7 +78,12 @@ LEG_WINDOW = 4  # legs per robot repeated on every board (a reader that skipped 
 HOLD = -1  # leg node: stay where you are (0 = own depot, 1 + m = task m)
 RESEND = -2  # leg node: publish this goal again now (it repeats a leg the robot has not reached)
 JOURNAL_FORMAT = "hmrta-journal/1"
+BOARD_FORMAT = "hmrta-board/2"
 PHASES = ("starting", "wait", "decide", "closing", "done")
+KEYFRAME_INTERVAL = 0.25  # seconds: keyframes asked for by replicas, at most one per interval
+KEYFRAME_REPEAT = 1.0  # seconds: the latest keyframe's version is published again at most this often
+HEADER_REPEAT = 0.25  # seconds: an idle board streams its latest header again (a replica that missed it sees the gap)
+HEADER_BYTES = 330  # about the bytes of a stream header without its events (for the automatic keyframe period)
 
 
 class JournalError(ValueError):
@@ -81,13 +96,40 @@ class BoardState(MissionState):
 
     One ``step`` may run several events ahead of the mission clock (a robot commits to a task,
     the task completes, the robot is sent home), so the current leg alone would lose moves; the
-    log keeps them all, in order, for the robots' goals."""
+    log keeps them all, in order, for the robots' goals. A replica built from a keyframe holds
+    only each robot's latest legs: ``leg_base[a]`` legs come before ``leg_log[a]``."""
 
     def __init__(self, inst, seed: int = 0, rules: Rules = Rules()):
         self.leg_log: list[list[tuple[int, float, float, float]]] = [[] for _ in range(inst.n_agents)]
         self.leg_arrive: list[list[float]] = [[] for _ in range(inst.n_agents)]  # planned arrival of each leg
+        self.leg_base: list[int] = [0] * inst.n_agents  # legs before leg_log[a] (a replica's keyframe left out)
         self.until = 0.0  # live: the state never runs ahead of the mission clock (MissionState.advance_to)
         super().__init__(inst, seed=seed, rules=rules)
+
+    @classmethod
+    def from_keyframe(cls, inst: Instance, snap: dict[str, Any], legs: Sequence[Any], until: float) -> "BoardState":
+        """The board's state from a keyframe: its ``hmrta-state/1`` snapshot, its legs (per robot
+        ``(seq, latest legs)`` or None for a lost robot) and the mission time the state may reach
+        (``until``). SnapshotError (a ValueError) for a snapshot that does not fit ``inst``."""
+        st = cls.from_snapshot(inst, snap)
+        st.until = float(until)
+        st.leg_log, st.leg_arrive, st.leg_base = [], [], []
+        for a in range(st.A):
+            e = legs[a] if a < len(legs) else None
+            window = [(int(g[0]), float(g[1]), float(g[2]), float(g[3])) for g in e[1]] if e else []
+            st.leg_log.append(window)
+            st.leg_arrive.append([math.nan] * len(window))  # not on the wire (the board's leg timers only)
+            st.leg_base.append(int(e[0]) - len(window) if e else 0)
+        return st
+
+    def grow_legs(self) -> None:
+        """Leg logs for robots added to the mission."""
+        while len(self.leg_log) < self.A:
+            self.leg_log.append([])
+        while len(self.leg_arrive) < len(self.leg_log):
+            self.leg_arrive.append([])
+        while len(self.leg_base) < len(self.leg_log):
+            self.leg_base.append(0)
 
     def commit(self, a: int, node: int) -> None:
         before = (float(self.depart[a]), float(self.arrive[a]))
@@ -98,16 +140,57 @@ class BoardState(MissionState):
     def log_leg(self, a: int, node: int) -> None:
         while len(self.leg_log) <= a:  # a robot added during the mission
             self.leg_log.append([])
-        while len(self.leg_arrive) <= a:
-            self.leg_arrive.append([])
+        self.grow_legs()
         self.leg_log[a].append((node, float(self.to_pos[a, 0]), float(self.to_pos[a, 1]), float(self.depart[a])))
         self.leg_arrive[a].append(max(float(self.arrive[a]), float(self.depart[a])))
 
     def log_resend(self, a: int, i: int) -> None:
         """Repeat leg i of robot a as a RESEND leg (its agent publishes that goal again)."""
-        _, x, y, depart = self.leg_log[a][i]
+        j = i - self.leg_base[a]
+        if j < 0:
+            raise IndexError(f"resend of leg {i} of robot {a}: this replica holds its legs from {self.leg_base[a]} on")
+        _, x, y, depart = self.leg_log[a][j]
         self.leg_log[a].append((RESEND, x, y, depart))
-        self.leg_arrive[a].append(self.leg_arrive[a][i])
+        self.leg_arrive[a].append(self.leg_arrive[a][j])
+
+    def leg_seq(self, a: int) -> int:
+        """How many legs robot a has been given (the last one is numbered this)."""
+        return self.leg_base[a] + len(self.leg_log[a])
+
+    def legs(self, a: int, after: int | None = None) -> tuple[int, tuple] | None:
+        """Robot a's legs as on the board: ``(seq, legs)``, its latest LEG_WINDOW legs, or every
+        leg numbered above ``after`` that this state holds; None for a lost robot."""
+        if self.mode[a] == LOST:
+            return None
+        log = self.leg_log[a]
+        n = LEG_WINDOW if after is None else max(LEG_WINDOW, self.leg_seq(a) - after)
+        return self.leg_seq(a), tuple(log[-n:])
+
+    def clone(self) -> MissionState:
+        """A plain :class:`MissionState` copy, without the leg log and the live hold (``until``):
+        what a lookahead branches on, exactly as offline."""
+        memo: dict[int, Any] = {id(self.inst): self.inst, id(self.rules): self.rules}
+        twin = MissionState.__new__(MissionState)
+        for k, v in self.__dict__.items():
+            if k not in ("leg_log", "leg_arrive", "leg_base", "until"):
+                twin.__dict__[k] = copy.deepcopy(v, memo)
+        return twin
+
+
+def state_digest(st: BoardState) -> str:
+    """A cheap fingerprint of the board's state (16 hex digits): the clock, the decider, the
+    counters, the decision queue, every task's status and remaining requirement, every robot's
+    mode, target, current leg and number of legs. The board puts it in every version it
+    publishes; a replica whose state gives another digest has diverged and resynchronises."""
+    h = hashlib.blake2b(digest_size=8)
+    h.update(repr((float(st.clock), st.agent, int(st.decisions), bool(st.done), int(st.n_done), int(st.n_cancelled),
+                   st.A, st.M, len(st.log), len(st.pending), len(st.events), tuple(int(a) for a in st.queue),
+                   tuple(-1 if st.mode[a] == LOST else st.leg_seq(a) for a in range(st.A)))).encode())
+    for arr in (st.status, st.mode, st.target):
+        h.update(np.ascontiguousarray(arr, dtype="<i8").tobytes())
+    for arr in (st.depart, st.arrive, st.to_pos, st.rem):
+        h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
+    return h.hexdigest()
 
 
 @dataclass(frozen=True)
@@ -121,9 +204,14 @@ class Rejected:
 
 @dataclass(frozen=True)
 class View:
-    """One board version to publish (the header fields of hmrta-board/1, the legs and the state)."""
+    """One board message to publish: a version of the board stream (the header of hmrta-board/2:
+    the events applied since the previous version, in order, and the state's digest) and, for a
+    keyframe, also the legs and the full state. A keyframe repeated on request has ``stream``
+    False (its version was streamed already); a header repeated to confirm a replica's version
+    has ``keyframe`` False and the version already streamed."""
     session: str
     version: int
+    prev: int  # the version whose state the events apply to
     rev: int
     phase: str
     decider: int | None
@@ -133,8 +221,26 @@ class View:
     n_cancelled: int
     n_tasks: int
     lost: tuple[int, ...]
-    legs: tuple
-    state_json: str  # the hmrta-state/1 snapshot as compact JSON (cached per state revision)
+    events: tuple[dict[str, Any], ...]  # the journal records of this version (hmrta-journal/1 events)
+    digest: str  # state_digest of the state after the events
+    keyframe: bool = False  # also publish the full board: legs and state
+    stream: bool = True  # publish the header on the board stream
+    reason: str = ""  # why a keyframe: first, period, requested, robots, resumed, done
+    until: float | None = None  # keyframes: the mission time the state may reach (MissionState.advance_to)
+    legs: tuple | None = None  # keyframes: per robot (seq, latest legs) or None (lost)
+    state_json: str | None = None  # keyframes: the hmrta-state/1 snapshot as compact JSON (cached per revision)
+
+
+def board_header(v: Any) -> dict[str, Any]:
+    """The header line of an hmrta-board/2 message from a :class:`View` (or anything with its
+    fields): ``until`` only in keyframes."""
+    d = {"format": BOARD_FORMAT, "session": v.session, "version": v.version, "prev": v.prev, "rev": v.rev,
+         "phase": v.phase, "decider": v.decider, "clock": v.clock, "horizon": v.horizon, "n_done": v.n_done,
+         "n_cancelled": v.n_cancelled, "n_tasks": v.n_tasks, "lost": list(v.lost), "ev": list(v.events),
+         "digest": v.digest}
+    if v.until is not None:
+        d["until"] = v.until
+    return d
 
 
 def percentile(xs: list[float], q: float) -> float:
@@ -222,9 +328,89 @@ class Journal:
 
 
 # ---------------------------------------------------------------------------------------------
+# the state machine and the events that move it (the board, its journal replay, replicas)
+# ---------------------------------------------------------------------------------------------
+class BoardCore:
+    """The board's state machine (:class:`BoardState`, revision ``rev``, lost robots ``lost``) and
+    how the board's events change it. :class:`MissionBoard` applies events as they come and
+    replays its journal with :meth:`apply_event`; an agent's :class:`hmrta.replica.Replica`
+    applies the events the board publishes the same way, so both states stay equal."""
+
+    state: BoardState
+    rev: int
+    lost: dict[int, str]
+
+    def apply_event(self, ev: dict[str, Any]) -> None:
+        """Apply what one journal event (hmrta-journal/1) did to the state. Raises ValueError
+        (KeyError, TypeError, IndexError) for an event that does not fit the state."""
+        st = self.state
+        kind = ev["type"]
+        if "until" in ev:  # the state's hold when the event was applied (MissionState.advance_to)
+            st.until = max(st.until, float(ev["until"]))
+        if kind == "choice":
+            a, node = int(ev["robot"]), int(ev["node"])
+            if st.agent != a:
+                raise ValueError(f"choice of agent {a}, but the decider is {st.agent}")
+            st.step(node)
+            self.rev += 1
+        elif kind == "drop_agent":
+            self._drop(int(ev["robot"]), str(ev.get("reason", "")), float(ev["t"]))
+        elif kind == "advance":
+            self._held(lambda: st.advance_to(float(ev["until"])))
+        elif kind == "resend":
+            st.log_resend(int(ev["robot"]), int(ev["leg"]))
+            self.rev += 1
+        elif kind in ("add_task", "cancel_task", "add_agent"):
+            self._external(ev)
+        elif kind not in ("start", "arrival", "resume"):  # board bookkeeping only
+            raise ValueError(f"unknown event type {kind!r}")
+
+    def _drop(self, a: int, reason: str, t: float) -> list[int]:
+        self.lost[a] = reason
+        st = self.state
+
+        def change() -> list[int]:
+            if not st.done:
+                st.advance_to(t, idle=True)
+            return st.drop_agent(a) if not st.done else []
+        return self._held(change, skip=a)
+
+    def _external(self, rec: dict[str, Any]) -> Any:
+        """Apply an operator event (add_task, cancel_task, add_agent) at its time ``t``: the held
+        state moves to ``t`` first. EventRejected leaves the state as it was."""
+        st = self.state
+
+        def change() -> Any:
+            st.advance_to(float(rec["t"]), idle=True)
+            return apply_event(st, rec)
+        return self._held(change)
+
+    def _held(self, change: Callable[[], Any], skip: int = -1, bump: bool = True) -> Any:
+        """Apply ``change`` to the state; robots it stopped short of their destination (no new
+        commitment) get a hold leg."""
+        st = self.state
+        before = [(len(log), float(st.to_pos[b, 0]), float(st.to_pos[b, 1])) for b, log in enumerate(st.leg_log)]
+        out = change()
+        for b, (n, x, y) in enumerate(before):
+            if b != skip and len(st.leg_log[b]) == n and (float(st.to_pos[b, 0]), float(st.to_pos[b, 1])) != (x, y):
+                st.log_leg(b, HOLD)
+        for b in range(len(before)):
+            if st.mode[b] == LOST and b not in self.lost:  # lost by a scenario event
+                self.lost[b] = "lost (scenario event)"
+        self._sync_robots()
+        if bump:
+            self.rev += 1
+        return out
+
+    def _sync_robots(self) -> None:
+        """Robots the state added get their leg logs."""
+        self.state.grow_legs()
+
+
+# ---------------------------------------------------------------------------------------------
 # the board
 # ---------------------------------------------------------------------------------------------
-class MissionBoard:
+class MissionBoard(BoardCore):
     """The board's protocol logic (see the module docstring). Wall times come from ``now``
     (default ``time.monotonic``); ``log(level, text)`` receives what the board reports
     (levels ``info``, ``warning``)."""
@@ -234,8 +420,8 @@ class MissionBoard:
                  verifier: Any = None, tolerance: float = 0.25, heartbeat_timeout: float = 5.0,
                  leg_timeout_factor: float = 3.0, leg_timeout_floor: float = 10.0, scale: float = 1.0,
                  decision_timeout: float = 30.0, startup_timeout: float = 120.0, wait_for_robots: bool = True,
-                 journal: str | os.PathLike | None = None, now: Callable[[], float] = time.monotonic,
-                 log: Callable[[str, str], None] | None = None):
+                 journal: str | os.PathLike | None = None, keyframe_period: int = 0,
+                 now: Callable[[], float] = time.monotonic, log: Callable[[str, str], None] | None = None):
         A = inst.n_agents
         names = list(names or [f"robot_{a}" for a in range(A)])
         if len(names) != A or len(set(names)) != A:
@@ -276,6 +462,19 @@ class MissionBoard:
         self._cache_rev = -1
         self._legs: tuple = ()
         self._state_json = ""
+        if keyframe_period < 0:
+            raise ValueError(f"keyframe_period: expected a number of versions >= 0 (0: automatic), "
+                             f"got {keyframe_period}")
+        self.keyframe_period = keyframe_period  # versions between periodic keyframes (0: by size, see poll)
+        self._keyframe_due: str | None = "first"  # a keyframe goes with the next version (and why)
+        self._asked: str | None = None  # a replica behind the board asked for a keyframe (why)
+        self._confirm = False  # a replica at the current version asked: the header is repeated
+        self._head: View | None = None  # the latest version published
+        self._kf_version, self._kf_time, self._kf_size = 0, -math.inf, 0  # the latest keyframe
+        self._streamed = -math.inf  # when the latest header was streamed
+        self._since_kf = 0  # bytes of stream headers since the latest keyframe (automatic period)
+        self.keyframes: Counter[str] = Counter()  # keyframes published, by reason
+        self.stream_bytes = 0  # bytes of the stream headers published (about: the JSON of each)
         self._events: list[dict[str, Any]] = []  # applied since the last published version
         self.requests: dict[str, str] = {}  # operator task id -> last status reported on the events topic
         self._join_names: list[str] = []  # names of robots joining, given to the next added agents
@@ -319,54 +518,37 @@ class MissionBoard:
         self.restarts += 1
         self.journal = Journal(path, keep)
         self._events.append({"type": "resume", "t": float(self.state.clock)})
+        self._keyframe_due = "resumed"  # replicas of the previous board process may have missed its last versions
         self.log("info", f"resumed from journal {path}: {len(records)} versions replayed, board version "
                          f"{self.version}, {self.state.n_done}/{self.state.M} tasks done, {len(self.lost)} lost")
 
     def _replay(self, rec: dict[str, Any]) -> None:
-        st = self.state
         for ev in rec.get("ev", ()):
             kind = ev["type"]
-            if "until" in ev:  # the state's hold when the event was applied (MissionState.advance_to)
-                st.until = max(st.until, float(ev["until"]))
+            if kind == "add_agent" and "name" in ev:
+                self._joined(str(ev["name"]))  # before it is added: the name goes to this robot
+            self.apply_event(ev)
             if kind == "start":
                 self.started = True
             elif kind == "choice":
-                a, node, v = int(ev["robot"]), int(ev["node"]), int(ev["version"])
-                if st.agent != a:
-                    raise ValueError(f"choice of agent {a}, but the decider is {st.agent}")
-                st.step(node)
-                self.accepted.add((a, v))
-                self.rev += 1
+                self.accepted.add((int(ev["robot"]), int(ev["version"])))
                 if ev.get("latency_ms") is not None:
                     self.latency_ms.append(float(ev["latency_ms"]))
                 self.agent_ms.append(float(ev.get("compute_ms", 0.0)))
-            elif kind == "drop_agent":
-                self._drop(int(ev["robot"]), str(ev.get("reason", "")), float(ev["t"]))
-            elif kind == "advance":
-                self._held(lambda: st.advance_to(float(ev["until"])))
             elif kind == "arrival":
                 a = int(ev["robot"])
                 self.ptr[a] = max(self.ptr[a], int(ev["ptr"]))
-            elif kind == "resend":
-                st.log_resend(int(ev["robot"]), int(ev["leg"]))
-                self.rev += 1
-            elif kind in ("add_task", "cancel_task", "add_agent"):
-                if kind == "add_agent" and "name" in ev:
-                    self._joined(str(ev["name"]))  # before it is added: the name goes to this robot
-                self._external(ev)
-                if kind == "add_task":
-                    self.requests[str(ev["name"])] = "accepted"
+            elif kind == "add_task":
+                self.requests[str(ev["name"])] = "accepted"
             elif kind == "resume":
                 self.restarts += 1
-            else:
-                raise ValueError(f"unknown event type {kind!r}")
         self.version = int(rec["v"])
         self.clock = max(self.clock, float(rec.get("clock", 0.0)))
         self.finished = self.finished or rec.get("phase") == "done"
         if "rev" in rec and int(rec["rev"]) != self.rev:
             raise ValueError(f"state revision {self.rev} after replay, the journal says {rec['rev']}")
-        if "n_done" in rec and int(rec["n_done"]) != st.n_done:
-            raise ValueError(f"{st.n_done} tasks done after replay, the journal says {rec['n_done']}")
+        if "n_done" in rec and int(rec["n_done"]) != self.state.n_done:
+            raise ValueError(f"{self.state.n_done} tasks done after replay, the journal says {rec['n_done']}")
 
     # ------------------------------------------------------------------------------------------
     # inputs
@@ -645,48 +827,11 @@ class MissionBoard:
         self.log("warning", f"robot {self.names[a]} lost ({reason}): its commitments are released{extra}")
         return cancelled
 
-    def _drop(self, a: int, reason: str, t: float) -> list[int]:
-        self.lost[a] = reason
-        st = self.state
-
-        def change() -> list[int]:
-            if not st.done:
-                st.advance_to(t, idle=True)
-            return st.drop_agent(a) if not st.done else []
-        return self._held(change, skip=a)
-
     def _event_time(self) -> float:
         """When an event given now applies: the mission clock, or the instant of the pending
         decision (the clock is held at it until the decision is made)."""
         st = self.state
         return float(st.clock) if st.agent is not None or st.done else max(float(self.clock), float(st.clock))
-
-    def _external(self, rec: dict[str, Any]) -> Any:
-        """Apply an operator event (add_task, cancel_task, add_agent) at its time ``t``: the held
-        state moves to ``t`` first. EventRejected leaves the state as it was."""
-        st = self.state
-
-        def change() -> Any:
-            st.advance_to(float(rec["t"]), idle=True)
-            return apply_event(st, rec)
-        return self._held(change)
-
-    def _held(self, change: Callable[[], Any], skip: int = -1, bump: bool = True) -> Any:
-        """Apply ``change`` to the state; robots it stopped short of their destination (no new
-        commitment) get a hold leg."""
-        st = self.state
-        before = [(len(log), float(st.to_pos[b, 0]), float(st.to_pos[b, 1])) for b, log in enumerate(st.leg_log)]
-        out = change()
-        for b, (n, x, y) in enumerate(before):
-            if b != skip and len(st.leg_log[b]) == n and (float(st.to_pos[b, 0]), float(st.to_pos[b, 1])) != (x, y):
-                st.log_leg(b, HOLD)
-        for b in range(len(self.names)):
-            if st.mode[b] == LOST and b not in self.lost:  # lost by a scenario event
-                self.lost[b] = "lost (scenario event)"
-        self._sync_robots()
-        if bump:
-            self.rev += 1
-        return out
 
     def _sync_robots(self) -> None:
         """Give robots the state added (a scenario's add_robot, a robot that joined) a name and
@@ -709,8 +854,8 @@ class MissionBoard:
             self.last_pose.append(None)
             self.ptr.append(0)
             self.robots_changed = True
-        while len(st.leg_log) < st.A:
-            st.leg_log.append([])
+            self._keyframe_due = self._keyframe_due or "robots"
+        st.grow_legs()
 
     def _joined(self, name: str) -> None:
         """The name of the robot the next add_agent creates (a robot that joined)."""
@@ -869,38 +1014,95 @@ class MissionBoard:
 
     def _legs_now(self) -> tuple:
         st = self.state
-        return tuple(None if st.mode[a] == LOST else (len(log), tuple(log[-LEG_WINDOW:]))
-                     for a, log in enumerate(st.leg_log))
+        return tuple(st.legs(a) for a in range(st.A))
+
+    # ------------------------------------------------------------------------------------------
+    # publishing: the stream of versions and the keyframes
+    # ------------------------------------------------------------------------------------------
+    def request(self, version: int, reason: str = "") -> None:
+        """A replica asks for a keyframe (hmrta-keyframe-request/1): it is at ``version`` (-1:
+        it has none). A replica at the current version gets the current header again (it learns
+        that it is up to date); any other gets a keyframe of the current version, at most one
+        every KEYFRAME_INTERVAL seconds (a repeat of the latest keyframe's version at most every
+        KEYFRAME_REPEAT seconds). Answered by the next :meth:`poll`."""
+        if version == self.version and version > 0:
+            self._confirm = True
+        else:
+            self._asked = self._asked or (reason or "requested")
 
     def poll(self) -> View | None:
-        """The board version to publish now, or None if nothing published changed. The events
-        applied since the previous version are journaled (fsynced) first."""
+        """The board message to publish now, or None if nothing published changed. A new
+        version carries the events applied since the previous one (journaled, fsynced, first)
+        and the state's digest; it is also a keyframe (legs and full state) when it is the
+        first, after a restart on the journal, after robots were added, at the end, when a
+        replica asked, and periodically: every ``keyframe_period`` versions, or (0) once the
+        stream has carried as many bytes as the latest keyframe, so that keyframes cost at most
+        as much as the stream."""
         phase, decider, horizon = self._target()
         self._track()
         key = (self.rev, phase, decider, horizon)
         if key == self._key:
-            return None
+            return self._answer()
         self._key = key
         self.phase = phase
-        if self._cache_rev != self.rev:
-            self._cache_rev = self.rev
-            self._legs = self._legs_now()
-            self._state_json = json.dumps(self.state.snapshot(), separators=(",", ":"))
         self.version += 1
         st = self.state
+        events, self._events = self._events, []
         if self.journal is not None:
-            events, self._events = self._events, []
             rec: dict[str, Any] = {"v": self.version, "rev": self.rev, "n_done": int(st.n_done), "phase": phase,
                                    "clock": float(self.clock)}
             if events:
                 rec["ev"] = events
             self.journal.append(rec, sync=bool(events) or phase == "done")
-        else:
-            self._events.clear()
         if phase == "decide":
             self.released_at = self.now()  # latency: board update -> choice received
-        return View(self.session, self.version, self.rev, phase, decider, float(st.clock), float(horizon),
-                    int(st.n_done), int(st.n_cancelled), st.M, tuple(sorted(self.lost)), self._legs, self._state_json)
+        self._head = View(self.session, self.version, self.version - 1, self.rev, phase, decider, float(st.clock),
+                          float(horizon), int(st.n_done), int(st.n_cancelled), st.M, tuple(sorted(self.lost)),
+                          tuple(events), state_digest(st))
+        self._confirm = False
+        size = HEADER_BYTES + (len(json.dumps(events, separators=(",", ":"))) if events else 2)
+        self._since_kf += size
+        self.stream_bytes += size
+        self._streamed = self.now()
+        reason = self._keyframe_due or ("done" if phase == "done" else None)
+        if reason is None and self._asked is not None and self.now() - self._kf_time >= KEYFRAME_INTERVAL:
+            reason = "requested"
+        if reason is None and (self.version - self._kf_version >= self.keyframe_period if self.keyframe_period
+                               else self._since_kf >= self._kf_size):
+            reason = "period"
+        return self._keyframe(reason, stream=True) if reason else self._head
+
+    def _answer(self) -> View | None:
+        """No new version: answer the replicas that asked (a keyframe, or the header again), and
+        stream the latest header again every HEADER_REPEAT seconds, so that a replica that
+        missed the latest version finds out."""
+        h = self._head
+        if h is None:
+            return None
+        now = self.now()
+        if (self._asked is not None and now - self._kf_time >= KEYFRAME_INTERVAL
+                and (self._kf_version != h.version or now - self._kf_time >= KEYFRAME_REPEAT)):
+            return self._keyframe("requested", stream=False)
+        if self._confirm or now - self._streamed >= HEADER_REPEAT:
+            self._confirm = False
+            self._streamed = now
+            return h
+        return None
+
+    def _keyframe(self, reason: str, stream: bool) -> View:
+        """The latest version as a keyframe: its header with the legs and the state snapshot
+        (serialised once per state revision) and ``until``."""
+        st, h = self.state, self._head
+        if self._cache_rev != self.rev:
+            self._cache_rev = self.rev
+            self._legs = self._legs_now()
+            self._state_json = json.dumps(st.snapshot(), separators=(",", ":"))
+        self._keyframe_due = self._asked = None
+        self._kf_version, self._kf_time, self._since_kf = h.version, self.now(), 0
+        self._kf_size = len(self._state_json)
+        self.keyframes[reason] += 1
+        return dataclasses.replace(h, keyframe=True, stream=stream, reason=reason, until=float(st.until),
+                                   legs=self._legs, state_json=self._state_json)
 
     # ------------------------------------------------------------------------------------------
     def result(self) -> Solution:
@@ -924,6 +1126,7 @@ class MissionBoard:
             "authenticated": self.verifier is not None,
             "auth_rejections": {k: dict(v) for k, v in self.auth_rejected.items()},
             "board_versions": self.version,
+            "board_keyframes": dict(self.keyframes),
         })
         if self.journal is not None:
             sol.extra["journal"] = str(self.journal.path)

@@ -4,7 +4,8 @@ back into what was planned and what was executed, without ROS.
 :func:`read_recording` decodes the ROS 2 CDR messages with ``mcap-ros2-support`` (the schemas
 are in the file) and returns a :class:`Recording`: the mission (``hmrta-mission/1``: instance,
 robot names, method, seed, scale), the plan (the ``hmrta-solution/1`` result, or else the
-schedule of the latest board), each robot's pose track and goals in mission coordinates and
+schedule of the latest board: the latest keyframe with the versions streamed after it applied by a
+:class:`hmrta.replica.Replica`), each robot's pose track and goals in mission coordinates and
 mission time, and the message count of every topic. :meth:`Recording.visits` compares, per
 robot and task, the planned arrival, start and finish with the actual arrival (the first pose
 within ``tolerance`` of the task). :func:`render_recording` draws both (``hmrta render --from``).
@@ -28,6 +29,7 @@ from .solution import Solution, SolutionError
 
 MISSION_TOPIC = "/hmrta/mission"
 BOARD_TOPIC = "/hmrta/board"
+KEYFRAME_TOPIC = "/hmrta/board_keyframe"
 RESULT_TOPIC = "/hmrta/result"
 GOAL_LEAF = "goal_pose"
 CLOCK_TYPES = ("rosgraph_msgs/msg/Clock", "rosgraph_msgs/Clock")
@@ -160,7 +162,8 @@ def read_recording(path: str | Path) -> Recording:
         raise ReplayError(f"{path}: no such file (expected an MCAP recording)")
     counts: dict[str, int] = {}
     types: dict[str, str] = {}
-    mission_text = result_text = board_text = None
+    mission_text = result_text = keyframe_text = None
+    heads: list[str] = []  # board stream headers (the latest ones)
     poses: dict[str, list[tuple[int, float, float, float]]] = {}  # robot -> (recv ns, stamp, x, y) in frame units
     goals: dict[str, list[tuple[float, float, float]]] = {}
     clock: list[tuple[int, float]] = []
@@ -171,11 +174,16 @@ def read_recording(path: str | Path) -> Recording:
             mission_text = getattr(msg, "data", None)
         elif topic == RESULT_TOPIC:
             result_text = getattr(msg, "data", None)
-        elif topic == BOARD_TOPIC:
-            board_text = getattr(msg, "data", None)
-            head = _board_header(board_text)
+        elif topic in (BOARD_TOPIC, KEYFRAME_TOPIC):
+            text = getattr(msg, "data", None)
+            head = _board_header(text)
             if head is not None and isinstance(head.get("clock"), (int, float)):
                 clock.append((t, float(head["clock"])))
+            if isinstance(text, str) and text.count("\n") == 2:  # a keyframe (or an hmrta-board/1 board)
+                keyframe_text = text
+            elif isinstance(text, str):
+                heads.append(text)
+                del heads[:-50000]
         elif typ in CLOCK_TYPES:
             clock.append((t, _stamp(msg.clock)))
         elif typ in POSE_TYPES and topic.count("/") == 2:
@@ -204,7 +212,7 @@ def read_recording(path: str | Path) -> Recording:
         raise ReplayError(f"{path}: {MISSION_TOPIC}.robots: expected {inst.n_agents} robot names")
     scale = mission.get("scale", 1.0)
     scale = float(scale) if isinstance(scale, (int, float)) and scale > 0 else 1.0
-    plan, source = _plan(inst, mission, result_text, board_text, path)
+    plan, source = _plan(inst, mission, result_text, keyframe_text, heads, path)
     clock.sort()
     horizon = max((c for _, c in clock), default=math.nan)
     tracks = {r: _track(p, clock, horizon, scale) for r, p in poses.items() if r in robots}
@@ -222,28 +230,50 @@ def _board_header(text: Any) -> dict[str, Any] | None:
     return d if isinstance(d, dict) else None
 
 
-def _plan(inst: Instance, mission: dict, result_text: Any, board_text: Any, path: Path) -> tuple[Solution | None, str]:
+def _plan(inst: Instance, mission: dict, result_text: Any, keyframe_text: Any, heads: list[str],
+          path: Path) -> tuple[Solution | None, str]:
     if result_text is not None:
         try:
             return Solution.from_dict(_json(result_text, f"the {RESULT_TOPIC} message", path),
                                       f"{path} {RESULT_TOPIC}"), "result"
         except SolutionError as e:
             raise ReplayError(str(e)) from None
-    if board_text is not None:  # no result (the mission did not finish): the latest board's schedule
-        from .core import MissionState
+    if keyframe_text is not None:  # no result (the mission did not finish): the latest board's schedule
         from .solution import solution_from_state
 
-        parts = board_text.split("\n", 2) if isinstance(board_text, str) else []
-        if len(parts) == 3:
-            try:
-                state = MissionState.from_snapshot(inst, json.loads(parts[2]))
-                sol = solution_from_state(state, str(mission.get("method", "")), int(mission.get("seed", 0)), 0.0)
-                sol.success = False
-                sol.extra["partial"] = True
-                return sol, "board"
-            except (ValueError, KeyError, TypeError) as e:
-                raise ReplayError(f"{path}: the latest {BOARD_TOPIC} message: {e}") from None
+        try:
+            state = _latest_state(inst, keyframe_text, heads)
+            sol = solution_from_state(state, str(mission.get("method", "")), int(mission.get("seed", 0)), 0.0)
+            sol.success = False
+            sol.extra["partial"] = True
+            return sol, "board"
+        except (ValueError, KeyError, TypeError, IndexError) as e:
+            raise ReplayError(f"{path}: the latest board keyframe: {e}") from None
     return None, "none"
+
+
+def _latest_state(inst: Instance, keyframe_text: str, heads: list[str]):
+    """The board's latest state: the keyframe's, with the versions streamed after it applied (as
+    far as they follow on from it); an hmrta-board/1 board's snapshot as it is."""
+    from .core import MissionState
+    from .replica import Frame, Replica
+
+    head, legs, snap = (json.loads(x) for x in keyframe_text.split("\n", 2))
+    if not isinstance(head, dict) or head.get("format") != "hmrta-board/2":
+        return MissionState.from_snapshot(inst, snap)
+    rep = Replica()
+    rep.receive(Frame.from_header(head), lambda: (legs, snap), inst)
+    if rep.state is None:
+        raise ValueError(rep.why)
+    for text in heads:
+        try:
+            rep.receive(Frame.from_header(json.loads(text)))
+        except (ValueError, KeyError, TypeError):
+            continue  # not a board header
+        if rep.state is None:  # diverged: the keyframe's state is what is known for sure
+            rep.receive(Frame.from_header(head), lambda: (legs, snap), inst)
+            break
+    return rep.state
 
 
 def _track(poses: list[tuple[int, float, float, float]], clock: list[tuple[int, float]], horizon: float,

@@ -13,11 +13,13 @@ from typing import Any
 import pytest
 
 from hmrta import keys as K
-from hmrta.board import JOURNAL_FORMAT, RESEND, JournalError, MissionBoard, read_journal
+from hmrta.board import (JOURNAL_FORMAT, KEYFRAME_REPEAT, RESEND, JournalError, MissionBoard, board_header,
+                         read_journal, state_digest)
 from hmrta.core import MissionState
 from hmrta.generators import ScenarioGenerator
 from hmrta.instance import instance_from_dict
 from hmrta.methods import decider, rules, solve
+from hmrta.replica import Frame, Replica
 
 INST = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
 SEED = 3
@@ -61,31 +63,59 @@ def position(inst, legs, t: float) -> tuple[float, float]:
     return pos
 
 
+def replica_of(b: MissionBoard) -> Replica:
+    """The agents' replica of board ``b`` (one per board, fed by :func:`pump`)."""
+    if not hasattr(b, "test_replica"):
+        b.test_replica = Replica(now=b.now)
+    return b.test_replica
+
+
+def pump(b: MissionBoard):
+    """Poll the board and hand what it publishes to the agents' replica, through the wire's JSON;
+    the replica's keyframe requests go back to the board."""
+    v = b.poll()
+    rep = replica_of(b)
+    if v is not None:
+        f = Frame.from_header(json.loads(json.dumps(board_header(v))))
+        rep.receive(f, (lambda: (json.loads(json.dumps(v.legs)), json.loads(v.state_json))) if v.keyframe else None,
+                    mission_instance(b) if v.keyframe else None)
+    ask = rep.request()
+    if ask is not None:
+        b.request(*ask)
+    return v
+
+
 def drive(b: MissionBoard, steps: int | None = None, report: bool = True, max_iter: int = 20000,
           clock: float = math.inf, where=None, tick: float = 0.0) -> int:
-    """Play agents (greedy on the board's snapshot) and robots that arrive at once, until the
-    mission is over, ``steps`` choices were applied or the clock reached ``clock``; returns the
-    choices applied. ``where(a, xy)``: where robot a reports itself when the sim puts it at xy;
-    ``tick``: wall seconds of the fake clock (``b.now``) per round, with the watchdog run."""
+    """Play agents (greedy on their replica of the board's state) and robots that arrive at once,
+    until the mission is over, ``steps`` choices were applied or the clock reached ``clock``;
+    returns the choices applied. ``where(a, xy)``: where robot a reports itself when the sim puts
+    it at xy; ``tick``: wall seconds of the fake clock (``b.now``) per round, with the watchdog
+    run."""
     decide = decider("greedy", SEED)[0]
     inst, names = b.inst, b.names
+    rep = replica_of(b)
     n = 0
     for _ in range(max_iter):
-        b.poll()
+        pump(b)
         if b.finished or (steps is not None and n >= steps) or b.clock >= clock:
             return n
         st = b.state
         if b.phase == "decide":
-            # an agent rebuilds the state on the mission it heard: the grown one once robots joined
-            state = MissionState.from_snapshot(mission_instance(b), json.loads(b._state_json))
-            c = Choice(names[st.agent], b.session, b.version, int(decide(state)))
+            for _ in range(10):  # an agent that missed versions asks for a keyframe and waits for it
+                if rep.current and rep.version == b.version:
+                    break
+                b.now.t += KEYFRAME_REPEAT
+                pump(b)
+            assert rep.current and rep.version == b.version and rep.digest == state_digest(st)
+            c = Choice(names[st.agent], b.session, b.version, int(decide(rep.state)))
             assert b.choice(c) is None
             n += 1
             continue
         if tick:
             b.now.t += tick
             b.tick()
-            b.poll()
+            pump(b)
             if b.finished:
                 return n
             st = b.state

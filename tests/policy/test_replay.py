@@ -19,6 +19,7 @@ from hmrta.formats import load_instance  # noqa: E402
 from hmrta.methods import solve  # noqa: E402
 from hmrta.render import agent_timeline  # noqa: E402
 from hmrta.replay import ReplayError, read_recording, render_recording  # noqa: E402
+from hmrta.solution import solution_from_state  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "policy" / "hmrta" / "data" / "example.yaml"
 STRING = "string data\n"
@@ -59,11 +60,13 @@ def write_recording(path: Path, *, mission=True, result=True, board=False, poses
     msgs: list[tuple[float, str, str, dict]] = []  # (mission time, topic, schema, message)
     if mission:
         msgs.append((-1.0, "/hmrta/mission", "std_msgs/msg/String", {"data": mission_payload(inst, robots)}))
-    if board:
+    if board == "v1":  # a recording made before the board stream: a full board on every version
         snap = MissionState(inst, seed=0).snapshot()
         head = {"format": "hmrta-board/1", "session": "s1", "version": 1, "rev": 0, "phase": "wait", "clock": 0.0}
         msgs.append((0.0, "/hmrta/board", "std_msgs/msg/String",
                      {"data": "\n".join((json.dumps(head), "[]", json.dumps(snap)))}))
+    elif board:  # the board stream and its keyframes, up to the board's version ``board``
+        msgs += board_messages(inst, board)
     for a, segs in enumerate(agent_timeline(inst, sol)):
         for s in segs:
             if s["kind"] == "travel" and poses:
@@ -82,6 +85,37 @@ def write_recording(path: Path, *, mission=True, result=True, board=False, poses
         for i, (t, topic, schema, msg) in enumerate(msgs):
             w.write_message(topic, schemas[schema], msg, log_time=T0 + int(max(t + 1.0, 0) * 1e9) + i)
     return inst, sol, robots
+
+
+def board_messages(inst, until: int) -> list:
+    """What a board publishes (stream headers, keyframes) running greedy on ``inst`` up to its
+    version ``until``; the board is kept in ``board_messages.board``."""
+    from hmrta.board import MissionBoard, board_header
+    from hmrta.baselines import GREEDY_RULES, Greedy
+
+    b = MissionBoard(inst, seed=0, rules=GREEDY_RULES, wait_for_robots=False, tolerance=1e9, keyframe_period=7,
+                     session="s1")
+    for a in range(inst.n_agents):
+        b.pose(a, *inst.depots[a])
+    out = []
+    while b.version < until:
+        v = b.poll()
+        if v is not None:
+            head = json.dumps(board_header(v))
+            out.append((v.clock, "/hmrta/board", "std_msgs/msg/String", {"data": head}))
+            if v.keyframe:
+                text = "\n".join((json.dumps(board_header(v)), json.dumps(v.legs), v.state_json))
+                out.append((v.clock, "/hmrta/board_keyframe", "std_msgs/msg/String", {"data": text}))
+        if b.version >= until:
+            break
+        if b.phase == "decide":
+            c = type("Choice", (), dict(robot=b.names[b.state.agent], session=b.session, version=b.version,
+                                        node=Greedy()(b.state), compute_ms=0.0, payload=None))
+            assert b.choice(c) is None
+        else:
+            b.set_clock(b._key[3])
+    board_messages.board = b
+    return out
 
 
 def test_reads_back_mission_plan_tracks_and_counts(tmp_path):
@@ -115,9 +149,18 @@ def test_late_robots_and_wall_clock_stamps_map_through_the_clock(tmp_path):
 
 
 def test_without_result_the_plan_comes_from_the_board(tmp_path):
-    write_recording(tmp_path / "r.mcap", result=False, board=True)
+    write_recording(tmp_path / "r.mcap", result=False, board="v1")
     rec = read_recording(tmp_path / "r.mcap")
     assert rec.plan_source == "board" and rec.plan.extra["partial"] and not rec.plan.success
+    # the board stream: the latest keyframe with the versions streamed after it applied
+    write_recording(tmp_path / "s.mcap", result=False, board=40)
+    b = board_messages.board
+    rec = read_recording(tmp_path / "s.mcap")
+    assert rec.plan_source == "board" and rec.plan.extra["partial"]
+    assert rec.counts["/hmrta/board"] == 40 and 1 < rec.counts["/hmrta/board_keyframe"] < 40
+    assert rec.routes == [list(map(int, r)) for r in b.state.routes] and any(rec.routes)
+    want = json.loads(json.dumps(solution_from_state(b.state, "greedy", 0, 0.0).to_dict()))["tasks"]
+    assert json.loads(json.dumps(rec.plan.to_dict()))["tasks"] == want
     write_recording(tmp_path / "n.mcap", result=False, board=False, poses=False)
     rec = read_recording(tmp_path / "n.mcap")
     assert rec.plan is None and rec.plan_source == "none" and rec.visits() == [[] for _ in rec.robots]

@@ -79,7 +79,7 @@ def test_every_format_the_code_names_has_a_schema():
             for fmt in FORMAT_RE.findall(p.read_text()):
                 used.setdefault(fmt, str(p.relative_to(ROOT)))
     # the scan finds the formats it must (a broken pattern would make this test pass vacuously)
-    assert {"hmrta-instance/1", "hmrta-solution/1", "hmrta-state/1", "hmrta-mission/1", "hmrta-board/1",
+    assert {"hmrta-instance/1", "hmrta-solution/1", "hmrta-state/1", "hmrta-mission/1", "hmrta-board/2",
             "hmrta-choice/1", "hmrta-status/1", "hmrta-rejection/1"} <= set(used)
     missing = {f: where for f, where in used.items() if f not in ALL}
     assert not missing, f"formats without a schema in docs/schemas/: {missing}"
@@ -217,6 +217,43 @@ def test_snapshots_validate_after_robot_loss():
     assert_valid("hmrta-state/1", as_json(state.snapshot()))
 
 
+def test_board_stream_headers_and_keyframes_validate():
+    """What the board publishes through a mission with dynamic events: every version's header
+    (its events are journal records) and every keyframe (header with until, legs, state)."""
+    from hmrta.board import MissionBoard, board_header
+    from hmrta.generators import ScenarioGenerator as G
+
+    inst = G("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    b = MissionBoard(inst, seed=3, rules=GREEDY_RULES, wait_for_robots=False, tolerance=1e9)
+    for a in range(inst.n_agents):
+        b.pose(a, *inst.depots[a])
+    kinds, keyframes = set(), 0
+    for i in range(5000):
+        v = b.poll()
+        if v is not None:
+            head = as_json(board_header(v))
+            assert_valid("hmrta-board/2", head)
+            assert ("until" in head) == v.keyframe
+            kinds |= {ev["type"] for ev in head["ev"]}
+            if v.keyframe:
+                keyframes += 1
+                assert_valid("hmrta-board/2#/$defs/legs", as_json(v.legs))
+                assert_valid("hmrta-board/2#/$defs/state", json.loads(v.state_json))
+        if b.finished:
+            break
+        if i == 30:
+            b.task_request("add", "op-1", {"location": [0.5, 0.5], "requirements": [1, 0, 0], "duration": 1.0})
+            b.lose(2, "test")
+        if b.phase == "decide":
+            c = type("Choice", (), dict(robot=b.names[b.state.agent], session=b.session, version=b.version,
+                                        node=Greedy()(b.state), compute_ms=0.0, payload=None))
+            assert b.choice(c) is None
+        else:
+            b.set_clock(b._key[3])
+    assert b.finished and keyframes >= 2
+    assert {"start", "choice", "arrival", "advance", "add_task", "drop_agent"} <= kinds
+
+
 def test_snapshot_fields_are_public():
     inst = load_instance(EXAMPLE)
     state = MissionState(inst, seed=1, rules=Rules(max_open=2))
@@ -261,7 +298,7 @@ def _set(path, value):
 BAD_SNAPSHOTS = [  # (mutation, error message, whether the schema alone rejects it too)
     (_set(("format",), KeyError), "missing field 'format'", True),
     (_set(("format",), "hmrta-state/2"), "unsupported version 'hmrta-state/2'", True),
-    (_set(("format",), "hmrta-board/1"), "format: expected 'hmrta-state/1', got 'hmrta-board/1'", True),
+    (_set(("format",), "hmrta-board/2"), "format: expected 'hmrta-state/1', got 'hmrta-board/2'", True),
     (_set(("format",), 1), "format: expected 'hmrta-state/1'", True),
     (_set(("clock",), "soon"), "clock: expected a finite number", True),
     (_set(("decisions",), -1), "decisions: expected an integer >= 0", True),

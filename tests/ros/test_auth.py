@@ -123,7 +123,7 @@ def test_forged_unsigned_and_replayed_choices_are_rejected_and_the_mission_equal
                      "the board and the simulated robot to listen")
     v, text = watch.board.version, watch.msg.data
     seq0 = watch.board.legs[d][0]
-    state = MissionState.from_snapshot(inst, C.board_from_msg(watch.msg).state)
+    state = MissionState.from_snapshot(inst, watch.board.state)
     good = Greedy()(state)
     admissible = [n for n, ok in enumerate(state.mask()) if ok]
     bad = next((n for n in admissible if n != good), good)  # would change the plan if it were applied

@@ -32,7 +32,7 @@ REGISTRY = Registry().with_resources((s["$id"], Resource.from_contents(s)) for s
 
 
 def schema_errors(fmt: str, doc) -> list[str]:
-    """Errors of doc against the published schema of fmt (``hmrta-board/1#/$defs/legs`` for a part)."""
+    """Errors of doc against the published schema of fmt (``hmrta-board/2#/$defs/legs`` for a part)."""
     v = jsonschema.Draft202012Validator({"$ref": fmt}, registry=REGISTRY)
     return [f"{list(e.absolute_path)}: {e.message[:200]}" for e in v.iter_errors(doc)]
 
@@ -62,12 +62,20 @@ def _mid_state() -> MissionState:
     return state
 
 
+EVENTS = ({"type": "choice", "t": 1.5, "until": 1.5, "robot": 2, "node": 3, "version": 6, "latency_ms": 0.4,
+           "compute_ms": 0.2}, {"type": "arrival", "t": 1.5, "robot": 0, "ptr": 1})
+
+
 def _board(state: MissionState, **kw) -> C.Board:
+    """A keyframe of ``state`` (``keyframe=False``: the stream header of the same version)."""
     legs = tuple((2, ((1, 0.25, 0.5, 0.0), (0, 0.1, 0.2, 3.5))) if a % 2 else None for a in range(state.A))
     d = dict(session="s1", version=7, rev=3, phase="decide", decider=state.agent, clock=float(state.clock),
              horizon=float(state.clock), n_done=int(state.n_done), n_cancelled=0, n_tasks=state.M, lost=(1, 3),
-             legs=legs, state=state.snapshot())
+             legs=legs, state=state.snapshot(), events=EVENTS, digest="0123456789abcdef", until=float(state.clock),
+             keyframe=True)
     d.update(kw)
+    if not d["keyframe"]:
+        d.update(legs=None, state=None, until=None)
     return C.Board(**d)
 
 
@@ -113,7 +121,8 @@ def test_board_round_trip_rebuilds_the_exact_state():
     b = _board(state)
     msg = C.board_to_msg(b)
     back = C.board_from_msg(msg)
-    assert back.header() == b.header()
+    assert back.keyframe and back.header() == b.header() and back.prev == 6 and back.events == EVENTS
+    assert back.until == b.until and back.digest == b.digest
     assert back.legs == b.legs
     restored = MissionState.from_snapshot(INST, back.state)
     assert json.dumps(restored.snapshot()) == json.dumps(state.snapshot())  # NaN-safe comparison
@@ -124,6 +133,31 @@ def test_board_round_trip_rebuilds_the_exact_state():
     assert h.legs is None and h.state is None and h.header() == b.header()
     # the state line may be serialised once by the caller
     assert C.board_to_msg(b, C.state_to_json(b.state)).data == msg.data
+
+
+def test_a_stream_header_is_one_line_with_the_versions_events():
+    state = _mid_state()
+    head = C.board_to_msg(_board(state, keyframe=False))
+    assert "\n" not in head.data and "until" not in json.loads(head.data)
+    back = C.board_from_msg(head)
+    assert not back.keyframe and back.legs is None and back.state is None and back.until is None
+    assert back.events == EVENTS and back.prev == 6 and back.digest == "0123456789abcdef"
+    assert back.header() == {k: v for k, v in C.board_from_msg(C.board_to_msg(_board(state))).header().items()
+                             if k != "until"}
+    with pytest.raises(ValueError, match="a keyframe needs legs and state"):
+        C.board_to_msg(dataclasses.replace(_board(state), legs=None))
+
+
+def test_keyframe_requests_round_trip_and_validate():
+    r = C.KeyframeRequest("s1", 41, "missed version(s) 42..42", "host:12")
+    d = json.loads(C.keyframe_request_to_msg(r).data)
+    assert_valid("hmrta-keyframe-request/1", d)
+    assert C.keyframe_request_from_msg(C.keyframe_request_to_msg(r)) == r
+    assert C.keyframe_request_from_msg(C.keyframe_request_to_msg(C.KeyframeRequest("s1", -1))).version == -1
+    for bad in ({**d, "version": -2}, {**d, "version": "1"}, {k: v for k, v in d.items() if k != "session"}):
+        with pytest.raises(C.DecodeError):
+            C.keyframe_request_from_msg(_msg(json.dumps(bad)))
+        assert schema_errors("hmrta-keyframe-request/1", bad)
 
 
 def test_board_decoder_shares_one_decoded_copy():
@@ -138,6 +172,8 @@ def test_board_decoder_shares_one_decoded_copy():
     assert json.dumps(s1) == json.dumps(state.snapshot())
     b3 = dec.decode(C.board_to_msg(_board(state, version=8)))
     assert b3 is not b1 and b3.version == 8
+    head = C.board_to_msg(_board(state, version=9, keyframe=False))
+    assert dec.decode(head).version == 9 and dec.state(head) is None
 
 
 def test_small_payload_round_trips():
@@ -182,10 +218,11 @@ def test_boards_validate_against_their_schemas(steps):
         n += 1
     board = _board(state, phase="done" if state.done else "decide", lost=() if state.done else (1, 3))
     head, legs, snap = C.board_to_msg(board).data.split("\n")
-    assert_valid("hmrta-board/1", json.loads(head))
-    assert_valid("hmrta-board/1#/$defs/legs", json.loads(legs))
+    assert_valid("hmrta-board/2", json.loads(head))
+    assert_valid("hmrta-board/2#/$defs/legs", json.loads(legs))
     assert_valid("hmrta-state/1", json.loads(snap))
-    assert_valid("hmrta-board/1#/$defs/state", json.loads(snap))
+    assert_valid("hmrta-board/2#/$defs/state", json.loads(snap))
+    assert_valid("hmrta-board/2", json.loads(C.board_to_msg(dataclasses.replace(board, keyframe=False)).data))
     assert json.loads(snap)["done"] == (steps is None)
 
 
@@ -212,19 +249,22 @@ def _encoded() -> dict[str, tuple[str, object]]:
         "hmrta-status/1": (C.status_to_msg(C.Status(("robot_1",), "s1", 9)).data, C.status_from_msg),
         "hmrta-rejection/1": (C.rejection_to_msg(C.Rejection("stale", "old")).data, C.rejection_from_msg),
         "hmrta-solution/1": (C.result_to_msg(solve(INST, "greedy", 1).to_dict()).data, C.result_from_msg),
-        "hmrta-board/1": (C.board_to_msg(_board(state)).data, C.board_from_msg),
+        "hmrta-board/2": (C.board_to_msg(_board(state)).data, C.board_from_msg),
+        "hmrta-keyframe-request/1": (C.keyframe_request_to_msg(C.KeyframeRequest("s1", 3)).data,
+                                     C.keyframe_request_from_msg),
     }
 
 
 @pytest.mark.parametrize("fmt", ["hmrta-mission/1", "hmrta-choice/1", "hmrta-status/1", "hmrta-rejection/1",
-                                 "hmrta-solution/1", "hmrta-board/1"])
+                                 "hmrta-solution/1", "hmrta-board/2", "hmrta-keyframe-request/1"])
 def test_decoders_reject_unknown_formats_and_versions_with_the_reason(fmt):
     text, decode = _encoded()[fmt]
     decode(_msg(text))  # the encoded message decodes
     name = fmt.rpartition("/")[0]
     first, sep, rest = text.partition("\n")  # a board's header is its first line
     d = json.loads(first)
-    cases = [({**d, "format": f"{name}/2"}, f"{fmt}: unsupported version '{name}/2' (this build reads '{fmt}')"),
+    other = f"{name}/{int(fmt.rpartition('/')[2]) + 1}"
+    cases = [({**d, "format": other}, f"{fmt}: unsupported version '{other}' (this build reads '{fmt}')"),
              ({**d, "format": f"{name}/0"}, f"{fmt}: unsupported version '{name}/0'"),
              ({**d, "format": "hmrta-other/1"}, f"expected format '{fmt}', got 'hmrta-other/1'"),
              ({**d, "format": 1}, f"expected format '{fmt}', got 1"),
@@ -240,8 +280,8 @@ def test_decoders_reject_unknown_formats_and_versions_with_the_reason(fmt):
 def test_board_state_of_an_unknown_version_is_rejected():
     state = MissionState(INST, seed=2, rules=GREEDY_RULES)
     head, legs, snap = C.board_to_msg(_board(state)).data.split("\n")
-    for fmt, reason in [("hmrta-state/2", "hmrta-board/1.state: hmrta-state/1: unsupported version 'hmrta-state/2'"),
-                        ("hmrta-board/1", "hmrta-board/1.state: expected format 'hmrta-state/1', got 'hmrta-board/1'")]:
+    for fmt, reason in [("hmrta-state/2", "hmrta-board/2.state: hmrta-state/1: unsupported version 'hmrta-state/2'"),
+                        ("hmrta-board/2", "hmrta-board/2.state: expected format 'hmrta-state/1', got 'hmrta-board/2'")]:
         msg = _msg("\n".join((head, legs, json.dumps({**json.loads(snap), "format": fmt}))))
         with pytest.raises(C.DecodeError, match="^" + reason.replace(".", r"\.").replace("(", r"\(")):
             C.board_from_msg(msg)
@@ -284,8 +324,11 @@ def test_markers_round_trip():
 def test_topic_names_and_qos_are_declared_once():
     from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 
-    assert topics.BOARD_QOS.durability == DurabilityPolicy.TRANSIENT_LOCAL and topics.BOARD_QOS.depth == 1
-    assert topics.BOARD_QOS.reliability == ReliabilityPolicy.RELIABLE
+    assert topics.KEYFRAME_QOS.durability == DurabilityPolicy.TRANSIENT_LOCAL and topics.KEYFRAME_QOS.depth == 1
+    assert topics.KEYFRAME_QOS.reliability == ReliabilityPolicy.RELIABLE
+    # the stream: deep (a reader behind for a while loses nothing), volatile (no stale history)
+    assert topics.BOARD_QOS.reliability == ReliabilityPolicy.RELIABLE and topics.BOARD_QOS.depth >= 1000
+    assert topics.BOARD_QOS.durability == DurabilityPolicy.VOLATILE
     assert topics.CHOICE_QOS.reliability == ReliabilityPolicy.RELIABLE and topics.CHOICE_QOS.depth >= 50
     assert topics.robot_topic("robot_3", topics.POSE) == "/robot_3/pose"
     assert topics.robot_topic("/fleet/tb3/", topics.GOAL) == "/fleet/tb3/goal_pose"
@@ -320,10 +363,12 @@ def test_malformed_boards_missions_and_statuses_raise_decode_error():
     state = _mid_state()
     good = C.board_to_msg(_board(state)).data
     head, legs, snap = good.split("\n", 2)
-    for text in ["", "x", head, head + "\n" + legs, f"{head}\n[[1]]\n{snap}", f"{head}\n{legs}\n[1]",
+    for text in ["", "x", head + "\n" + legs, f"{head}\n[[1]]\n{snap}", f"{head}\n{legs}\n[1]",
                  f"{head}\n{legs}\n{{", good.replace('"phase":"decide"', '"phase":"dancing"'),
                  good.replace('"version":7', '"version":"7"'), f'{head}\n[[0,[[1,0,0]]]]\n{snap}',
-                 f'{head}\n[[0,[[1,0.1,0.2,0.0]]]]\n{snap}']:
+                 f'{head}\n[[0,[[1,0.1,0.2,0.0]]]]\n{snap}', head.replace('"ev":[', '"ev":[1,'),
+                 head.replace('"prev":6', '"prev":null'), good.replace(',"until":', ',"untill":'),
+                 head.replace('"digest":"0123456789abcdef"', '"digest":7')]:
         with pytest.raises(C.DecodeError):
             C.board_from_msg(_msg(text))
     inst = INST.to_dict()
@@ -350,7 +395,7 @@ JSON = st.recursive(st.none() | st.booleans() | st.integers() | st.floats(allow_
                     lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=8), c, max_size=5),
                     max_leaves=12)
 FIELDS = st.fixed_dictionaries({}, optional={"format": st.sampled_from(["hmrta-choice/1", "hmrta-status/1",
-                                                                          "hmrta-board/1", "x"]),
+                                                                          "hmrta-board/2", "x"]),
                                              "robot": JSON, "robots": JSON, "session": JSON, "version": JSON,
                                              "node": JSON, "seq": JSON, "compute_ms": JSON, "phase": JSON})
 
@@ -359,7 +404,7 @@ FIELDS = st.fixed_dictionaries({}, optional={"format": st.sampled_from(["hmrta-c
 @given(st.one_of(st.text(max_size=40), JSON.map(json.dumps), FIELDS.map(json.dumps)))
 def test_fuzzed_payloads_decode_or_raise_decode_error(text):
     for decode in (C.choice_from_msg, C.status_from_msg, C.board_from_msg, C.mission_from_msg,
-                   C.rejection_from_msg, C.result_from_msg):
+                   C.rejection_from_msg, C.result_from_msg, C.keyframe_request_from_msg):
         try:
             decode(_msg(text))
         except C.DecodeError:

@@ -168,9 +168,10 @@ def test_foreign_clock_moves_nothing(tmp_path, graph, mission_procs):
         sent[0] += 1
 
     node.create_timer(0.05, tick)
-    boards: list[C.Board] = []
-    node.create_subscription(String, topics.BOARD, lambda m: boards.append(C.board_from_msg(m, state=False)),
-                             topics.BOARD_QOS)
+    boards: list[C.Board] = []  # the stream's headers, and the keyframes (latched: a mission over before
+    # this node discovered the board still leaves its final keyframe)
+    for name, qos in ((topics.BOARD, topics.BOARD_QOS), (topics.KEYFRAME, topics.KEYFRAME_QOS)):
+        node.create_subscription(String, name, lambda m: boards.append(C.board_from_msg(m, state=False)), qos)
     procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots_of(inst), seed=seed,
                           agents_per_process=6, board_params={"progress_period": 0.0})
     graph.spin_until(lambda: boards, 60, "the first board")

@@ -20,6 +20,7 @@ from hmrta.baselines import GREEDY_RULES, Greedy
 from hmrta.core import MissionState
 from hmrta.generators import ScenarioGenerator
 from hmrta.methods import solve
+from hmrta.replica import Replica
 from hmrta.sim import simulate
 
 rclpy = pytest.importorskip("rclpy")
@@ -45,19 +46,67 @@ def assert_same_as_offline(result: dict, inst, seed: int, method: str = "greedy"
 
 
 class BoardWatch:
-    """Keeps the latest board (and every version seen) from a test node."""
+    """Follows the board from a test node as an agent does: a replica of its state built from the
+    keyframes and the stream, asking for a keyframe when it needs one. ``board`` is the latest
+    version the replica holds (header, every robot's legs, the state snapshot), ``msg`` its stream
+    message, ``versions`` every version it held."""
 
     def __init__(self, node):
         self.msg: String | None = None
         self.board: C.Board | None = None
         self.versions: list[int] = []
         self.changed_at = time.monotonic()
+        self.replica = Replica()
+        self.inst = None
+        self._early: tuple | None = None
+        self._sessions: set[str] = set()
+        self._texts: dict[int, str] = {}  # stream messages by version (the latest few)
+        node.create_subscription(String, topics.MISSION, self._on_mission, topics.MISSION_QOS)
         node.create_subscription(String, topics.BOARD, self._on, topics.BOARD_QOS)
+        node.create_subscription(String, topics.KEYFRAME, self._on_keyframe, topics.KEYFRAME_QOS)
+        self._ask = node.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
+        node.create_timer(0.3, self._request)
+
+    def _on_mission(self, msg: String) -> None:
+        self.inst = C.mission_from_msg(msg).instance
+        if self._early is not None:
+            self._on_keyframe(*self._early)
+
+    def _on_keyframe(self, msg: String, latched: bool | None = None) -> None:
+        b = C.board_from_msg(msg)
+        if latched is None:  # the first keyframe of a session may be an old one (latched)
+            latched = b.session not in self._sessions
+            self._sessions.add(b.session)
+        if self.inst is None:
+            self._early = (msg, latched)
+            return
+        self._take(b, lambda: (b.legs, b.state), latched)
 
     def _on(self, msg: String) -> None:
-        self.msg, self.board = msg, C.board_from_msg(msg)
-        self.versions.append(self.board.version)
-        self.changed_at = time.monotonic()
+        b = C.board_from_msg(msg)
+        self._texts[b.version] = msg.data
+        for v in [v for v in self._texts if v < b.version - 50]:
+            del self._texts[v]
+        self._take(b, None, False)
+
+    def _take(self, b, keyframe, latched: bool) -> None:
+        r = self.replica
+        r.receive(b, keyframe, self.inst, latched)
+        if r.current and (self.board is None or r.version != self.board.version):
+            head = r.head
+            self.board = dataclasses.replace(head, legs=tuple(r.legs(a) for a in range(r.state.A)),
+                                             state=r.state.snapshot(), until=None, keyframe=False)
+            text = self._texts.get(r.version) or C.board_to_msg(dataclasses.replace(self.board, legs=None)).data
+            self.msg = String(data=text)
+            self.versions.append(r.version)
+            self.changed_at = time.monotonic()
+        self._request()
+
+    def _request(self) -> None:
+        ask = self.replica.request()
+        if ask is not None:
+            self._ask.publish(C.keyframe_request_to_msg(C.KeyframeRequest(self.replica.session or "", *ask,
+                                                                          "test BoardWatch")))
 
     def stable(self, seconds: float) -> bool:
         return self.board is not None and time.monotonic() - self.changed_at > seconds
@@ -95,6 +144,33 @@ def test_sim_time_mission_equals_offline_solve(tmp_path, domain, per_process):
     assert_same_as_offline(result, inst, 3)
     assert result["lost_robots"] == [] and result["undone_tasks"] == []
     assert result["transport"] == "ros2" and result["decision_latency_ms"]["n"] > 0
+
+
+def test_lost_board_messages_are_recovered_from_keyframes_and_the_mission_equals_offline(tmp_path, graph,
+                                                                                       mission_procs):
+    """Both agent processes drop the board messages of some versions once, as if DDS had lost them
+    (agent_node --ignore-board-version): a replica that gets a later version sees the gap, asks the
+    board for a keyframe and resynchronises; one whose lost version was the latest gets it again
+    when the idle board repeats it. The sim-time mission still equals the offline rollout."""
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    robots, seed = robots_of(inst), 3
+    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots, seed=seed, no_agent=robots,
+                          board_params={"progress_period": 0.0})
+    lost = [x for v in range(4, 60, 3) for x in ("--ignore-board-version", str(v))]
+    for i, group in enumerate((robots[:3], robots[3:])):
+        procs.agents.append(procs._spawn(f"lossy_agents_{i}", "hmrta_agent.agent_node",
+                                         ["--robots", ",".join(group), *lost, "--ros-args", "-p", f"seed:={seed}"]))
+    wait_board_exit(graph, procs, 150)
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert_same_as_offline(result, inst, seed)
+    assert result["lost_robots"] == [] and result["board_keyframes"].get("requested", 0) >= 1
+    logs = [agent.log.read_text() for agent in procs.agents]
+    for log in logs:
+        assert "ignoring the board header of version 4 " in log and "ignoring the board header of version 25 " in log
+        assert "diverged" not in log and "does not load" not in log
+    gaps = sum(log.count("asking for a keyframe (missed version(s)") for log in logs)
+    print(f"{result['board_versions']} versions, keyframes {result['board_keyframes']}; {gaps} gaps asked for")
+    assert gaps >= 1 and "keyframe asked for by" in procs.board.log.read_text()
 
 
 def test_robot_loss_releases_commitments_and_completes_satisfiable_tasks(tmp_path, graph, mission_procs):
@@ -158,7 +234,7 @@ def test_hostile_traffic_never_changes_the_board_and_late_joiners_get_it(tmp_pat
                      "the board and the simulated robot to listen")
     v, text = watch.board.version, watch.msg.data
     seq0 = watch.board.legs[d][0]
-    state = MissionState.from_snapshot(inst, C.board_from_msg(watch.msg).state)
+    state = MissionState.from_snapshot(inst, watch.board.state)
     good = Greedy()(state)
     masked = [n for n, ok in enumerate(state.mask()) if not ok]
 

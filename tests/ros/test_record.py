@@ -53,7 +53,7 @@ def test_recorded_sim_mission_reads_back_with_the_same_routes(tmp_path, domain):
     assert rec.plan.makespan == result["makespan"]
     # every mission topic and every robot's goals and poses, with messages
     robots = [f"robot_{a}" for a in range(inst.n_agents)]
-    expected = {topics.MISSION, topics.BOARD, topics.CHOICE, topics.RESULT, topics.CLOCK}
+    expected = {topics.MISSION, topics.BOARD, topics.KEYFRAME, topics.CHOICE, topics.RESULT, topics.CLOCK}
     expected |= {topics.robot_topic(r, leaf) for r in robots for leaf in (topics.GOAL, topics.POSE)}
     missing = sorted(expected - {t for t, n in rec.counts.items() if n > 0})
     assert not missing, f"not recorded: {missing}; recorded {rec.counts}"

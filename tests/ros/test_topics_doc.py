@@ -32,7 +32,8 @@ def _qos_text(q) -> str:
 def test_every_topic_has_a_row_with_its_qos_and_no_other_rows():
     rows = _rows()
     named = {
-        topics.MISSION: topics.MISSION_QOS, topics.BOARD: topics.BOARD_QOS, topics.CHOICE: topics.CHOICE_QOS,
+        topics.MISSION: topics.MISSION_QOS, topics.BOARD: topics.BOARD_QOS, topics.KEYFRAME: topics.KEYFRAME_QOS,
+        topics.KEYFRAME_REQUESTS: topics.KEYFRAME_REQUEST_QOS, topics.CHOICE: topics.CHOICE_QOS,
         topics.STATUS: topics.STATUS_QOS, topics.REJECTIONS: topics.REJECTION_QOS, topics.RESULT: topics.RESULT_QOS,
         topics.MARKERS: topics.MARKER_QOS, topics.CLOCK: topics.CLOCK_QOS,
         topics.TASK_REQUESTS: topics.TASK_REQUEST_QOS, topics.TASK_EVENTS: topics.TASK_EVENT_QOS,

@@ -1,15 +1,19 @@
 """agent_node: one robot's decision maker.
 
-Builds its view only from received topics: the mission (``/hmrta/mission``), the board
-(``/hmrta/board``) and the mission clock (``clock_topic``, default ``/hmrta/clock``; never
-``/clock``); the agents hosted in one process share one
-subscription to each (decoded once) and one copy of the policy. When the board names this robot
-as the current decider, its agent rebuilds the mission state from the board's snapshot, runs its
-own copy of the policy and publishes its choice (``/hmrta/choice``, tagged with the board session
-and version it answers). The board lists every leg the robot must drive (its own choices and
-automatic ones such as going home); when the mission clock reaches a leg's departure time the
-agent publishes it as a ``geometry_msgs/PoseStamped`` goal on ``goal_pose`` (stamp = departure
-time), which a Nav2 navigator or ``sim_robot`` consumes unchanged. A heartbeat on
+Builds its view only from received topics: the mission (``/hmrta/mission``), the board stream
+(``/hmrta/board``: every version's events) and keyframes (``/hmrta/board_keyframe``), and the
+mission clock (``clock_topic``, default ``/hmrta/clock``; never ``/clock``); the agents hosted in
+one process share one subscription to each, one replica of the board's state machine
+(:class:`hmrta.replica.Replica`: it starts from a keyframe and applies every version's events;
+a version it misses, or a state whose digest differs from the board's, makes it ask for a keyframe
+on ``/hmrta/keyframe_requests``, again every second until one comes, with the reason in the log)
+and one copy of the policy. When the board names this robot as the current decider, its agent
+runs its own copy of the policy on the replica's state and publishes its choice
+(``/hmrta/choice``, tagged with the board session and version it answers). The board's state
+lists every leg the robot must drive (its own choices and automatic ones such as going home);
+when the mission clock reaches a leg's departure time the agent publishes it as a
+``geometry_msgs/PoseStamped`` goal on ``goal_pose`` (stamp = departure time), which a Nav2
+navigator or ``sim_robot`` consumes unchanged. A heartbeat on
 ``/hmrta/agent_status`` tells the board it is alive (sent only once the board and the robot's
 driver listen, so that nothing the agent sends is lost).
 
@@ -49,12 +53,13 @@ from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
-from hmrta.core import MissionState
 from hmrta.keys import KeystoreError, Signer, load_key_file, load_keystore
 from hmrta.methods import MethodError, decider
+from hmrta.replica import Replica
 from hmrta_msgs_py import topics
-from hmrta_msgs_py.codec import (BoardDecoder, Choice, DecodeError, Join, Mission, Status, choice_to_msg,
-                                 clock_from_msg, mission_from_msg, pose_from_msg, pose_to_msg, status_to_msg)
+from hmrta_msgs_py.codec import (Choice, DecodeError, Join, KeyframeRequest, Mission, Status, board_from_msg,
+                                 choice_to_msg, clock_from_msg, keyframe_request_to_msg, mission_from_msg,
+                                 pose_from_msg, pose_to_msg, status_to_msg)
 from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, spin_nodes
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
@@ -68,23 +73,28 @@ RESEND_AFTER = 1.0
 
 class Host:
     """What the agents of one process share: the policy (one read-only copy of the weights), one
-    subscription each to the mission, the board and the clock (decoded once, then handed to every
-    agent), and the heartbeat."""
+    subscription each to the mission, the board stream, the keyframes and the clock (decoded
+    once), one replica of the board's state, and the heartbeat."""
 
     def __init__(self) -> None:
-        self.boards = BoardDecoder()
+        self.replica = Replica()
         self._deciders: dict[tuple, Any] = {}
         self._mission_text: str | None = None
         self.mission: Mission | None = None
-        self.board_msg: String | None = None  # the latest board
         self.agents: list["AgentNode"] = []
         self.all_done = Future()
         self._seq = 0
         self._status_pub = None
+        self._request_pub = None
         self.clock = 0.0
         self.keys: dict[str, bytes] = {}  # the hosted robots' keys (authenticated missions)
         self.signer: Signer | None = None  # one per process: its counter orders every message it signs
         self._keystores: dict[str, dict[str, bytes]] = {}
+        self._dispatched = -1  # the replica version the agents last acted on
+        self._kf_sessions: set[str] = set()  # sessions a keyframe was received for (the first may be old)
+        self._early: list[tuple[String, bool]] = []  # keyframes that came before the mission
+        self.ignore: set[int] = set()  # testing (--ignore-board-version): versions dropped once, as if lost
+        self._ignored: set[tuple[int, bool]] = set()
 
     def add_key(self, robot: str, keystore: str, key_file: str) -> None:
         """Load ``robot``'s key from a keystore folder or from its own key file (KeystoreError:
@@ -111,13 +121,16 @@ class Host:
         return self._deciders[key]
 
     def attach(self, node: Node, period: float) -> None:
-        """Subscribe the mission, the board and the clock, and start the heartbeat (one status
-        message per period lists every robot this process hosts), on one node of the process."""
+        """Subscribe the mission, the board stream, the keyframes and the clock, and start the
+        heartbeat (one status message per period lists every robot this process hosts), on one
+        node of the process."""
         self._node = node
         node.create_subscription(String, topics.MISSION, self._on_mission, topics.MISSION_QOS)
         node.create_subscription(String, topics.BOARD, self._on_board, topics.BOARD_QOS)
+        node.create_subscription(String, topics.KEYFRAME, self._on_keyframe, topics.KEYFRAME_QOS)
         node.create_subscription(Clock, getattr(node, "clock_topic", topics.CLOCK), self._on_clock, topics.CLOCK_QOS)
         self._status_pub = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
+        self._request_pub = node.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
         self._host = f"{socket.gethostname()}:{os.getpid()}"
         node.create_timer(period, self._beat)
         self._beat()
@@ -133,26 +146,101 @@ class Host:
         self._mission_text = msg.data
         for a in self.agents:
             a.join(self.mission)
+        early, self._early = self._early, []
+        for kf, latched in early:  # the two latched topics arrive in either order
+            self._on_keyframe(kf, latched)
 
+    # ------------------------------------------------------------------------------------------
+    # the board: stream and keyframes -> the replica -> the agents
+    # ------------------------------------------------------------------------------------------
     def _on_board(self, msg: String) -> None:
-        self.board_msg = msg
-        self.dispatch()
-
-    def dispatch(self) -> None:
-        """Hand the latest board (decoded once) to every agent of the process."""
         t_recv = time.perf_counter()
-        if self.board_msg is None or self.mission is None:
-            return  # the two latched topics arrive in either order: act once both are here
         try:
-            board = self.boards.decode(self.board_msg)
+            b = board_from_msg(msg, legs=False, state=False)
         except DecodeError as e:
             self._node.get_logger().error(f"ignoring malformed board: {e}", throttle_duration_sec=10.0)
             return
-        if board.session != self.mission.session:
+        if not self._lost(b.version, False):
+            self._take(b, None, False, t_recv)
+
+    def _on_keyframe(self, msg: String, latched: bool | None = None) -> None:
+        t_recv = time.perf_counter()
+        try:
+            b = board_from_msg(msg, legs=False, state=False)
+        except DecodeError as e:
+            self._node.get_logger().error(f"ignoring malformed keyframe: {e}", throttle_duration_sec=10.0)
             return
-        first = [a for a in self.agents if a.index == board.decider] if board.decider is not None else []
+        if latched is None:  # the first keyframe of a session may be the old one a latched topic kept
+            latched = b.session not in self._kf_sessions
+            self._kf_sessions.add(b.session)
+        if self.mission is None:
+            self._early = [(msg, latched)]
+            return
+        if not self._lost(b.version, True):
+            self._take(b, lambda: self._keyframe_parts(msg), latched, t_recv)
+
+    @staticmethod
+    def _keyframe_parts(msg: String) -> tuple[Any, dict[str, Any]]:
+        full = board_from_msg(msg)
+        return full.legs, full.state
+
+    def _lost(self, version: int, keyframe: bool) -> bool:
+        """Testing (``--ignore-board-version``): the messages of that version are dropped once."""
+        if version in self.ignore and (version, keyframe) not in self._ignored:
+            self._ignored.add((version, keyframe))
+            self._node.get_logger().warning(f"ignoring the board {'keyframe' if keyframe else 'header'} of version "
+                                            f"{version} (--ignore-board-version: as if it were lost)")
+            return True
+        return False
+
+    def _take(self, b, keyframe, latched: bool, t_recv: float) -> None:
+        m = self.mission
+        if m is not None and b.session != m.session:
+            return
+        r = self.replica
+        before = r.why
+        out = r.receive(b, keyframe, m.instance if m is not None else None, latched)
+        if out in ("diverged", "bad") or (out == "ahead" and r.synced and r.why != before):
+            self._node.get_logger().warning(f"board replica: {r.why}: asking for a keyframe")
+        self._ask()
+        if r.current and r.version != self._dispatched:
+            self.dispatch(t_recv)
+
+    def _ask(self) -> None:
+        """Send the replica's keyframe request, if it has one now (it repeats it every second
+        until it is current again; the log says why and for how long)."""
+        if self._request_pub is None:
+            return
+        ask = self.replica.request()
+        if ask is None:
+            return
+        version, why = ask
+        r = self.replica
+        waited = (r.asked_at or 0.0) - (r.asking_since or 0.0)
+        if waited > 0:
+            self._node.get_logger().warning(f"board replica: no keyframe {waited:.1f} s after asking ({why}); "
+                                            "asking again", throttle_duration_sec=5.0)
+        else:
+            self._node.get_logger().info(f"board replica: asking for a keyframe ({why})")
+        self._request_pub.publish(keyframe_request_to_msg(KeyframeRequest(self.replica.session or "", version, why,
+                                                                          self._host)))
+
+    def dispatch(self, t_recv: float | None = None) -> None:
+        """Hand the replica's version to every agent of the process (once it is current)."""
+        t_recv = time.perf_counter() if t_recv is None else t_recv
+        r = self.replica
+        if not r.current or self.mission is None or r.head.session != self.mission.session:
+            return
+        head, st = r.head, r.state
+        self._dispatched = r.version
+        first = [a for a in self.agents if a.index == head.decider] if head.decider is not None else []
+        lost = set(head.lost)
         for a in first + [a for a in self.agents if a not in first]:  # the decider first: latency
-            a.act(board, t_recv)
+            i = a.index
+            if (head.phase != "done" and i is not None and i != head.decider and i < st.A and i not in lost
+                    and a.ready and not a.finished and a.leg_seq == st.leg_seq(i)):
+                continue  # nothing new for it (hundreds of robots in one process: most versions concern few)
+            a.act(head, t_recv)
 
     def _on_clock(self, msg: Clock) -> None:
         t = clock_from_msg(msg)
@@ -166,7 +254,9 @@ class Host:
         if not rclpy.ok():
             return
         if any(not a.ready and a.is_ready() for a in self.agents):
+            self._dispatched = -1
             self.dispatch()  # what they saw while not ready (they held back: their messages would be lost)
+        self._ask()  # a replica still waiting for a keyframe asks again
         sessions: dict[str, list[str]] = {}
         joining: list[Join] = []
         for a in self.agents:
@@ -176,14 +266,10 @@ class Host:
                 joining.append(Join(a.robot, a.species_param, None, a.position()))
         if joining:
             sessions.setdefault(self.mission.session, [])
-        if self.board_msg is not None and self.mission is not None:
-            try:
-                board = self.boards.decode(self.board_msg)
-            except DecodeError:
-                board = None
-            if board is not None and board.session == self.mission.session:
-                for a in self.agents:
-                    a.resend(board)
+        r = self.replica
+        if r.current and self.mission is not None and r.head.session == self.mission.session:
+            for a in self.agents:
+                a.resend(r.head)
         for session, robots in sessions.items():
             self._seq += 1
             join = tuple(joining) if self.mission is not None and session == self.mission.session else ()
@@ -261,7 +347,7 @@ class AgentNode(Node):
         the mission and the board and both the board (choices) and the robot's driver (goals) are
         listening, so that nothing it sends is lost."""
         if not self.ready:
-            self.ready = (self.mission is not None and self.host.board_msg is not None
+            self.ready = (self.mission is not None and self.host.replica.synced
                           and self.choice_pub.get_subscription_count() > 0
                           and self.goal_pub.get_subscription_count() > 0)
         return self.ready
@@ -315,7 +401,8 @@ class AgentNode(Node):
         return theirs == mine
 
     def act(self, board, t_recv: float) -> None:
-        """Follow the board: queue this robot's new legs, decide when it is its turn."""
+        """Follow the board (the header of the replica's version): queue this robot's new legs,
+        decide when it is its turn."""
         if self.mission is None and board.phase == "done":  # never added: the mission is over
             return self._finish()
         if self.mission is None or self.finished or not self.is_ready() or board.session != self.mission.session:
@@ -324,7 +411,7 @@ class AgentNode(Node):
         if a in board.lost:
             self._warn_once("lost", f"{self.robot}: the board declared this robot lost; stopping")
             return self._finish()
-        entry = board.legs[a] if a < len(board.legs) else None
+        entry = self.host.replica.legs(a, self.leg_seq)
         if entry is not None:
             self._take_legs(*entry)
         if board.phase == "done":
@@ -364,12 +451,7 @@ class AgentNode(Node):
             self.get_logger().debug(f"goal node {node} at ({x:.3f}, {y:.3f}), departing t={depart:.3f}")
 
     def _decide(self, version: int, t_recv: float) -> None:
-        try:
-            snap = self.host.boards.state(self.host.board_msg)
-            state = MissionState.from_snapshot(self.mission.instance, snap)
-        except (DecodeError, KeyError, TypeError, ValueError) as e:
-            self.get_logger().error(f"cannot rebuild the mission state from board {version}: {e}")
-            return
+        state = self.host.replica.state  # shared by the agents of the process: deciders only read it
         if state.agent != self.index:
             self.get_logger().error(f"board {version} names agent {self.index} but its state's decider is "
                                     f"{state.agent}: not answering")
@@ -432,11 +514,15 @@ def main(args: list[str] | None = None) -> None:
     p.add_argument("--torch-threads", type=int, default=1,
                    help="intra-op threads of the learned policy (decisions are small batches: one thread is "
                         "fastest, and several agent processes on one machine must not oversubscribe its cores)")
+    p.add_argument("--ignore-board-version", type=int, action="append", default=[], metavar="V",
+                   help="testing: drop the board messages of version V once, as if they were lost (the process's "
+                        "replica recovers from a keyframe); repeatable")
     cli = p.parse_args(remove_ros_args(argv)[1:])
     if cli.torch_threads < 1:
         p.error("--torch-threads: expected a positive integer")
     rclpy.init(args=argv)
     host = Host()
+    host.ignore.update(cli.ignore_board_version)
     try:
         if cli.robots:
             lean = LEAN_NODE if len(cli.robots) > 1 else {}

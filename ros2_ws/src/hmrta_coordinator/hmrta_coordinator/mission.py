@@ -107,7 +107,9 @@ class MissionProcesses:
     max_restarts: int = 3  # per process (the board only when it has a journal to resume from)
     journal: Path | None = None  # the board's journal: a board that dies is restarted on it
     incidents: list[str] = field(default_factory=list)  # what died and what was done about it
-    last_board: str | None = None  # the latest board message seen by run_monitor (its text)
+    last_board: str | None = None  # the latest keyframe seen by run_monitor (its text)
+    board_tail: list[str] = field(default_factory=list)  # the latest stream headers seen (a partial result
+    # applies those after the keyframe to its state)
     record: Path | None = None  # record the mission to this MCAP file (the recorder node)
     recorder: Child | None = None  # started first, stopped last (not among children())
 
@@ -275,8 +277,9 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
                 on_board: Callable[[Any], None] | None = None) -> str:
     """Follow the board with a progress bar until the board process exits, restarting the
     simulated-robot and agent processes that die (``MissionProcesses.supervise``); returns "ok"
-    if the board exited cleanly within ``timeout``, else what went wrong. The latest board seen
-    stays in ``procs.last_board``; ``on_board`` (if given) is called with each board header."""
+    if the board exited cleanly within ``timeout``, else what went wrong. The latest keyframe
+    seen stays in ``procs.last_board`` and the stream headers since in ``procs.board_tail``;
+    ``on_board`` (if given) is called with each board header."""
     import rclpy
     from rosgraph_msgs.msg import Clock
     from std_msgs.msg import String
@@ -286,14 +289,18 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
     from hmrta_msgs_py.codec import DecodeError, board_from_msg, clock_from_msg
     from hmrta_msgs_py.runtime import LEAN_NODE
 
+    from rclpy.executors import SingleThreadedExecutor
+
     rclpy.init(args=[])
     node = rclpy.create_node("mission_monitor", **LEAN_NODE)
+    executor = SingleThreadedExecutor()  # one executor for the whole run: every ready subscription gets its turn
+    executor.add_node(node)
     tty = sys.stderr.isatty()
     bar = tqdm(total=n_tasks, desc="mission", unit="task", disable=quiet or not tty, file=sys.stderr,
                bar_format="{desc}: {n_fmt}/{total_fmt} tasks |{bar}| {elapsed} {postfix}")
     told = [-1]  # without a terminal: one line per quarter of the tasks
 
-    seen = {"clock": math.nan, "phase": ""}  # mission clock (topics.CLOCK), board phase
+    seen = {"clock": math.nan, "phase": ""}  # mission clock (topics.CLOCK or the board's), board phase
 
     def when() -> str:
         return f" at t={seen['clock']:.3f}" if seen["clock"] == seen["clock"] else " before the mission clock started"
@@ -308,8 +315,11 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
             b = board_from_msg(msg, legs=False, state=False)
         except DecodeError:
             return
-        procs.last_board = msg.data
+        procs.board_tail.append(msg.data)
+        del procs.board_tail[:-20000]  # bounded (a partial result then holds the keyframe's state)
         seen["phase"] = b.phase
+        if not b.clock <= seen["clock"]:  # the board's mission time, when the clock topic is not heard yet
+            seen["clock"] = b.clock
         if on_board is not None:
             on_board(b)
         n = b.n_done + b.n_cancelled
@@ -321,13 +331,17 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
             told[0] = 4 * n // max(n_tasks, 1)
             print(f"mission: {n}/{n_tasks} tasks, {info}", file=sys.stderr, flush=True)
 
-    node.create_subscription(String, topics.BOARD, board_cb, topics.BOARD_QOS)
+    def keyframe_cb(msg: String) -> None:
+        procs.last_board = msg.data
+
     node.create_subscription(Clock, topics.CLOCK, clock_cb, topics.CLOCK_QOS)
+    node.create_subscription(String, topics.BOARD, board_cb, topics.BOARD_QOS)
+    node.create_subscription(String, topics.KEYFRAME, keyframe_cb, topics.KEYFRAME_QOS)
     deadline = time.monotonic() + timeout
     status = f"timed out after {timeout:g} s"
     try:
         while time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.1)
+            executor.spin_once(timeout_sec=0.1)
             rc = procs.board.proc.poll()
             if rc is not None and rc != 0 and procs.journal is not None and procs.board.restarts < procs.max_restarts:
                 procs.board.restarts += 1
@@ -338,7 +352,7 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
                 continue
             if rc is not None:
                 for _ in range(10):  # boards already received but not yet taken
-                    rclpy.spin_once(node, timeout_sec=0.02)
+                    executor.spin_once(timeout_sec=0.02)
                 status = "ok" if rc == 0 else f"board process died ({exit_text(rc)}){when()}"
                 if rc != 0:
                     procs.incidents.append(status + "; not restarted (the board's state lives in that process)")
@@ -353,6 +367,8 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
             procs.incidents.append(status)
     finally:
         bar.close()
+        executor.remove_node(node)
+        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return status
@@ -365,14 +381,19 @@ def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: 
     from std_msgs.msg import String
 
     from hmrta.core import MissionState
+    from hmrta.replica import Replica
     from hmrta.solution import solution_from_state
     from hmrta_msgs_py.codec import DecodeError, board_from_msg
 
     state, b = None, None
-    if procs.last_board is not None:
+    if procs.last_board is not None:  # the latest keyframe, and the versions streamed after it
         try:
-            b = board_from_msg(String(data=procs.last_board))
-            state = MissionState.from_snapshot(inst, b.state)
+            kf = board_from_msg(String(data=procs.last_board))
+            rep = Replica()
+            rep.receive(kf, lambda: (kf.legs, kf.state), inst)
+            for text in procs.board_tail:
+                rep.receive(board_from_msg(String(data=text), legs=False, state=False))
+            state, b = (rep.state, rep.head) if rep.synced else (MissionState.from_snapshot(inst, kf.state), kf)
         except (DecodeError, KeyError, TypeError, ValueError):
             state, b = None, None
     if state is None:  # no board seen: nothing was done

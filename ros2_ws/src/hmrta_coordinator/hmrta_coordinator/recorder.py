@@ -127,7 +127,9 @@ def known_topics(markers: bool, clock_topic: str = topics.CLOCK) -> dict[str, tu
     S = "std_msgs/msg/String"
     out = {
         topics.MISSION: (S, _qos(1, True, True)),
-        topics.BOARD: (S, _qos(100, True, True)),
+        topics.BOARD: (S, _qos(1000, True, False)),
+        topics.KEYFRAME: (S, _qos(10, True, True)),
+        topics.KEYFRAME_REQUESTS: (S, _qos(1000, True, False)),
         topics.RESULT: (S, _qos(1, True, True)),
         topics.CHOICE: (S, _qos(1000, True, False)),
         topics.STATUS: (S, _qos(1000, True, False)),

@@ -13,16 +13,21 @@ Robots added during the mission (a robot that joined, a scenario's ``add_robot``
 mission the board publishes again (same session); the node simulates the new ones from where the
 board's state has them (their first leg's start).
 
-Restart: the node starts from the latched mission and board, not from zero. The clock resumes at
-the board's horizon (the latest instant the board allowed; in as-fast-as-possible mode exactly
-where the previous process stopped) and each robot's position and in-flight legs are rebuilt from
-the legs the board lists, so a ``sim_robot`` that died (and was restarted by ``hmrta-mission``)
-continues the mission. A goal it already has (same pose, same departure) or one older than the
-leg a robot is driving is a repeat from a resynchronising agent and is ignored.
+Restart: the node starts from the latched mission and the board, not from zero: it keeps a replica
+of the board's state (:class:`hmrta.replica.Replica`: the latched keyframe, the stream's events,
+a keyframe request when it misses versions or the keyframe may be old) until it holds the current
+version. The clock resumes at the board's horizon (the latest instant the board allowed; in
+as-fast-as-possible mode exactly where the previous process stopped) and each robot's position and
+in-flight legs are rebuilt from the legs the board lists, so a ``sim_robot`` that died (and was
+restarted by ``hmrta-mission``) continues the mission. A goal it already has (same pose, same
+departure) or one older than the leg a robot is driving is a repeat from a resynchronising agent
+and is ignored.
 """
 from __future__ import annotations
 
 import math
+import os
+import socket
 import sys
 import time
 from dataclasses import dataclass, field
@@ -36,9 +41,10 @@ from rclpy.task import Future
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
+from hmrta.replica import Replica
 from hmrta_msgs_py import topics
-from hmrta_msgs_py.codec import (DecodeError, Mission, board_from_msg, clock_to_msg, mission_from_msg,
-                                 pose_from_msg, pose_to_msg)
+from hmrta_msgs_py.codec import (DecodeError, KeyframeRequest, Mission, board_from_msg, clock_to_msg,
+                                 keyframe_request_to_msg, mission_from_msg, pose_from_msg, pose_to_msg)
 from hmrta_msgs_py.runtime import spin_nodes
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
@@ -97,14 +103,19 @@ class SimRobot(Node):
         self.robots: dict[str, SimulatedRobot] = {}
         self.now = 0.0
         self.horizon = 0.0
-        self._early_board: String | None = None  # a board that came before the mission
-        self._last_board: String | None = None  # the latest board (robots added later are placed from it)
-        self.synced = False  # clock and robots rebuilt from the first board (start or restart)
+        self._early: list[tuple[String, bool]] = []  # board messages that came before the mission
+        self._last_keyframe = None  # the latest keyframe (robots added later are placed from it)
+        self._kf_sessions: set[str] = set()  # sessions a keyframe was received for (the first may be old)
+        self.replica: Replica | None = Replica()  # until synced: the board's state, to start from
+        self.synced = False  # clock and robots rebuilt from the board's current version (start or restart)
         self._early_goals: list[tuple[SimulatedRobot, PoseStamped]] = []  # goals before that
         self.done = Future()
         self.pub_clock = self.create_publisher(Clock, clock_topic, topics.CLOCK_QOS)
         self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
         self.create_subscription(String, topics.BOARD, self.on_board, topics.BOARD_QOS)
+        self.create_subscription(String, topics.KEYFRAME, self.on_keyframe, topics.KEYFRAME_QOS)
+        self.pub_request = self.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
+        self._who = f"{socket.gethostname()}:{os.getpid()} sim_robot"
         self.create_timer(heartbeat, self.on_heartbeat)
         if self.time_scale > 0:
             self._wall = time.monotonic()
@@ -135,8 +146,9 @@ class SimRobot(Node):
             self._simulate(n, a, placed=True)
         self.get_logger().info(f"simulating {len(self.robots)} robot(s) at velocity {inst.velocity:g}; "
                                + ("as fast as possible" if self.time_scale <= 0 else f"x{self.time_scale:g} real time"))
-        if self._early_board is not None:
-            self.on_board(self._early_board)
+        early, self._early = self._early, []
+        for msg, keyframe in early:  # the latched topics may arrive in either order
+            (self.on_keyframe if keyframe else self.on_board)(msg)
 
     def _simulate(self, n: str, a: int, placed: bool) -> SimulatedRobot:
         inst = self.mission.instance
@@ -158,14 +170,13 @@ class SimRobot(Node):
             self._simulate(n, m.index(n), placed=False)
         if new:
             self.get_logger().info(f"simulating {len(new)} robot(s) added to the mission: {', '.join(new)}")
-            if self._last_board is not None:
-                self.on_board(self._last_board)
+            if self.synced and self._last_keyframe is not None:
+                self._place(self._last_keyframe.state["agents"]["from"])
 
-    def _place(self, b) -> None:
-        """Put robots added during the mission where the board's state has them (the start of
-        their current leg: where they were added, as long as they have not driven on), then give
-        them the goals that came first."""
-        frm = (b.state or {}).get("agents", {}).get("from", [])
+    def _place(self, frm) -> None:
+        """Put robots added during the mission where the board's state has them (``frm``: the
+        start of each robot's current leg: where it was added, as long as it has not driven on),
+        then give them the goals that came first."""
         for r in self.robots.values():
             if r.placed or r.index >= len(frm):
                 continue
@@ -178,23 +189,63 @@ class SimRobot(Node):
             r.pub.publish(pose_to_msg(r.position(self.now), self.now, m.frame_id, m.scale))
 
     def on_board(self, msg: String) -> None:
+        """A version of the board stream: its horizon moves the clock; before the node is in sync
+        its events go to the replica."""
         if self.mission is None:
-            self._early_board = msg  # the two latched topics may arrive in either order
+            self._early.append((msg, False))
+            del self._early[:-1000]
             return
-        self._early_board = None
-        self._last_board = msg
-        unplaced = any(not r.placed for r in self.robots.values())
         try:
-            b = board_from_msg(msg, legs=not self.synced, state=not self.synced or unplaced)
+            b = board_from_msg(msg, legs=False, state=False)
         except DecodeError as e:
             self.get_logger().error(f"ignoring malformed board: {e}")
             return
         if b.session != self.mission.session:
             return
         if not self.synced:
-            self.resync(b)
-        if unplaced:
-            self._place(b)
+            return self._sync(b, None, False)
+        self._follow(b)
+
+    def on_keyframe(self, msg: String) -> None:
+        if self.mission is None:
+            self._early = [e for e in self._early if not e[1]] + [(msg, True)]
+            return
+        try:
+            b = board_from_msg(msg)
+        except DecodeError as e:
+            self.get_logger().error(f"ignoring malformed keyframe: {e}")
+            return
+        if b.session != self.mission.session:
+            return
+        latched = b.session not in self._kf_sessions  # the first one may be the old one a latched topic kept
+        self._kf_sessions.add(b.session)
+        self._last_keyframe = b
+        if not self.synced:
+            return self._sync(b, lambda: (b.legs, b.state), latched)
+        if any(not r.placed for r in self.robots.values()):
+            self._place(b.state["agents"]["from"])
+        self._follow(b)
+
+    def _sync(self, b, keyframe, latched: bool) -> None:
+        """Feed the replica until it holds the board's current version, then start from it."""
+        r = self.replica
+        r.receive(b, keyframe, self.mission.instance, latched)
+        self._ask()
+        if r.current:
+            self.replica = None
+            self.resync(r)
+            self._follow(r.head)
+
+    def _ask(self) -> None:
+        ask = self.replica.request() if self.replica is not None else None
+        if ask is None:
+            return
+        version, why = ask
+        self.get_logger().info(f"asking the board for a keyframe ({why})", throttle_duration_sec=5.0)
+        self.pub_request.publish(keyframe_request_to_msg(KeyframeRequest(self.replica.session or "", version, why,
+                                                                          self._who)))
+
+    def _follow(self, b) -> None:
         self.horizon = max(self.horizon, b.horizon)
         if b.phase == "done":
             self.advance(max(self.now, b.clock))
@@ -204,18 +255,19 @@ class SimRobot(Node):
         if self.time_scale <= 0:
             self.advance(self.horizon)
 
-    def resync(self, b) -> None:
-        """Start from the board (first board seen): the clock at its horizon, every robot on the
-        legs the board lists for it (all of them from its depot when the board still has its whole
-        history, else from its latest legs), then the goals that came before the board."""
-        m = self.mission
+    def resync(self, rep: Replica) -> None:
+        """Start from the board's current version (held by the replica ``rep``): the clock at its
+        horizon, every robot on the legs the board lists for it (all of them from its depot when
+        the board still has its whole history, else from its latest legs), then the goals that
+        came before."""
+        m, b, st = self.mission, rep.head, rep.state
         self.synced = True
         self.now = self.horizon = float(b.horizon)
-        agents = (b.state or {}).get("agents", {})
+        self._place(st.from_pos)  # robots added during the mission
         resumed = 0
         for r in self.robots.values():
             a = m.index(r.name)
-            entry = b.legs[a] if b.legs is not None and a < len(b.legs) else None
+            entry = rep.legs(a) if a is not None else None
             if not entry or not entry[1]:
                 continue
             seq, legs = entry
@@ -223,12 +275,10 @@ class SimRobot(Node):
             if seq > len(legs):  # older legs are gone: where did the first remaining one start?
                 _, x, y, depart = legs[0]
                 r.base = (x, y)  # unknown: arriving at once never holds the board's clock
-                try:  # the state's current leg, when it is this one, knows its start
-                    to, dep, frm = agents["to"][a], agents["depart"][a], agents["from"][a]
-                    if (abs(to[0] - x) <= EPS and abs(to[1] - y) <= EPS and abs(dep - depart) <= EPS):
-                        r.base = (float(frm[0]), float(frm[1]))
-                except (KeyError, IndexError, TypeError):
-                    pass
+                # the state's current leg, when it is this one, knows its start
+                to, dep, frm = st.to_pos[a], float(st.depart[a]), st.from_pos[a]
+                if abs(to[0] - x) <= EPS and abs(to[1] - y) <= EPS and abs(dep - depart) <= EPS:
+                    r.base = (float(frm[0]), float(frm[1]))
             for node, x, y, depart in legs:
                 if node == RESEND:
                     continue  # a goal re-sent to a late robot: the leg it repeats is listed already
@@ -307,6 +357,7 @@ class SimRobot(Node):
 
     def on_heartbeat(self) -> None:
         if self.mission is None or not self.synced:
+            self._ask()  # still waiting for the board's current version: ask again
             return
         m = self.mission
         for r in self.robots.values():

@@ -1,8 +1,13 @@
 """task_board: the mission's shared state, owned by the SPEC §3 state machine (hmrta.core).
 
-The board never decides for anyone. It publishes the mission (``/hmrta/mission``) and the board
-(``/hmrta/board``: header, legs, full state snapshot; reliable + transient local) naming the robot
-whose turn it is; that robot's agent answers on ``/hmrta/choice`` with the board version it saw.
+The board never decides for anyone. It publishes the mission (``/hmrta/mission``) and the board:
+every version on the board stream (``/hmrta/board``: a header naming the robot whose turn it is,
+with the events applied since the previous version and the state's digest), and now and then a
+keyframe (``/hmrta/board_keyframe``: the header, every robot's latest legs and the full state
+snapshot; latched). Agents keep a replica of the state by applying the events
+(:mod:`hmrta.replica`); one that misses a version asks for a keyframe on
+``/hmrta/keyframe_requests``. The robot whose turn it is answers on ``/hmrta/choice`` with the
+board version it saw.
 The board validates every message (schema, known and live robot, version, turn, mask) and
 applies valid choices with ``MissionState.step``; anything else is rejected with a logged reason
 (also published on ``/hmrta/rejections``) and never changes the board.
@@ -43,8 +48,8 @@ that fail keep nobody alive.
 
 Journal (``journal`` parameter: a path; empty: off): every board version is appended to a
 JSON-lines journal before it is published (the events it applies fsynced first); a board started
-on an existing journal replays it, keeps the mission session and version numbers, and goes on:
-agents and robots resynchronise from the latched board and re-send what was lost in flight.
+on an existing journal replays it, keeps the mission session and version numbers, and goes on
+with a keyframe: agents and robots resynchronise from it and re-send what was lost in flight.
 
 The protocol itself (validation, clock and arrival gate, robot loss, journal, result) lives in
 :mod:`hmrta.board` (``MissionBoard``, no ROS); this node maps parameters, topics and timers onto it.
@@ -80,9 +85,9 @@ from hmrta.methods import rules as method_rules
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mission, Rejection, TaskEvent,
                                  board_to_msg, pose_type,
-                                 choice_from_msg, clock_from_msg, markers_to_msg, mission_to_msg, pose_from_msg,
-                                 rejection_to_msg, request_id_of, result_to_msg, status_from_msg,
-                                 task_event_to_msg, task_request_from_msg)
+                                 choice_from_msg, clock_from_msg, keyframe_request_from_msg, markers_to_msg,
+                                 mission_to_msg, pose_from_msg, rejection_to_msg, request_id_of, result_to_msg,
+                                 status_from_msg, task_event_to_msg, task_request_from_msg)
 from hmrta_msgs_py.runtime import declare_method_parameters, spin_nodes
 
 
@@ -123,6 +128,7 @@ class TaskBoard(Node):
         # the board's receive queues of choices and heartbeats (messages): deep enough to ride out the
         # moments the board process is not scheduled while junk floods the topics, bounded in memory
         queue_depth = int(P("queue_depth", 2000).value)
+        keyframe_period = int(P("keyframe_period", 0).value)  # versions between keyframes (0: by size)
 
         if not path:
             raise ValueError("task_board: set the mission file: -p instance:=PATH")
@@ -148,7 +154,8 @@ class TaskBoard(Node):
                                   tolerance=tolerance / scale, scale=scale, leg_timeout_factor=leg_timeout_factor,
                                   leg_timeout_floor=leg_timeout_floor, heartbeat_timeout=heartbeat_timeout,
                                   decision_timeout=decision_timeout, startup_timeout=startup_timeout,
-                                  wait_for_robots=wait_for_robots, journal=journal or None, log=self._log)
+                                  wait_for_robots=wait_for_robots, journal=journal or None,
+                                  keyframe_period=keyframe_period, log=self._log)
         self.names = self.board.names  # the board's list: robots that join are appended to it
         self.mission = Mission(self.board.session, inst, tuple(names), self.seed, self.method, frame_id, scale,
                                rules=rules)
@@ -162,14 +169,18 @@ class TaskBoard(Node):
         self._marker_key = None
         self._last_progress = 0.0
         self._published_at = self._clock_at = time.monotonic()
+        self._streamed = 0  # the latest version published
 
         self.pub_mission = self.create_publisher(String, topics.MISSION, topics.MISSION_QOS)
         self.pub_board = self.create_publisher(String, topics.BOARD, topics.BOARD_QOS)
+        self.pub_keyframe = self.create_publisher(String, topics.KEYFRAME, topics.KEYFRAME_QOS)
         self.pub_result = self.create_publisher(String, topics.RESULT, topics.RESULT_QOS)
         self.pub_rej = self.create_publisher(String, topics.REJECTIONS, topics.REJECTION_QOS)
         self.pub_markers = self.create_publisher(MarkerArray, topics.MARKERS, topics.MARKER_QOS)
         self.pub_task_events = self.create_publisher(String, topics.TASK_EVENTS, topics.TASK_EVENT_QOS)
         self.create_subscription(String, topics.TASK_REQUESTS, self.on_task_request, topics.TASK_REQUEST_QOS)
+        self.create_subscription(String, topics.KEYFRAME_REQUESTS, self.on_keyframe_request,
+                                 topics.KEYFRAME_REQUEST_QOS)
         self.create_subscription(String, topics.CHOICE, self.on_choice, _deeper(topics.CHOICE_QOS, queue_depth))
         self.create_subscription(String, topics.STATUS, self.on_status, _deeper(topics.STATUS_QOS, queue_depth))
         self.create_subscription(Clock, clock_topic, self.on_clock, topics.CLOCK_QOS)
@@ -223,21 +234,30 @@ class TaskBoard(Node):
                                f"(added: {', '.join(self.names[self.inst.n_agents:])})")
 
     def _flush(self) -> None:
-        """Publish the board's new version, if any (it is journaled before it returns); the
-        mission first when robots were added."""
+        """Publish the board's new version, if any (it is journaled before it returns): its
+        header on the stream, and the keyframe when it is one; the mission first when robots
+        were added."""
         if self.board.robots_changed:
             self._republish_mission()
         v = self.board.poll()
         self._task_events()
         if v is None:
             return
-        if v.phase == "done":
+        new = v.version > self._streamed  # not a header or keyframe published again
+        self._streamed = max(self._streamed, v.version)
+        if v.phase == "done" and new:
             self._finish()
         b = Board(v.session, v.version, v.rev, v.phase, v.decider, v.clock, v.horizon, v.n_done, v.n_cancelled,
-                  v.n_tasks, v.lost, v.legs)
-        self.pub_board.publish(board_to_msg(b, v.state_json))
-        self._published_at = time.monotonic()
-        if v.phase == "done" and self.exit_on_done:  # linger briefly so that the final board and result reach everyone
+                  v.n_tasks, v.lost, prev=v.prev, events=v.events, digest=v.digest)
+        if v.stream:
+            self.pub_board.publish(board_to_msg(b))
+        if v.keyframe:
+            kf = dataclasses.replace(b, legs=v.legs, until=v.until, keyframe=True)
+            self.pub_keyframe.publish(board_to_msg(kf, v.state_json))
+        if new:
+            self._published_at = time.monotonic()
+        if v.phase == "done" and new and self.exit_on_done:
+            # linger briefly so that the final board and result reach everyone
             self._exit_timer = self.create_timer(1.0, self._exit)
 
     def _task_events(self) -> None:
@@ -246,6 +266,21 @@ class TaskBoard(Node):
             self.pub_task_events.publish(task_event_to_msg(TaskEvent(e["id"], e["event"], e["t"], e.get("task"),
                                                                      e.get("reason") or "", e.get("op", ""),
                                                                      e.get("request_id", ""))))
+
+    def on_keyframe_request(self, msg: String) -> None:
+        """A replica asks for a keyframe (it missed versions, diverged, or joined late)."""
+        try:
+            r = keyframe_request_from_msg(msg)
+        except DecodeError as e:
+            self.board.malformed()
+            return self._reject("malformed", f"malformed keyframe request: {e}")
+        if r.session != self.board.session:
+            return
+        if r.version != self.board.version:
+            self.get_logger().info(f"keyframe asked for by {r.who or 'a replica'} at version {r.version} (board "
+                                   f"{self.board.version}): {r.reason}", throttle_duration_sec=2.0)
+        self.board.request(r.version, r.reason)
+        self._flush()
 
     def on_task_request(self, msg: String) -> None:
         try:

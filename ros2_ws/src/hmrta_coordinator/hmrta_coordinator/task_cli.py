@@ -7,8 +7,11 @@
 ``add`` and ``cancel`` publish an ``hmrta-task-request/1`` on ``/hmrta/task_requests`` and wait
 for the board's answer on ``/hmrta/task_events`` (``hmrta-task-event/1``): the request carries a
 fresh ``request_id`` that the board echoes, so only the answer to this very request counts (never
-a stored answer to an earlier request for the same task id); ``list`` reads the latched board. Exit status: 0 accepted (or listed), 3 rejected by the board (the reason is
-printed), 1 no answer within ``--timeout`` seconds (no board on this ROS domain?), 2 user error.
+a stored answer to an earlier request for the same task id); ``list`` asks the board for a
+keyframe of its current version (``/hmrta/keyframe_requests``) and prints its tasks (the latched
+keyframe when the board does not answer within a few seconds: a mission that is over). Exit
+status: 0 accepted (or listed), 3 rejected by the board (the reason is printed), 1 no answer
+within ``--timeout`` seconds (no board on this ROS domain?), 2 user error.
 """
 from __future__ import annotations
 
@@ -55,8 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     from std_msgs.msg import String
 
     from hmrta_msgs_py import topics
-    from hmrta_msgs_py.codec import (DecodeError, TaskRequest, board_from_msg, task_event_from_msg,
-                                     task_request_to_msg)
+    from hmrta_msgs_py.codec import (DecodeError, KeyframeRequest, TaskRequest, board_from_msg,
+                                     keyframe_request_to_msg, task_event_from_msg, task_request_to_msg)
 
     rclpy.init(args=[], domain_id=args.domain_id) if args.domain_id is not None else rclpy.init(args=[])
     node = rclpy.create_node(f"hmrta_task_{uuid.uuid4().hex[:6]}")
@@ -64,13 +67,28 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.cmd == "list":
             got: list = []
-            node.create_subscription(String, topics.BOARD, got.append, topics.BOARD_QOS)
+            node.create_subscription(String, topics.KEYFRAME, got.append, topics.KEYFRAME_QOS)
+            ask = node.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
             while not got and time.monotonic() < deadline:
                 rclpy.spin_once(node, timeout_sec=0.1)
             if not got:
                 print(f"hmrta-task: no board within {args.timeout:g} s (is a mission running on this ROS domain?)",
                       file=sys.stderr)
                 return 1
+            try:
+                b = board_from_msg(got[-1])
+            except DecodeError as e:
+                print(f"hmrta-task: unreadable board: {e}", file=sys.stderr)
+                return 1
+            # the latched keyframe may be older than the board's version: ask for the current one
+            fresh = min(deadline, time.monotonic() + 3.0)
+            n = len(got)
+            while len(got) == n and time.monotonic() < fresh:
+                if ask.get_subscription_count() > 0:
+                    ask.publish(keyframe_request_to_msg(KeyframeRequest(b.session, -1, "hmrta-task list")))
+                end = time.monotonic() + 0.5
+                while len(got) == n and time.monotonic() < min(end, fresh):
+                    rclpy.spin_once(node, timeout_sec=0.05)
             try:
                 b = board_from_msg(got[-1])
             except DecodeError as e:

@@ -8,11 +8,15 @@ validates what it reads and raises :class:`DecodeError` (one line, names the fie
 malformed, an unknown format or an unknown version; nothing else escapes a ``*_from_msg``. Writers
 emit exactly the published schema; readers ignore fields they do not know.
 
-Board wire format (``hmrta-board/1``): three JSON documents separated by newlines (JSON text
-never contains a raw newline): the header (small), the legs (one entry per robot) and the full
-mission-state snapshot (``hmrta-state/1``, :meth:`hmrta.core.MissionState.snapshot`). Readers
-that only need the header never parse the rest; :class:`BoardDecoder` shares one decoded copy
-between the nodes of a process.
+Board wire format (``hmrta-board/2``): the board stream (``/hmrta/board``) carries one header
+per version: the version, the previous one, the events applied in between (the board's journal
+records, in order) and the state's digest (:mod:`hmrta.replica` applies them). A keyframe
+(``/hmrta/board_keyframe``) is three JSON documents separated by newlines (JSON text never
+contains a raw newline): the same header (with ``until``), the legs (one entry per robot) and the
+full mission-state snapshot (``hmrta-state/1``, :meth:`hmrta.core.MissionState.snapshot`).
+Readers that only need the header never parse the rest; :class:`BoardDecoder` shares one decoded
+copy between the nodes of a process. A replica that needs a keyframe asks with an
+``hmrta-keyframe-request/1``.
 
 Choices and statuses may be signed (``hmrta.keys``): ``choice_to_msg(c, signer)`` /
 ``status_to_msg(s, signer)`` add ``counter`` and ``mac``; their decoders check the two fields'
@@ -20,6 +24,7 @@ types and keep the decoded object in ``payload`` for the board's verifier.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
@@ -32,20 +37,21 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker, MarkerArray
 
+from hmrta.board import BOARD_FORMAT, board_header
 from hmrta.core import STATE_FORMAT, Rules, parse_rules
 from hmrta.instance import Instance, InstanceError, instance_from_dict
 from hmrta.solution import FORMAT as RESULT_FORMAT
 
 MISSION_FORMAT = "hmrta-mission/1"
-BOARD_FORMAT = "hmrta-board/1"
+KEYFRAME_REQUEST_FORMAT = "hmrta-keyframe-request/1"
 CHOICE_FORMAT = "hmrta-choice/1"
 STATUS_FORMAT = "hmrta-status/1"
 REJECTION_FORMAT = "hmrta-rejection/1"
 TASK_REQUEST_FORMAT = "hmrta-task-request/1"
 TASK_EVENT_FORMAT = "hmrta-task-event/1"
-# every format this module writes (the board's third line is an hmrta-state/1 snapshot)
+# every format this module writes (a keyframe's third line is an hmrta-state/1 snapshot)
 FORMATS = (MISSION_FORMAT, BOARD_FORMAT, STATE_FORMAT, CHOICE_FORMAT, STATUS_FORMAT, REJECTION_FORMAT, RESULT_FORMAT,
-           TASK_REQUEST_FORMAT, TASK_EVENT_FORMAT)
+           TASK_REQUEST_FORMAT, TASK_EVENT_FORMAT, KEYFRAME_REQUEST_FORMAT)
 
 PHASES = ("starting", "wait", "decide", "closing", "done")
 HOLD = -1  # leg node: stay where you are (0 = own depot, 1 + m = task m)
@@ -250,7 +256,7 @@ def mission_from_msg(msg: String) -> Mission:
 
 
 # ---------------------------------------------------------------------------------------------
-# board (header + legs + state snapshot; transient local, depth 1)
+# board: the stream of versions (headers with their events) and keyframes (+ legs + state)
 # ---------------------------------------------------------------------------------------------
 Leg = tuple[int, float, float, float]  # (node, x, y, depart): go to (x, y) when the clock reaches depart
 # per robot: (seq of its latest leg, its latest legs in order, the last one numbered seq); None: lost
@@ -270,22 +276,32 @@ class Board:
     n_cancelled: int
     n_tasks: int
     lost: tuple[int, ...] = ()
-    legs: tuple[RobotLegs | None, ...] | None = None  # per agent; None for a lost robot
-    state: dict[str, Any] | None = field(default=None, repr=False)
+    legs: tuple[RobotLegs | None, ...] | None = None  # keyframes: per agent; None for a lost robot
+    state: dict[str, Any] | None = field(default=None, repr=False)  # keyframes: the hmrta-state/1 snapshot
+    prev: int | None = None  # the version the events apply to (default: version - 1)
+    events: tuple[dict[str, Any], ...] = ()  # the board's journal records of this version, in order
+    digest: str = ""  # hmrta.board.state_digest of the state after the events
+    until: float | None = None  # keyframes: the mission time the board's state may reach
+    keyframe: bool = False  # a keyframe (header, legs and state) rather than a stream header
+
+    def __post_init__(self) -> None:
+        if self.prev is None:
+            object.__setattr__(self, "prev", self.version - 1)
 
     def header(self) -> dict[str, Any]:
-        return {"format": BOARD_FORMAT, "session": self.session, "version": self.version, "rev": self.rev,
-                "phase": self.phase, "decider": self.decider, "clock": self.clock, "horizon": self.horizon,
-                "n_done": self.n_done, "n_cancelled": self.n_cancelled, "n_tasks": self.n_tasks,
-                "lost": list(self.lost)}
+        return board_header(self)
 
 
 def board_to_msg(b: Board, state_json: str | None = None) -> String:
-    """``state_json`` (optional) is ``json.dumps(b.state)`` computed once by the caller."""
+    """A stream header, or (``b.keyframe``) a keyframe: header, legs and state; ``state_json``
+    (optional) is ``json.dumps(b.state)`` computed once by the caller."""
+    head = _dumps(b.header())
+    if not b.keyframe:
+        return _str(head)
     if b.legs is None or (b.state is None and state_json is None):
-        raise ValueError("board_to_msg needs legs and state")
+        raise ValueError("board_to_msg: a keyframe needs legs and state")
     legs = _dumps([None if g is None else [g[0], [list(x) for x in g[1]]] for g in b.legs])
-    return _str("\n".join((_dumps(b.header()), legs, state_json if state_json is not None else state_to_json(b.state))))
+    return _str("\n".join((head, legs, state_json if state_json is not None else state_to_json(b.state))))
 
 
 def state_to_json(state: dict[str, Any]) -> str:
@@ -296,10 +312,20 @@ def state_to_json(state: dict[str, Any]) -> str:
 def _split(data: Any) -> list[str]:
     if not isinstance(data, str):
         raise DecodeError(f"{BOARD_FORMAT}: expected text")
-    return data.split("\n", 2)
+    parts = data.split("\n", 2)
+    if len(parts) not in (1, 3):
+        raise DecodeError(f"{BOARD_FORMAT}: expected a header line, or header, legs and state lines (a keyframe)")
+    return parts
 
 
-def _board_header(text: str) -> Board:
+def _event(e: Any, where: str) -> dict[str, Any]:
+    """An event record's shape (its fields are checked when a replica applies it)."""
+    if not isinstance(e, dict) or not isinstance(e.get("type"), str):
+        raise DecodeError(f"{where}: expected an event object with a type, got {_short(e)}")
+    return e
+
+
+def _board_header(text: str, keyframe: bool) -> Board:
     w = BOARD_FORMAT
     d = _obj(text, w)
     phase = _get(d, "phase", str, w)
@@ -308,9 +334,13 @@ def _board_header(text: str) -> Board:
     lost = _get(d, "lost", list, w)
     if not all(isinstance(a, int) and not isinstance(a, bool) for a in lost):
         raise DecodeError(f"{w}.lost: expected a list of agent indices")
+    events = tuple(_event(e, f"{w}.ev[{i}]") for i, e in enumerate(_get(d, "ev", list, w)))
+    until = _num(d, "until", w, optional=not keyframe)
     return Board(_get(d, "session", str, w), _get(d, "version", int, w), _get(d, "rev", int, w), phase,
                  _get(d, "decider", int, w, optional=True), _num(d, "clock", w), _num(d, "horizon", w),
-                 _get(d, "n_done", int, w), _get(d, "n_cancelled", int, w), _get(d, "n_tasks", int, w), tuple(lost))
+                 _get(d, "n_done", int, w), _get(d, "n_cancelled", int, w), _get(d, "n_tasks", int, w), tuple(lost),
+                 prev=_get(d, "prev", int, w), events=events, digest=_get(d, "digest", str, w), until=until,
+                 keyframe=keyframe)
 
 
 def _leg(g: Any, where: str) -> Leg:
@@ -352,21 +382,24 @@ def _state(text: str) -> dict[str, Any]:
 
 
 def board_from_msg(msg: String, *, legs: bool = True, state: bool = True) -> Board:
-    """Decode a board; ``legs`` / ``state`` False skips parsing those parts (they stay None)."""
+    """Decode a stream header or a keyframe (``keyframe`` tells which); ``legs`` / ``state``
+    False skips parsing a keyframe's legs and state (they stay None)."""
     parts = _split(msg.data)
-    if len(parts) != 3:
-        raise DecodeError(f"{BOARD_FORMAT}: expected header, legs and state lines")
-    b = _board_header(parts[0])
+    b = _board_header(parts[0], len(parts) == 3)
+    if len(parts) == 1:
+        return b
     lg = _legs(parts[1]) if legs else None
     st = _state(parts[2]) if state else None
-    return Board(**{**b.__dict__, "legs": lg, "state": st})
+    return dataclasses.replace(b, legs=lg, state=st)
 
 
 class BoardDecoder:
-    """Decodes each board once per process: nodes hosted together share one read-only copy.
+    """Decodes each board message once per process: nodes hosted together share one read-only
+    copy.
 
-    ``decode(msg)`` returns the header and legs; ``state(msg)`` the snapshot (parsed on first
-    use). Keyed by the header line, which names the board session and version.
+    ``decode(msg)`` returns the header (and a keyframe's legs); ``state(msg)`` a keyframe's
+    snapshot (parsed on first use; None for a stream header). Keyed by the header line, which
+    names the board session and version.
     """
 
     def __init__(self) -> None:
@@ -377,20 +410,46 @@ class BoardDecoder:
 
     def decode(self, msg: String) -> Board:
         data = msg.data
-        cut = data.find("\n") if isinstance(data, str) else -1
-        key = data[:cut] if cut >= 0 else None
-        if key is not None and key == self._key and self._board is not None:
+        parts = _split(data)
+        key = data if len(parts) == 1 else parts[0] + "\n"
+        if key == self._key and self._board is not None:
             return self._board
         b = board_from_msg(msg, legs=True, state=False)
         self._key, self._board = key, b
-        self._state_text, self._state = _split(data)[2], None
+        self._state_text, self._state = (parts[2] if len(parts) == 3 else None), None
         return b
 
-    def state(self, msg: String) -> dict[str, Any]:
+    def state(self, msg: String) -> dict[str, Any] | None:
         self.decode(msg)
-        if self._state is None:
+        if self._state is None and self._state_text is not None:
             self._state = _state(self._state_text)
         return self._state
+
+
+# ---------------------------------------------------------------------------------------------
+# keyframe request (a replica -> board)
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class KeyframeRequest:
+    session: str  # the board session the replica follows
+    version: int  # the replica's version (-1: it has none); the board's current one: a confirmation
+    reason: str = ""  # why (logged by the board)
+    who: str = ""  # the asking process (host:pid), for logs
+
+
+def keyframe_request_to_msg(r: KeyframeRequest) -> String:
+    return _str(_dumps({"format": KEYFRAME_REQUEST_FORMAT, "session": r.session, "version": r.version,
+                        "reason": r.reason[:500], "who": r.who[:256]}))
+
+
+def keyframe_request_from_msg(msg: String) -> KeyframeRequest:
+    w = KEYFRAME_REQUEST_FORMAT
+    d = _obj(msg.data, w)
+    v = _get(d, "version", int, w)
+    if v < -1:
+        raise DecodeError(f"{w}.version: expected a version >= -1, got {v}")
+    return KeyframeRequest(_get(d, "session", str, w), v, _get(d, "reason", str, w, optional=True, default="")[:500],
+                           _get(d, "who", str, w, optional=True, default="")[:256])
 
 
 # ---------------------------------------------------------------------------------------------

@@ -81,6 +81,8 @@ TASK_BOARD: tuple[Param, ...] = (
     Param("journal", STRING, "", "JSON-lines journal of the board, replayed when it exists (empty: none)"),
     Param("rejection_rate", DOUBLE, 200.0, "logged and published rejections per second, at most"),
     Param("queue_depth", INTEGER, 2000, "receive queue depth (messages) of choices and heartbeats"),
+    Param("keyframe_period", INTEGER, 0,
+          "board versions between keyframes (0: whenever the stream has carried as many bytes as a keyframe)"),
 )
 
 SIM_ROBOT: tuple[Param, ...] = (

@@ -10,7 +10,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 # ---- mission-wide topics ------------------------------------------------------------------------
 MISSION = "/hmrta/mission"  # std_msgs/String hmrta-mission/1       board -> all (latched)
-BOARD = "/hmrta/board"  # std_msgs/String hmrta-board/1             board -> all (latched)
+BOARD = "/hmrta/board"  # std_msgs/String hmrta-board/2 header per version (events)  board -> all
+KEYFRAME = "/hmrta/board_keyframe"  # std_msgs/String hmrta-board/2 keyframe: header, legs, state  (latched)
+KEYFRAME_REQUESTS = "/hmrta/keyframe_requests"  # std_msgs/String hmrta-keyframe-request/1  replicas -> board
 CHOICE = "/hmrta/choice"  # std_msgs/String hmrta-choice/1          agents -> board
 STATUS = "/hmrta/agent_status"  # std_msgs/String hmrta-status/1    agents -> board (heartbeat)
 REJECTIONS = "/hmrta/rejections"  # std_msgs/String hmrta-rejection/1  board -> anyone
@@ -40,9 +42,15 @@ def _qos(depth: int, reliable: bool = True, latched: bool = False) -> QoSProfile
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
-# board state, mission and result: reliable + transient local, depth 1 (late joiners get the latest)
+# keyframe, mission and result: reliable + transient local, depth 1 (late joiners get the latest)
 LATCHED_QOS = _qos(1, latched=True)
-BOARD_QOS = MISSION_QOS = RESULT_QOS = LATCHED_QOS
+KEYFRAME_QOS = MISSION_QOS = RESULT_QOS = LATCHED_QOS
+# the board stream: every version in order, reliable with a deep history, so that a reader that
+# falls behind for a while loses nothing (a version it still misses is a gap: it asks for a
+# keyframe). Volatile: a late reader gets no history it could mistake for the present; it starts
+# from the latched keyframe, and an idle board streams its latest header again every 0.25 s
+BOARD_QOS = _qos(1000)
+KEYFRAME_REQUEST_QOS = _qos(100)
 # choices: reliable, deeper queue (a burst of agents must not lose any)
 CHOICE_QOS = _qos(100)
 STATUS_QOS = _qos(50)
