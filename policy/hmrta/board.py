@@ -203,12 +203,10 @@ class Rejected:
 
 
 @dataclass(frozen=True)
-class View:
-    """One board message to publish: a version of the board stream (the header of hmrta-board/2:
-    the events applied since the previous version, in order, and the state's digest) and, for a
-    keyframe, also the legs and the full state. A keyframe repeated on request has ``stream``
-    False (its version was streamed already); a header repeated to confirm a replica's version
-    has ``keyframe`` False and the version already streamed."""
+class Header:
+    """The header of one board version (hmrta-board/2): the events applied since the previous
+    version, in order, and the state's digest. The board publishes :class:`View` s; a replica
+    reads :class:`hmrta.replica.Frame` s."""
     session: str
     version: int
     prev: int  # the version whose state the events apply to
@@ -223,6 +221,14 @@ class View:
     lost: tuple[int, ...]
     events: tuple[dict[str, Any], ...]  # the journal records of this version (hmrta-journal/1 events)
     digest: str  # state_digest of the state after the events
+
+
+@dataclass(frozen=True)
+class View(Header):
+    """One board message to publish: a version of the board stream (its :class:`Header`) and, for
+    a keyframe, also the legs and the full state. A keyframe repeated on request has ``stream``
+    False (its version was streamed already); a header repeated to confirm a replica's version
+    has ``keyframe`` False and the version already streamed."""
     keyframe: bool = False  # also publish the full board: legs and state
     stream: bool = True  # publish the header on the board stream
     reason: str = ""  # why a keyframe: first, period, requested, robots, resumed, done

@@ -31,27 +31,13 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-from .board import BOARD_FORMAT, BoardCore, BoardState, state_digest
+from .board import BOARD_FORMAT, BoardCore, BoardState, Header, state_digest
 from .instance import Instance
 
 
 @dataclass(frozen=True)
-class Frame:
+class Frame(Header):
     """The header of one board version (hmrta-board/2), as a replica reads it."""
-    session: str
-    version: int
-    prev: int  # the version whose state ``events`` apply to
-    rev: int
-    phase: str
-    decider: int | None
-    clock: float
-    horizon: float
-    n_done: int
-    n_cancelled: int
-    n_tasks: int
-    lost: tuple[int, ...]
-    events: tuple[dict[str, Any], ...]
-    digest: str
     until: float | None = None  # keyframes: the mission time the board's state may reach
 
     @classmethod
