@@ -41,3 +41,21 @@ def test_killed_board_is_restarted_on_its_journal_and_the_mission_equals_offline
     assert sum(e["type"] == "resume" for r in recs for e in r.get("ev", ())) == 1
     log = (tmp_path / "mission_logs" / "task_board.log").read_text()
     assert "restarted by hmrta-mission" in log and "resumed from journal" in log
+
+
+def test_incident_time_falls_back_to_the_journal(tmp_path):
+    """A process that dies before the launcher has heard the mission clock is reported at the clock
+    of the board's last journaled version (the launcher's monitor may still be discovering topics)."""
+    import json
+    import math
+
+    from hmrta_coordinator.mission import journal_clock
+
+    p = tmp_path / "journal.jsonl"
+    assert math.isnan(journal_clock(p))  # no journal yet
+    lines = [{"format": "hmrta-journal/1"}, {"v": 1, "rev": 0, "n_done": 0, "phase": "starting", "clock": 0.0},
+             {"v": 2, "rev": 3, "n_done": 1, "phase": "decide", "clock": 3.5}]
+    p.write_text("".join(json.dumps(x) + "\n" for x in lines) + '{"v": 3, "clo')  # and a torn last line
+    assert journal_clock(p) == 3.5
+    p.write_text(json.dumps(lines[0]) + "\n")
+    assert math.isnan(journal_clock(p))  # a header only

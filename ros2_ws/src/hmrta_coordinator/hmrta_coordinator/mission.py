@@ -76,6 +76,18 @@ class Child:
     given_up: bool = False  # died once more than it may be restarted
 
 
+def journal_clock(path: Path) -> float:
+    """The mission clock of the last version a board journaled (NaN when there is none)."""
+    from hmrta.board import JournalError, read_journal
+
+    try:
+        _, records, _, _ = read_journal(path)
+    except (OSError, JournalError):
+        return math.nan
+    t = records[-1].get("clock") if records else None
+    return float(t) if isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) else math.nan
+
+
 @dataclass
 class MissionProcesses:
     """The processes of one mission (board, simulated robots, agent hosts). Usable as a library
@@ -303,7 +315,10 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
     seen = {"clock": math.nan, "phase": ""}  # mission clock (topics.CLOCK or the board's), board phase
 
     def when() -> str:
-        return f" at t={seen['clock']:.3f}" if seen["clock"] == seen["clock"] else " before the mission clock started"
+        t = seen["clock"]
+        if t != t and procs.journal is not None:  # not heard (yet) over DDS: the board's journal knows
+            t = journal_clock(procs.journal)
+        return f" at t={t:.3f}" if t == t else " before the mission clock started"
 
     def clock_cb(msg: Clock) -> None:
         t = clock_from_msg(msg)
