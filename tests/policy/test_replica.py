@@ -20,6 +20,7 @@ from hmrta.generators import ScenarioGenerator
 from hmrta.instance import instance_from_dict
 from hmrta.methods import decider, rules, solve
 from hmrta.replica import Frame, Replica
+from test_board import position  # sim_robot kinematics, shared with the board tests
 
 RULES = rules("greedy")
 
@@ -153,20 +154,7 @@ class Mission:
 
 def _position(st: BoardState, a: int, home, t: float):
     """Where robot a, driving its legs from ``home`` (sim_robot's kinematics), is at time t."""
-    pos = home
-    for node, x, y, dep in st.leg_log[a]:
-        if dep > t:
-            break
-        if node == -2:  # a goal re-sent: the leg it repeats is listed already
-            continue
-        start = pos
-        arrive = dep + math.hypot(x - start[0], y - start[1]) / st.inst.velocity
-        if t >= arrive or arrive <= dep:
-            pos = (x, y)
-        else:
-            f = (t - dep) / (arrive - dep)
-            pos = (start[0] + (x - start[0]) * f, start[1] + (y - start[1]) * f)
-    return pos
+    return position(st.inst, [(0, home[0], home[1], 0.0), *st.leg_log[a]], t)
 
 
 def scenario(inst, rng: random.Random):
