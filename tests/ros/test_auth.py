@@ -104,9 +104,9 @@ def test_forged_unsigned_and_replayed_choices_are_rejected_and_the_mission_equal
                              topics.MISSION_QOS)
     node.create_subscription(String, topics.REJECTIONS, lambda m: rejections.append(C.rejection_from_msg(m)),
                              topics.REJECTION_QOS)
-    node.create_subscription(String, topics.CHOICE,
-                             lambda m: recorded.append(m) if m.data not in sent else None,
-                             topics.CHOICE_QOS)
+    record = node.create_subscription(String, topics.CHOICE,
+                                      lambda m: recorded.append(m) if m.data not in sent else None,
+                                      topics.CHOICE_QOS)
     choice = node.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
     status = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
     goal = node.create_publisher(PoseStamped, topics.robot_topic(me, topics.GOAL), topics.GOAL_QOS)
@@ -121,6 +121,10 @@ def test_forged_unsigned_and_replayed_choices_are_rejected_and_the_mission_equal
                      f"{me}'s turn")
     graph.spin_until(lambda: choice.get_subscription_count() > 0 and goal.get_subscription_count() > 0, 30,
                      "the board and the simulated robot to listen")
+    # the other robots choose right after my choice; a choice sent before this test hears its sender
+    # is lost to the test (volatile topic), so wait for every agent's publisher (and my own)
+    graph.spin_until(lambda: record.get_publisher_count() >= len(procs.agents) + 1, 30,
+                     "this test to hear every agent's choice publisher")
     v, text = watch.board.version, watch.msg.data
     seq0 = watch.board.legs[d][0]
     state = MissionState.from_snapshot(inst, watch.board.state)
