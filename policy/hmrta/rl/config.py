@@ -132,7 +132,10 @@ def _section(cls: type) -> Any:
 # ---- sections ------------------------------------------------------------------------------------
 @dataclass
 class Distribution:
-    """``train.distribution``: the MA-AT training missions (task, species and robots-per-species ranges)."""
+    """``train.distribution``: the training missions. ``generator: ma-at`` (the paper's: task,
+    species and robots-per-species ranges) or ``broad`` (:class:`hmrta.families.BroadGenerator`
+    over the ``tasks`` range: every family axis; ``species``, ``per_species`` and ``skills`` unused)."""
+    generator: str = _f("ma-at", lambda v: None if v in ("ma-at", "broad") else "expected ma-at or broad")
     tasks: list = _f([15, 50], _range(1))
     species: list = _f([3, 5], _range(1))
     per_species: list = _f([3, 5], _range(1))
@@ -172,6 +175,9 @@ class ReinforceConfig:
     rescore_fraction: float = _f(1.0, _number(0, 1, lo_open=True, hi_open=False))
     temperature: float = _f(1.0, _number(0, lo_open=True))  # collection samples softmax(logits / T)
     entropy_coef: float = _f(0.0, _number(0))  # entropy bonus (of the tempered policy) in the loss
+    # advantage of a rollout: "raw" (return - the mean of its instance's beta returns) or "relative"
+    # (the same divided by that mean cost: missions of different time scales weigh alike)
+    advantage: str = _f("raw", lambda v: None if v in ("raw", "relative") else "expected raw or relative")
     amp: bool = _f(True, _boolean)  # bfloat16 autocast for collection and re-scoring (CPU); evaluation is float32
     # > 0: decay of an exponential moving average of the weights (every phase's updates), which
     # validation scores, best.pt keeps and export ships (0: the raw weights)
@@ -289,7 +295,7 @@ class TrainConfig:
             raise ValueError(f"rules: expected a mapping, got {type(self.rules).__name__}")
         self.rule_set()
         dist = self.train.distribution
-        if dist.species[1] > 2 ** dist.skills - 1:
+        if dist.generator == "ma-at" and dist.species[1] > 2 ** dist.skills - 1:
             raise ValueError(f"train.distribution.species: at most {2 ** dist.skills - 1} species have distinct "
                              f"trait vectors with {dist.skills} skills, got {short(dist.species)}")
 

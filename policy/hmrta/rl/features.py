@@ -271,3 +271,19 @@ def collate(obs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], deciders: list
         "action_mask": torch.from_numpy(amask),
         "decider": torch.tensor(deciders, dtype=torch.long),
     }
+
+
+def concat_batches(batches: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Batches of :func:`collate` joined along the batch dimension, each padded to the widest
+    (zero features, invalid rows, inadmissible actions: the padding changes no valid row's output)."""
+    T = max(b["tasks"].shape[1] for b in batches)
+    N = max(b["agents"].shape[1] for b in batches)
+
+    def pad(x: torch.Tensor, width: int) -> torch.Tensor:  # [B, L, ...] -> [B, width, ...]
+        if x.shape[1] == width:
+            return x
+        return torch.cat([x, x.new_zeros((x.shape[0], width - x.shape[1], *x.shape[2:]))], dim=1)
+
+    widths = {"tasks": T, "agents": N, "task_valid": T, "agent_valid": N, "action_mask": T}
+    return {k: torch.cat([pad(b[k], widths[k]) if k in widths else b[k] for b in batches])
+            for k in batches[0]}

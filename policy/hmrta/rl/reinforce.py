@@ -1,11 +1,13 @@
 """REINFORCE with a shared mean baseline and the constrained flashforward mechanism (SPEC §5),
 with optional self-imitation.
 
-One iteration: draw one instance size from the (curriculum-narrowed) training distribution,
-``instances_per_iter`` instances of that size, ``rollouts`` (beta) sampled rollouts of each, all
+One iteration: draw ``instances_per_iter`` instances (``ma-at``: one size from the
+curriculum-narrowed training distribution; ``broad``: a mission family each, so sizes and time
+scales mix), ``rollouts`` (beta) sampled rollouts of each, all
 advanced together under ``torch.inference_mode``; then a single re-scoring forward (with gradient,
 in chunks) over the recorded decisions gives the log-probabilities of the actions taken.
-advantage = own return - mean of the instance's beta returns; loss = -mean(advantage * log p).
+advantage = own return - mean of the instance's beta returns (``train.advantage: relative``:
+divided by the instance's mean cost); loss = -mean(advantage * log p).
 With ``rescore_fraction`` < 1 a random share of the decisions is re-scored, weighted by the
 inverse inclusion probability (an unbiased gradient at a fraction of the cost).
 
@@ -25,6 +27,7 @@ import numpy as np
 import torch
 
 from ..core import MissionState
+from .features import concat_batches
 from .rollout import returns, rollout
 
 if TYPE_CHECKING:
@@ -54,15 +57,17 @@ class Reinforce:
         t_collect = time.perf_counter() - t0
         R = returns(states, t.t_max)  # [E]
         Rm = R.reshape(len(insts), beta)
-        adv = (Rm - Rm.mean(1, keepdims=True)).reshape(-1)  # [E]
+        adv = Rm - Rm.mean(1, keepdims=True)  # [I, beta]
+        if t.advantage == "relative":  # in units of the instance's mean cost (R = -T - W < 0)
+            adv = adv / np.maximum(-Rm.mean(1, keepdims=True), 1e-9)
+        adv = adv.reshape(-1)  # [E]
         adv_t = torch.tensor(adv, dtype=torch.float32, device=lr_.device)
         n_ep = len(states)
         # one re-scoring forward (with gradient) over all recorded decisions, in chunks
         lr_.set_lr(self.lr())
         lr_.model.train()
         lr_.opt.zero_grad(set_to_none=True)
-        keys = traj.obs[0].keys()
-        allobs = {k: torch.cat([o[k] for o in traj.obs]) for k in keys}
+        allobs = concat_batches(traj.obs)  # steps of missions of different sizes, padded to the widest
         acts = torch.cat(traj.actions)  # [D]
         eps = torch.cat(traj.episode)  # [D]
         D = len(acts)

@@ -245,6 +245,11 @@ class Trainer:
         dist = self.cfg.train.distribution
         lo, hi = task_range or self._task_range()
         rng = self.np_rng
+        if dist.generator == "broad":  # a mission family per instance, every axis of the suite
+            from ..families import BroadGenerator
+
+            broad = BroadGenerator(max_tasks=hi, min_tasks=lo)
+            return [broad.sample(rng) for _ in range(n)]
         s = int(rng.integers(dist.species[0], dist.species[1] + 1))
         per = int(rng.integers(dist.per_species[0], dist.per_species[1] + 1))
         m = int(rng.integers(lo, hi + 1))

@@ -183,6 +183,36 @@ def test_tiny_training_run_improves(tmp_path):
     assert rows[-1]["entropy"] < rows[0]["entropy"]
 
 
+def test_concatenated_batches_of_different_widths_score_as_each_alone(model):
+    from hmrta.rl.features import concat_batches
+
+    states = [MissionState(i, seed=5, rules=RULES) for i in _insts()]
+    alone = [batch_observations([s])[0] for s in states]
+    assert len({b["tasks"].shape[1] for b in alone}) > 1  # widths differ
+    joined = concat_batches(alone)
+    with torch.inference_mode():
+        together = model(**joined)
+        for b, obs in enumerate(alone):
+            one = model(**obs)[0]
+            torch.testing.assert_close(together[b, :len(one)], one, rtol=1e-5, atol=1e-5)
+            assert torch.isneginf(together[b, len(one):]).all()
+
+
+def test_reinforce_on_the_broad_distribution_with_relative_advantages(tmp_path):
+    """Each iteration mixes missions of the broad generator (sizes, team shapes and time scales
+    differ within one batch); relative advantages give every mission the same weight."""
+    cfg = _tiny_cfg(train={"instances_per_iter": 3, "rollouts": 4, "advantage": "relative",
+                           "distribution": {"generator": "broad", "tasks": [5, 12]}})
+    tr = Trainer(cfg, tmp_path, device="cpu", log=lambda s: None)
+    insts = tr._instances(6)
+    assert len({(i.n_agents, i.n_tasks, i.skills) for i in insts}) > 1
+    assert all(5 <= i.n_tasks <= 12 for i in insts)
+    before = [p.clone() for p in tr.learner.model.parameters()]
+    rows = [tr.train_step() for _ in range(2)]
+    assert all(np.isfinite(r["loss"]) and r["success"] == 1.0 for r in rows)
+    assert any(not torch.equal(a, b) for a, b in zip(before, tr.learner.model.parameters()))
+
+
 def test_self_imitation_with_partial_rescoring_improves(tmp_path):
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
     cfg = _tiny_cfg(train={"rescore_fraction": 0.3, "sil": {"coef": 1.0, "steps": 2, "batch": 64, "buffer": 3}})
@@ -507,6 +537,8 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\ntrain: 3\n", "train: expected a mapping"),
     ("version: 1\nrules: {max_open: teams}\n", "rules.max_open: expected a positive integer, null (no limit) or 'team'"),
     ("version: 1\nrules: {max_open: 0}\n", "rules.max_open: expected a positive integer"),
+    ("version: 1\ntrain: {distribution: {generator: paper}}\n", "train.distribution.generator: expected ma-at or broad"),
+    ("version: 1\ntrain: {advantage: scaled}\n", "train.advantage: expected raw or relative"),
     ("version: 2\n", "version: expected 1"),
     ("[1, 2]\n", "expected a mapping"),
 ])
