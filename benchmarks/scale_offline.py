@@ -8,8 +8,8 @@ runs it), and prints per size the milliseconds per decision and the total time, 
 
 * greedy: the policy's choice and the state machine's step (commit, then events and masks up to
   the next decision);
-* rl: the observation (window selection, features, batch tensors), the network call, and the
-  rest (the state machine's step, argmax and bookkeeping).
+* rl: the observation (window selection, features, batch tensors), the network call (its traced
+  form, as inference runs it), and the rest (the state machine's step, argmax and bookkeeping).
 
 Each cost's growth is fitted as a power of the mission size (the slope of log cost against log
 number of tasks): ~0 is flat, 1 linear. The network call is also set against its arithmetic
@@ -103,8 +103,9 @@ def run_rl(inst, seed: int, pol) -> dict:
 
 
 def network_floor(pol) -> dict:
-    """FLOPs of one network call at the full observation window, the single-thread GEMM rate of
-    this CPU, and the call's own time on a fixed observation."""
+    """FLOPs of one network call at the full observation window (counted on the network), the
+    single-thread GEMM rate of this CPU, and the call's own time on a fixed observation: of the
+    traced form inference runs (``call_s``) and of the network module itself (``module_call_s``)."""
     import torch
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -117,14 +118,18 @@ def network_floor(pol) -> dict:
     with torch.inference_mode():
         counter = FlopCounterMode(display=False)
         with counter:
-            pol.model(**obs)
+            pol.net(**obs)
         flops = counter.get_total_flops()
-        for _ in range(20):
-            pol.model(**obs)
-        calls, t0 = 300, time.thread_time()
-        for _ in range(calls):
-            pol.model(**obs)
-        call = (time.thread_time() - t0) / calls
+
+        def per_call(f) -> float:
+            for _ in range(20):
+                f(**obs)
+            calls, t0 = 300, time.thread_time()
+            for _ in range(calls):
+                f(**obs)
+            return (time.thread_time() - t0) / calls
+
+        call, module_call = per_call(pol.model), per_call(pol.net)
         a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
         for _ in range(3):
             a @ b
@@ -133,7 +138,8 @@ def network_floor(pol) -> dict:
             a @ b
         rate = 2 * 1024 ** 3 * reps / (time.thread_time() - t0)
     shape = f"{obs['tasks'].shape[1]} task rows x {obs['agents'].shape[1]} agent rows"
-    return {"flops": flops, "gemm_flops_per_s": rate, "floor_s": flops / rate, "call_s": call, "window": shape}
+    return {"flops": flops, "gemm_flops_per_s": rate, "floor_s": flops / rate, "call_s": call,
+            "module_call_s": module_call, "window": shape}
 
 
 def slope(xs: list[float], ys: list[float]) -> float:
@@ -239,7 +245,8 @@ def main() -> int:
         print(f"network call ({floor['window']}): {floor['flops'] / 1e6:.1f} MFLOP per decision; "
               f"{floor['call_s'] * 1e3:.3f} ms per call against a floor of {floor['floor_s'] * 1e3:.3f} ms "
               f"at {floor['gemm_flops_per_s'] / 1e9:.1f} GFLOP/s (1024^3 matrix product, one thread): "
-              f"{floor['call_s'] / floor['floor_s']:.1f}x the floor")
+              f"{floor['call_s'] / floor['floor_s']:.1f}x the floor (the network module itself: "
+              f"{floor['module_call_s'] * 1e3:.3f} ms, {floor['module_call_s'] / floor['floor_s']:.1f}x)")
     load1 = [round(x, 2) for x in os.getloadavg()]
     print(f"# load average at end {load1}")
     if args.json:

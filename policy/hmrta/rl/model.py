@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+import threading
+import warnings
 from dataclasses import asdict, dataclass
 
 import torch
@@ -130,11 +132,10 @@ class PolicyNet(nn.Module):
         ae = self.agent_enc(ae, ae, a_ign)  # [B, N, d]
         tb = ab = None
         if self.cfg.travel_bias:
-            B, T, N, h = tasks.shape[0], tasks.shape[1], agents.shape[1], self.cfg.heads
             dist = torch.cdist(tasks[..., TASK_POS].float(), agents[..., AGENT_POS].float())  # [B, T, N]
             s = TRAVEL_SLOPE_SCALE * self.travel_slope  # [2, h] (scaled: Adam moves each slope by ~lr per step)
-            tb = (-s[0, None, :, None, None] * dist[:, None]).reshape(B * h, T, N)  # [B*h, T, N]
-            ab = (-s[1, None, :, None, None] * dist.transpose(1, 2)[:, None]).reshape(B * h, N, T)  # [B*h, N, T]
+            tb = (-s[0, None, :, None, None] * dist[:, None]).flatten(0, 1)  # [B*h, T, N]
+            ab = (-s[1, None, :, None, None] * dist.transpose(1, 2)[:, None]).flatten(0, 1)  # [B*h, N, T]
         tx = self.task_cross(te, ae, a_ign, tb)  # [B, T, d]
         ax = self.agent_cross(ae, te, t_ign, ab)  # [B, N, d]
         tg = _masked_mean(tx, task_valid)  # [B, d]
@@ -144,9 +145,43 @@ class PolicyNet(nn.Module):
         ctx = torch.cat([tx, ax], dim=1)  # [B, T + N, d]
         q = self.dec1(q, ctx, torch.cat([t_ign, a_ign], dim=1))  # [B, 1, d]
         q = self.dec2(q, tx, ~action_mask)  # [B, 1, d]
-        compat = torch.einsum("bd,btd->bt", self.wq(q[:, 0]), self.wk(tx)) / math.sqrt(tx.shape[-1])  # [B, T]
+        compat = torch.einsum("bd,btd->bt", self.wq(q[:, 0]), self.wk(tx)) / math.sqrt(self.cfg.d_model)  # [B, T]
         logits = self.cfg.clip * torch.tanh(compat)  # [B, T]
         return logits.masked_fill(~action_mask, float("-inf"))
+
+
+class TracedPolicy(nn.Module):
+    """The inference form of a :class:`PolicyNet`: the same network traced by TorchScript on its
+    first call and frozen (weights folded in as constants). One graph serves every batch size and
+    observation window; what goes is the per-operation Python cost of the modules, about a third of
+    a forward at the observation window (docs/results.md#scale-offline). The operations are the
+    same, so the logits are bitwise equal to the network's (tests/policy/rl/test_rl.py). For
+    inference only: the weights are frozen and no gradient flows. A network with the travel-bias
+    option (off in every shipped config) runs as it is: its traced batches differ in the last bits.
+
+    TorchScript is deprecated upstream; torch is pinned (requirements.txt), and the deprecation
+    notices of the trace are silenced here."""
+
+    def __init__(self, net: PolicyNet):
+        super().__init__()
+        self.net = net.eval()
+        self.cfg = net.cfg
+        object.__setattr__(self, "_graph", None)  # not a submodule: no second copy in state_dict
+        object.__setattr__(self, "_lock", threading.Lock())
+
+    def forward(self, tasks, agents, task_valid, agent_valid, action_mask, decider) -> torch.Tensor:
+        args = (tasks, agents, task_valid, agent_valid, action_mask, decider)
+        if self.cfg.travel_bias:
+            return self.net(*args)
+        if self._graph is None:
+            with self._lock:
+                if self._graph is None:
+                    with torch.no_grad(), warnings.catch_warnings():
+                        warnings.simplefilter("ignore", DeprecationWarning)
+                        warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks inside attention
+                        graph = torch.jit.freeze(torch.jit.trace(self.net, args, check_trace=False))
+                    object.__setattr__(self, "_graph", graph)
+        return self._graph(*args)
 
 
 def _masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

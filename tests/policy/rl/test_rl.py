@@ -108,6 +108,51 @@ def test_batched_rollout_equals_core_simulator(model):
         np.testing.assert_array_equal(single.start, b.start)
 
 
+@pytest.mark.parametrize("which", ["default", "broad"])
+def test_traced_inference_network_gives_the_networks_logits_bit_for_bit(which):
+    """The traced, frozen network that inference runs (TracedPolicy) against the network itself:
+    one graph for every window and batch size, every logit equal."""
+    from hmrta.families import BroadGenerator
+    from hmrta.rl.features import concat_batches
+    from hmrta.rl.model import TracedPolicy
+
+    pol = load_policy(None if which == "default" else DEFAULT_CHECKPOINT.with_name("broad.pt"))
+    net, rules, scale = pol.net, pol.rules, pol.net.cfg.scale
+    assert isinstance(pol.model, TracedPolicy) and pol.model.net is net  # what inference runs
+    traced = TracedPolicy(net)
+    insts = [ScenarioGenerator("MA-AT", 30, 5, 60, 5).instance(3, 0), *_insts(),
+             *(BroadGenerator(max_tasks=20).sample(np.random.default_rng(k)) for k in range(3))]
+    batches = []
+    for k, inst in enumerate(insts):
+        st = MissionState(inst, seed=k, rules=rules)
+        with torch.inference_mode():
+            while not st.done:
+                obs, nodes = batch_observations([st], scale=scale)
+                batches.append(obs)
+                st.step(int(nodes[0][int(net(**obs)[0].argmax())]))
+    assert len({(b["tasks"].shape[1], b["agents"].shape[1]) for b in batches}) >= 3
+    with torch.inference_mode():
+        for b in batches[::3]:
+            assert torch.equal(traced(**b), net(**b))
+        for size in (10, 3):  # batches (sampling, lookahead branches): the same graph
+            for lo in range(0, 30, size):
+                joined = concat_batches(batches[lo:lo + size])
+                assert torch.equal(traced(**joined), net(**joined))
+    assert traced._graph is not None
+
+
+def test_traced_inference_runs_a_travel_bias_network_as_it_is():
+    from hmrta.rl.model import TracedPolicy
+
+    torch.manual_seed(3)
+    net = PolicyNet(ModelConfig(d_model=32, heads=4, ff_hidden=32, travel_bias=True)).eval()
+    traced = TracedPolicy(net)
+    obs = batch_observations([MissionState(i, seed=0, rules=RULES) for i in _insts()])[0]
+    with torch.inference_mode():
+        assert torch.equal(traced(**obs), net(**obs))
+    assert traced._graph is None
+
+
 def test_observation_window_on_large_missions(model):
     from hmrta.rl.features import observe
 
@@ -368,7 +413,7 @@ def test_weight_averaging_is_validated_checkpointed_and_shipped(tmp_path):
     assert torch.equal(t2.ema[k], tr.ema[k]) and torch.equal(t2.model.state_dict()[k], raw[k])
     tr.export(tmp_path / "shipped.pt")
     for ck in ("shipped.pt", "last.pt"):
-        assert torch.equal(load_policy(tmp_path / ck).model.state_dict()[k], tr.ema[k])
+        assert torch.equal(load_policy(tmp_path / ck).net.state_dict()[k], tr.ema[k])
     off = FixedTrainer(_tiny_cfg(), tmp_path / "off", device="cpu", log=lambda s: None)
     off.pretrain_step() if off.cfg.pretrain.iterations else off.train_step()
     assert off.ema is None and off.eval_model() is off.model
