@@ -64,7 +64,7 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -83,6 +83,7 @@ PHASES = ("starting", "wait", "decide", "closing", "done")
 KEYFRAME_INTERVAL = 0.25  # seconds: keyframes asked for by replicas, at most one per interval
 KEYFRAME_REPEAT = 1.0  # seconds: the latest keyframe's version is published again at most this often
 HEADER_REPEAT = 0.25  # seconds: an idle board streams its latest header again (a replica that missed it sees the gap)
+CHECK_GATE = False  # tests: every incremental arrival gate is compared with the full scan
 HEADER_BYTES = 330  # about the bytes of a stream header without its events (for the automatic keyframe period)
 
 
@@ -465,6 +466,13 @@ class MissionBoard(BoardCore):
         self.finished = False
         self.restarts = 0  # times this mission's board was restarted on its journal
         self._key: tuple | None = None
+        # the incremental arrival gate (see gate): the state it was computed on, each robot's
+        # part, robots whose pose changed since, robots waiting for their leg's departure
+        self._gate_sig: tuple | None = None
+        self._gate_part = np.zeros(0)
+        self._gate_dirty: set[int] = set()
+        self._gate_waiting: set[int] = set()
+        self._gate_clock = -math.inf
         self._cache_rev = -1
         self._legs: tuple = ()
         self._state_json = ""
@@ -544,6 +552,7 @@ class MissionBoard(BoardCore):
             elif kind == "arrival":
                 a = int(ev["robot"])
                 self.ptr[a] = max(self.ptr[a], int(ev["ptr"]))
+                self._gate_sig = None  # confirmed outside the gate: recompute every robot
             elif kind == "add_task":
                 self.requests[str(ev["name"])] = "accepted"
             elif kind == "resume":
@@ -679,6 +688,7 @@ class MissionBoard(BoardCore):
         """Robot a reports its position (mission coordinates)."""
         self.seen_pose[a] = self.now()
         self.last_pose[a] = (x, y)
+        self._gate_dirty.add(a)
         if not self.started:
             self._maybe_start()
 
@@ -945,7 +955,67 @@ class MissionBoard(BoardCore):
         return f"({float(xy[0]) * self.scale:.2f}, {float(xy[1]) * self.scale:.2f}) m"
 
     def gate(self) -> float:
-        """Earliest start of a task with a member not yet confirmed there (inf: none)."""
+        """Earliest start of a task with a member not yet confirmed there (inf: none); confirms
+        (``ptr``, journaled ``arrival`` events, in robot order) the arrivals it passes.
+
+        Incremental: each robot's part (its earliest unconfirmed task's start) is kept and
+        recomputed only for the robots it can have changed for: every robot when the state
+        changed, a robot that reported a pose, and, when the clock moved, the robots found at
+        their task before their leg there had departed. So a pose message costs one robot's
+        scan, not the whole team's. ``CHECK_GATE`` (tests) compares every call with the full
+        scan (:meth:`_gate_reference`)."""
+        st = self.state
+        sig = (id(st), self.rev, st.A, st.M, st.decisions, len(st.log), int(st.n_done), int(st.n_cancelled),
+               float(st.clock), st.done, len(self.lost))
+        if sig != self._gate_sig:  # the state changed: every robot again
+            self._gate_sig = sig
+            self._gate_part = np.full(st.A, math.inf)  # [A] each robot's part of the gate
+            self._gate_waiting = set()
+            todo: Iterable[int] = range(st.A)
+        else:
+            todo = self._gate_dirty
+            if self.clock != self._gate_clock:
+                todo = todo | self._gate_waiting
+            todo = sorted(todo)
+        self._gate_dirty = set()
+        self._gate_clock = self.clock
+        for a in todo:
+            self._gate_part[a] = self._gate_robot(a)
+        gate = float(self._gate_part.min()) if st.A else math.inf
+        if CHECK_GATE:
+            ptr, n_events = list(self.ptr), len(self._events)
+            assert self._gate_reference() == gate and self.ptr == ptr and len(self._events) == n_events, \
+                "incremental arrival gate differs from the full scan"
+        return gate
+
+    def _gate_robot(self, a: int) -> float:
+        """Robot a's part of :meth:`gate` (it confirms a's arrivals)."""
+        st = self.state
+        self._gate_waiting.discard(a)
+        if st.mode[a] == LOST:
+            return math.inf
+        locs = st.inst.task_locations
+        route = st.routes[a]
+        part = math.inf
+        p = min(self.ptr[a], len(route))
+        while p < len(route):
+            m = route[p]
+            if self._near(a, locs[m]):
+                if self._departed(a, 1 + int(m)):
+                    p += 1
+                    continue
+                self._gate_waiting.add(a)  # there before its leg departed: the clock can change this
+            s = st.start[m]
+            if s == s:  # not NaN: the task has its coalition and a start time
+                part = float(s)
+            break
+        if p != self.ptr[a]:
+            self.ptr[a] = p
+            self._events.append({"type": "arrival", "t": float(st.clock), "robot": a, "ptr": p})
+        return part
+
+    def _gate_reference(self) -> float:
+        """The gate by a full scan of every robot (the reference of the incremental :meth:`gate`)."""
         st = self.state
         locs = st.inst.task_locations
         gate = math.inf
@@ -960,7 +1030,7 @@ class MissionBoard(BoardCore):
                     p += 1
                     continue
                 s = st.start[m]
-                if s == s:  # not NaN: the task has its coalition and a start time
+                if s == s:
                     gate = min(gate, float(s))
                 break
             if p != self.ptr[a]:

@@ -25,6 +25,12 @@ from test_board import position  # sim_robot kinematics, shared with the board t
 RULES = rules("greedy")
 
 
+@pytest.fixture(autouse=True)
+def check_gate(monkeypatch):
+    """Every incremental arrival gate of these tests is compared with the full scan."""
+    monkeypatch.setattr("hmrta.board.CHECK_GATE", True)
+
+
 class FakeTime:
     def __init__(self):
         self.t = 100.0
