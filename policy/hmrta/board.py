@@ -1015,27 +1015,11 @@ class MissionBoard(BoardCore):
         return part
 
     def _gate_reference(self) -> float:
-        """The gate by a full scan of every robot (the reference of the incremental :meth:`gate`)."""
-        st = self.state
-        locs = st.inst.task_locations
-        gate = math.inf
-        for a in range(st.A):
-            if st.mode[a] == LOST:
-                continue
-            route = st.routes[a]
-            p = min(self.ptr[a], len(route))
-            while p < len(route):
-                m = route[p]
-                if self._near(a, locs[m]) and self._departed(a, 1 + int(m)):
-                    p += 1
-                    continue
-                s = st.start[m]
-                if s == s:
-                    gate = min(gate, float(s))
-                break
-            if p != self.ptr[a]:
-                self.ptr[a] = p
-                self._events.append({"type": "arrival", "t": float(st.clock), "robot": a, "ptr": p})
+        """The gate with every robot's part computed afresh (what the incremental :meth:`gate`
+        must equal); the incremental bookkeeping is left as it was."""
+        waiting = set(self._gate_waiting)
+        gate = min((self._gate_robot(a) for a in range(self.state.A)), default=math.inf)
+        self._gate_waiting = waiting
         return gate
 
     def waiting_for(self) -> str:
