@@ -961,8 +961,8 @@ class MissionBoard(BoardCore):
         Incremental: each robot's part (its earliest unconfirmed task's start) is kept and
         recomputed only for the robots it can have changed for: every robot when the state
         changed, a robot that reported a pose, and, when the clock moved, the robots found at
-        their task before their leg there had departed. So a pose message costs one robot's
-        scan, not the whole team's. ``CHECK_GATE`` (tests) compares every call with the full
+        their task before their leg there had departed; and every robot while the gate holds the
+        mission clock. So a pose message costs one robot's scan, not the whole team's. ``CHECK_GATE`` (tests) compares every call with the full
         scan (:meth:`_gate_reference`)."""
         st = self.state
         sig = (id(st), self.rev, st.A, st.M, st.decisions, len(st.log), int(st.n_done), int(st.n_cancelled),
@@ -986,6 +986,12 @@ class MissionBoard(BoardCore):
             ptr, n_events = list(self.ptr), len(self._events)
             assert self._gate_reference() == gate and self.ptr == ptr and len(self._events) == n_events, \
                 "incremental arrival gate differs from the full scan"
+        if gate <= self.clock + EPS and not isinstance(todo, range):
+            # the gate holds the mission clock: every robot afresh (the full scan), so that a part
+            # kept by mistake could never hold a mission
+            for a in range(st.A):
+                self._gate_part[a] = self._gate_robot(a)
+            gate = float(self._gate_part.min())
         return gate
 
     def _gate_robot(self, a: int) -> float:
