@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 from hmrta import keys as K
+from hmrta.baselines import Greedy
 from hmrta.board import (JOURNAL_FORMAT, KEYFRAME_REPEAT, RESEND, JournalError, MissionBoard, board_header,
                          read_journal, state_digest)
 from hmrta.core import MissionState
@@ -67,6 +68,15 @@ def position(inst, legs, t: float) -> tuple[float, float]:
             f = (t - dep) / (arrive - dep)
             pos = (start[0] + (x - start[0]) * f, start[1] + (y - start[1]) * f)
     return pos
+
+
+def greedy_turn(b: MissionBoard) -> None:
+    """One turn of a mission on board ``b`` with robots that arrive at once: the decider's greedy
+    choice, or else the clock to the board's horizon."""
+    if b.phase == "decide":
+        assert b.choice(Choice(b.names[b.state.agent], b.session, b.version, Greedy()(b.state))) is None
+    else:
+        b.set_clock(b._key[3])
 
 
 def replica_of(b: MissionBoard) -> Replica:

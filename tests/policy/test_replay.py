@@ -91,7 +91,8 @@ def board_messages(inst, until: int) -> list:
     """What a board publishes (stream headers, keyframes) running greedy on ``inst`` up to its
     version ``until``; the board is kept in ``board_messages.board``."""
     from hmrta.board import MissionBoard, board_header
-    from hmrta.baselines import GREEDY_RULES, Greedy
+    from hmrta.baselines import GREEDY_RULES
+    from test_board import greedy_turn
 
     b = MissionBoard(inst, seed=0, rules=GREEDY_RULES, wait_for_robots=False, tolerance=1e9, keyframe_period=7,
                      session="s1")
@@ -108,12 +109,7 @@ def board_messages(inst, until: int) -> list:
                 out.append((v.clock, "/hmrta/board_keyframe", "std_msgs/msg/String", {"data": text}))
         if b.version >= until:
             break
-        if b.phase == "decide":
-            c = type("Choice", (), dict(robot=b.names[b.state.agent], session=b.session, version=b.version,
-                                        node=Greedy()(b.state), compute_ms=0.0, payload=None))
-            assert b.choice(c) is None
-        else:
-            b.set_clock(b._key[3])
+        greedy_turn(b)
     board_messages.board = b
     return out
 

@@ -221,6 +221,7 @@ def test_board_stream_headers_and_keyframes_validate():
     """What the board publishes through a mission with dynamic events: every version's header
     (its events are journal records) and every keyframe (header with until, legs, state)."""
     from hmrta.board import MissionBoard, board_header
+    from test_board import greedy_turn
     from hmrta.generators import ScenarioGenerator as G
 
     inst = G("MA-AT", 6, 3, 10, 3).instance(4, 0)
@@ -244,12 +245,7 @@ def test_board_stream_headers_and_keyframes_validate():
         if i == 30:
             b.task_request("add", "op-1", {"location": [0.5, 0.5], "requirements": [1, 0, 0], "duration": 1.0})
             b.lose(2, "test")
-        if b.phase == "decide":
-            c = type("Choice", (), dict(robot=b.names[b.state.agent], session=b.session, version=b.version,
-                                        node=Greedy()(b.state), compute_ms=0.0, payload=None))
-            assert b.choice(c) is None
-        else:
-            b.set_clock(b._key[3])
+        greedy_turn(b)
     assert b.finished and keyframes >= 2
     assert {"start", "choice", "arrival", "advance", "add_task", "drop_agent"} <= kinds
 
