@@ -2,7 +2,12 @@
 with 2 CPUs (or --workers LIST). Ray start-up is timed apart (a warm-up map) from the solves.
 
     .venv/bin/python benchmarks/fanout.py [--method greedy-coalition] [--count 40] [--workers 1,2]
+    .venv/bin/python benchmarks/fanout.py --labels [--count 64] [--workers 1,2]
     .venv/bin/python benchmarks/fanout.py --schedules [--time-limit 0.5] [--count 8] [--workers 1,2,16]
+
+``--labels``: labelled decisions per second of behaviour cloning's work item (``hmrta train
+--jobs N``: one mission of the committed schedules dataset driven by its routes, greedy-coalition
+where they have nothing admissible, every decision observed and labelled).
 
 ``--schedules``: teacher schedules per second instead (the work item of ``hmrta schedules``: one
 broad-distribution mission solved by cpsat within ``--time-limit`` seconds, routes pruned).
@@ -26,9 +31,24 @@ def main() -> None:
     ap.add_argument("--count", type=int, default=40, help="missions solved per measurement")
     ap.add_argument("--workers", default="1,2", help="comma list of Ray CPU counts")
     ap.add_argument("--schedules", action="store_true", help="teacher schedules/s (hmrta schedules' work item)")
+    ap.add_argument("--labels", action="store_true", help="behaviour-cloning labels/s (hmrta train's work item)")
     ap.add_argument("--time-limit", type=float, default=0.5, help="--schedules: solver seconds per mission")
     a = ap.parse_args()
-    if a.schedules:
+    count = lambda results: a.count  # noqa: E731  (work done by a map: missions, or labels with --labels)
+    if a.labels:
+        from pathlib import Path
+
+        from hmrta.core import Rules
+        from hmrta.rl.imitation import LabelJob, teacher_labels
+        from hmrta.rl.schedules import ScheduleSet
+
+        ss = ScheduleSet(Path(__file__).resolve().parents[1] / "policy/datasets/schedules-broad-10-30-s1.jsonl")
+        rules = Rules(max_open=None)
+        insts = [LabelJob(*ss.item(i)[:2], i, rules, "greedy-coalition", 0.0, "mission")
+                 for i in ss.indices()[:a.count]]
+        solve, what = teacher_labels, "labelled missions (schedules dataset, routes + greedy-coalition)"
+        count = lambda results: sum(len(r.labels.acts) for r in results)  # noqa: E731
+    elif a.schedules:
         from hmrta.rl.schedules import _solve_one
 
         spec = {"kind": "broad", "min_tasks": 10, "max_tasks": 30}
@@ -44,7 +64,8 @@ def main() -> None:
     t = time.perf_counter()
     ref = Fanout(1).map(solve, insts)
     dt = time.perf_counter() - t
-    print(f"in process        : {a.count / dt:7.2f} solves/s")
+    unit = "labels/s" if a.labels else "solves/s"
+    print(f"in process        : {count(ref) / dt:7.2f} {unit}")
     for n in map(int, a.workers.split(",")):
         t0 = time.perf_counter()
         with Fanout(n, use_ray=True) as fan:
@@ -53,9 +74,12 @@ def main() -> None:
             t = time.perf_counter()
             sols = fan.map(solve, insts)
             dt = time.perf_counter() - t
-        if not a.schedules:  # (an anytime solver on the clock may differ between runs)
+        if a.labels:
+            assert [r.labels.acts for r in sols] == [r.labels.acts for r in ref]  # the same labels
+        elif not a.schedules:  # (an anytime solver on the clock may differ between runs)
             assert [s.makespan for s in sols] == [s.makespan for s in ref]  # the same answers
-        print(f"Ray, {n} CPU{'s' if n > 1 else ' '}       : {a.count / dt:7.2f} solves/s  (start-up and warm-up {up:.1f} s)")
+        print(f"Ray, {n} CPU{'s' if n > 1 else ' '}       : {count(sols) / dt:7.2f} {unit}  "
+              f"(start-up and warm-up {up:.1f} s)")
     print(f"load average after {' / '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 

@@ -456,6 +456,8 @@ def cmd_train(args) -> int:
 
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads: expected a positive integer, got {args.threads}")
+    if args.jobs < 1:
+        raise UserError(f"--jobs: expected a positive integer, got {args.jobs}")
     # idle OpenMP threads sleep instead of spinning: read once, when torch loads its OpenMP runtime
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     torch = require("torch", "hmrta train")
@@ -492,7 +494,8 @@ def cmd_train(args) -> int:
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)  # also when started in the background (SIGINT ignored there)
-    tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: print(s, file=sys.stderr))
+    tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: print(s, file=sys.stderr), jobs=args.jobs,
+                 ray_address=args.ray_address)
     if args.resume:
         src = Path(args.init) if args.init else last
         if src.exists():
@@ -712,6 +715,16 @@ def _row_args(p: argparse.ArgumentParser, required: bool) -> None:
     p.add_argument("--skills", type=int, required=required, default=None, help=pre + "number of skills K")
 
 
+def _fanout_args(p: argparse.ArgumentParser, what: str, note: str = "") -> None:
+    """--jobs and --ray-address (hmrta.fanout) of a command that fans ``what`` out."""
+    p.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help=f"{what} as Ray tasks on a local Ray with N CPUs (one torch thread each; needs pip "
+                        f"install 'hmrta[ray]'); 1: in this process{note}")
+    p.add_argument("--ray-address", default=None, metavar="HOST:PORT",
+                   help=f"{what} on an existing Ray cluster instead (started with ray start --head / "
+                        "ray start --address HOST:PORT; docs/training.md)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .methods import add_arguments as add_method_arguments
 
@@ -780,13 +793,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(--suite default: docs/results/<suite>)")
     b.add_argument("--json", action="store_true", help="print the results as JSON instead of Markdown")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
-    b.add_argument("--jobs", type=int, default=1, metavar="N",
-                   help="solve the uncached items as Ray tasks on a local Ray with N CPUs (one torch thread "
-                        "each; needs pip install 'hmrta[ray]'); 1: in this process (not to be confused with "
-                        "--workers, CP-SAT's search workers per solve)")
-    b.add_argument("--ray-address", default=None, metavar="HOST:PORT",
-                   help="solve on an existing Ray cluster instead (started with ray start --head / "
-                        "ray start --address HOST:PORT; docs/training.md)")
+    _fanout_args(b, "solve the uncached items", " (not to be confused with --workers, CP-SAT's search workers "
+                                                "per solve)")
     b.add_argument("--threads", type=int, default=1, metavar="N",
                    help=THREADS_HELP + "; recorded in the results' provenance")
     b.set_defaults(fn=cmd_bench)
@@ -807,6 +815,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     t.add_argument("--threads", type=int, default=None, metavar="N",
                    help="torch CPU threads (default: torch's, one per core; fewer beside other busy processes)")
+    _fanout_args(t, "label the teachers' missions (behaviour cloning)",
+                 "; the labels, and so the run, are the same whatever N")
     t.add_argument("--export", default=None, help="after training, write the best weights + config here")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.add_argument("--check", action="store_true", help="only validate the config, then exit (no training)")
@@ -839,10 +849,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--max-tasks", type=int, default=30, help="most tasks per mission")
     sc.add_argument("--time-limit", type=float, default=1.5, help="solver seconds per mission")
     sc.add_argument("--workers", type=int, default=1, help="CP-SAT search workers per mission")
-    sc.add_argument("--jobs", type=int, default=1, metavar="N",
-                    help="solve on a local Ray with N CPUs (needs pip install 'hmrta[ray]'); 1: in this process")
-    sc.add_argument("--ray-address", default=None, metavar="HOST:PORT",
-                    help="solve on an existing Ray cluster instead (docs/training.md)")
+    _fanout_args(sc, "solve the missions")
     sc.add_argument("--no-progress", action="store_true", help="no progress bar")
     sc.set_defaults(fn=cmd_schedules)
 

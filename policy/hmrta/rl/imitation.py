@@ -10,15 +10,20 @@ instance, and the best of them by return is cloned: the targets are never worse 
 and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
 (greedy-coalition) the targets are soft: half on the teacher's choice, half spread by its
 coalition-start estimates.
+
+The teacher-driven missions are labelled by :func:`teacher_labels`, a pure function of a
+:class:`LabelJob`, mapped through the run's :class:`hmrta.fanout.Fanout` (Ray tasks with
+``hmrta train --jobs N``; the same labels in the same order as in process).
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 import torch
 
-from ..core import MissionState
+from ..core import MissionState, Rules
 from .config import TEACHERS
 from .features import collate, observe
 from .rollout import returns, rollout
@@ -43,41 +48,30 @@ class Imitation:
         else:
             items = [(inst, None) for inst in run._instances(p.instances_per_iter)]
         insts = [inst for inst, _ in items]
-        obs, deciders, acts, soft = [], [], [], []
+        labels = Labels()
         teacher = TEACHERS[p.teacher]()
-        tau = p.tau
-        followed = [0, 0]  # decisions labelled by a schedule's routes, by the fallback teacher
-
-        def label(st: MissionState, decide=teacher) -> int:  # record the teacher's choice at st; returns it
-            tf, af, mask, nodes, row = observe(st, scale=lr_.model.cfg.scale)
-            n = decide(st)
-            hit = np.flatnonzero(nodes == n)
-            if len(hit):  # (outside the observation window only on missions beyond the training scale)
-                obs.append((tf, af, mask))
-                deciders.append(row)
-                acts.append(int(hit[0]))
-                if tau > 0:
-                    soft.append(soft_target(teacher, st, nodes, int(hit[0]), tau))
-            return n
-
-        on_policy, pool = [], []  # DAgger states; (teacher's finished state, its label range) per pooled instance
+        tau, scale = p.tau, lr_.model.cfg.scale
+        on_policy, jobs = [], []  # DAgger states; the teacher-driven missions (LabelJob)
         for inst, routes in items:
-            st = MissionState(inst, seed=int(lr_.np_rng.integers(2**31)), rules=run.train_rules)
+            seed = int(lr_.np_rng.integers(2**31))
             if lr_.np_rng.random() < p.dagger:
-                on_policy.append(st)  # DAgger: the policy drives, the teacher labels
+                on_policy.append(MissionState(inst, seed=seed, rules=run.train_rules))  # the policy drives
                 continue
-            first = len(acts)
-            decide = teacher if routes is None else RouteTeacher(routes, teacher)
-            while not st.done:
-                st.step(label(st, decide))
-            if routes is not None:
-                followed[0] += decide.hits
-                followed[1] += decide.misses
-            pool.append((st, first, len(acts)))
+            jobs.append(LabelJob(inst, routes, seed, run.train_rules, p.teacher, tau, scale))
+        followed = [0, 0]  # decisions labelled by a schedule's routes, by the fallback teacher
+        pool = []  # (the teacher's finished state, its label range) per teacher-driven mission
+        for done in run.fanout.map(teacher_labels, jobs):  # Ray tasks with --jobs > 1 (item order kept)
+            first = len(labels.acts)
+            labels.extend(done.labels)
+            followed[0] += done.hits
+            followed[1] += done.misses
+            pool.append((done.state, first, len(labels.acts)))
+        obs, deciders, acts, soft = labels.obs, labels.deciders, labels.acts, labels.soft
         lr_.model.eval()
-        if on_policy:
+        if on_policy:  # DAgger: the teacher labels the states the policy visits
             rollout(lr_.model, on_policy, sample=False,
-                    before_step=lambda idx, o, nodes, act: [label(on_policy[i]) for i in idx])
+                    before_step=lambda idx, o, nodes, act: [labels.add(on_policy[i], teacher, teacher, tau, scale)
+                                                            for i in idx])
         pool_stats = self.pool(pool, obs, deciders, acts) if p.samples and pool else {}
         lr_.set_lr(p.lr)
         lr_.model.train()
@@ -93,7 +87,7 @@ class Imitation:
                 if tau > 0:  # [b, T] target distributions, zero-padded to the batch's rows
                     q = torch.zeros_like(logits)
                     for r, i in enumerate(idx):
-                        q[r, :len(soft[i])] = torch.from_numpy(soft[i])
+                        q[r, :len(soft[i])] = torch.tensor(soft[i])  # (a copy: arrays from Ray are read-only)
                     logp = torch.log_softmax(logits, -1).masked_fill(~batch["action_mask"], 0.0)  # [b, T]
                     loss = -(q * logp).sum(-1).mean()
                 else:
@@ -145,6 +139,70 @@ class Imitation:
         mk_best = np.array([s.makespan for s in states])[np.arange(len(pool)) * S + R.argmax(1)]  # [I]
         return {"teacher_makespan": float(mk_t.mean()), "pool_makespan": float(np.where(win, mk_best, mk_t).mean()),
                 "teacher_wins": float(1 - win.mean())}
+
+
+@dataclass
+class Labels:
+    """Labelled decisions: the observation (task rows, robot rows, mask), the decider's row, the
+    teacher's choice (its row in the observation) and, with ``tau`` > 0, the soft target."""
+    obs: list = field(default_factory=list)
+    deciders: list = field(default_factory=list)
+    acts: list = field(default_factory=list)
+    soft: list = field(default_factory=list)
+
+    def add(self, st: MissionState, decide: Callable[[MissionState], int], teacher, tau: float,
+            scale: str) -> int:
+        """Record ``decide``'s choice at ``st`` (``teacher``'s estimates for the soft target); returns it."""
+        tf, af, mask, nodes, row = observe(st, scale=scale)
+        n = decide(st)
+        hit = np.flatnonzero(nodes == n)
+        if len(hit):  # (outside the observation window only on missions beyond the training scale)
+            self.obs.append((tf, af, mask))
+            self.deciders.append(row)
+            self.acts.append(int(hit[0]))
+            if tau > 0:
+                self.soft.append(soft_target(teacher, st, nodes, int(hit[0]), tau))
+        return n
+
+    def extend(self, other: "Labels") -> None:
+        self.obs += other.obs
+        self.deciders += other.deciders
+        self.acts += other.acts
+        self.soft += other.soft
+
+
+@dataclass
+class LabelJob:
+    """One teacher-driven mission to label: a pure function of these fields (so it runs the same
+    in this process or as a Ray task). ``routes``: a schedule to follow (None: the teacher alone)."""
+    inst: Any
+    routes: list | None
+    seed: int
+    rules: Rules
+    teacher: str
+    tau: float
+    scale: str
+
+
+@dataclass
+class LabelResult:
+    labels: Labels
+    state: MissionState  # the finished mission (expert iteration compares its return)
+    hits: int = 0  # decisions that followed the routes
+    misses: int = 0  # decisions the teacher took where the routes had nothing admissible
+
+
+def teacher_labels(job: LabelJob) -> LabelResult:
+    """Drive ``job``'s mission to the end by its teacher (a schedule's routes, falling back to the
+    named baseline), labelling every decision. ``hmrta train --jobs N`` runs these as Ray tasks."""
+    teacher = TEACHERS[job.teacher]()
+    decide = teacher if job.routes is None else RouteTeacher(job.routes, teacher)
+    st = MissionState(job.inst, seed=job.seed, rules=job.rules)
+    labels = Labels()
+    while not st.done:
+        st.step(labels.add(st, decide, teacher, job.tau, job.scale))
+    hits, misses = (decide.hits, decide.misses) if job.routes is not None else (0, 0)
+    return LabelResult(labels, st, hits, misses)
 
 
 def soft_target(teacher, st: MissionState, nodes: np.ndarray, row: int, tau: float) -> np.ndarray:

@@ -60,9 +60,15 @@ def validation_set(cfg: TrainConfig) -> list:
 
 class Trainer:
     """One training run: the learner, the three algorithms, their counters and the run folder.
-    ``cfg``: a TrainConfig, or a complete config mapping (validated here: ValueError naming the key)."""
+    ``cfg``: a TrainConfig, or a complete config mapping (validated here: ValueError naming the key).
+    ``jobs`` > 1 or ``ray_address``: the teachers' labels are computed as Ray tasks
+    (:mod:`hmrta.fanout`: a local Ray with ``jobs`` CPUs, or a cluster); the results are the same
+    as in this process. :meth:`close` (or the end of :meth:`run`) shuts a local Ray down."""
 
-    def __init__(self, cfg: TrainConfig | dict, run_dir: str | Path, device: str | None = None, log=print):
+    def __init__(self, cfg: TrainConfig | dict, run_dir: str | Path, device: str | None = None, log=print,
+                 jobs: int = 1, ray_address: str | None = None):
+        from ..fanout import Fanout
+
         self.cfg = TrainConfig.coerce(cfg)
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -80,6 +86,7 @@ class Trainer:
         self.val_set = validation_set(self.cfg)
         self._schedules = None  # (file size, ScheduleSet) of pretrain.schedules, reloaded as it grows
         self.train_rules = self.eval_rules = self.cfg.rule_set()
+        self.fanout = Fanout(jobs, ray_address)
         self.imitation = Imitation(self)
         self.distill = Distill(self)
         self.reinforce = Reinforce(self)
@@ -343,8 +350,14 @@ class Trainer:
         finally:
             self.save(last)
             f.close()
+            self.close()
         return {"iteration": self.iteration, "episodes": self.episodes, "best_val": self.best_val,
                 "greedy_val": self.greedy_val}
+
+
+    def close(self) -> None:
+        """Shut down the local Ray this run started, if any (a later step starts it again)."""
+        self.fanout.close()
 
 
 def write_config(cfg: TrainConfig | dict, path: Path) -> None:

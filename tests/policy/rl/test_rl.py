@@ -446,6 +446,9 @@ def test_train_cli_rejects_init_or_reseed_without_resume(tmp_path, capsys):
     for extra in (["--reseed"], ["--init", str(tmp_path / "x.pt")]):
         assert main(["train", "--run-dir", str(tmp_path / "run"), *extra]) == 2
         assert "only apply with --resume" in capsys.readouterr().err
+    assert main(["train", "--run-dir", str(tmp_path / "run"), "--jobs", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--jobs: expected a positive integer" in err[0]
     assert not (tmp_path / "run").exists()
 
 
