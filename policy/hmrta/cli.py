@@ -842,9 +842,10 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--out", required=True, help="schedules file (.jsonl), created or resumed")
     sc.add_argument("--count", type=int, required=True, help="missions 0..COUNT-1")
     sc.add_argument("--seed", type=int, default=1, help="generator seed (keep it apart from dev and test seeds)")
-    sc.add_argument("--generator", choices=("broad", "paper"), default="broad",
+    sc.add_argument("--generator", choices=("broad", "paper", "single-skill"), default="broad",
                     help="broad: every family axis (hmrta.families.BroadGenerator); paper: the paper's "
-                         "training distribution (MA-AT, 3-5 species of 3-5 robots)")
+                         "training distribution (MA-AT, 3-5 species of 3-5 robots); single-skill: the "
+                         "paper's SA teams (3-5 one-skill species of 2-10 robots, SA-AT or SA-BT)")
     sc.add_argument("--min-tasks", type=int, default=10, help="fewest tasks per mission")
     sc.add_argument("--max-tasks", type=int, default=30, help="most tasks per mission")
     sc.add_argument("--time-limit", type=float, default=1.5, help="solver seconds per mission")

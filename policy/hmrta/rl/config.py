@@ -28,6 +28,14 @@ TEACHERS = BASELINES  # behaviour-cloning / lookahead teachers, by method name
 
 
 # ---- value checks: each returns an error text or None ------------------------------------------
+def _paths(v: Any) -> list[str] | None:
+    """A path or a non-empty list of paths, as a list (None: neither)."""
+    v = [v] if isinstance(v, str) else v
+    ok = isinstance(v, list) and v and all(isinstance(x, str) and x.strip() for x in v)
+    return list(v) if ok else None
+
+
+
 def _integer(lo: int, hi: int | None = None) -> Callable[[Any], str | None]:
     def check(v: Any) -> str | None:
         if isinstance(v, bool) or not isinstance(v, int) or v < lo or (hi is not None and v > hi):
@@ -226,10 +234,11 @@ class PretrainConfig:
     # expert iteration: > 0 policy samples compete with the teacher's trajectory, the best is cloned
     samples: int = _f(0, _integer(0))
     temperature: float = _f(1.0, _number(0, lo_open=True))
-    # the solver as teacher: a schedules dataset (hmrta schedules; rl/schedules.py, relative paths
-    # from the working directory). Teacher-driven missions come from it and are labelled by their
-    # routes; where a route's choice is not admissible, and on DAgger states, ``teacher`` labels.
-    schedules: Any = _f(None, _optional(lambda v: None if isinstance(v, str) and v.strip() else "expected a path"))
+    # the solver as teacher: a schedules dataset, or a list of them drawn from as one (hmrta
+    # schedules; rl/schedules.py, relative paths from the working directory). Teacher-driven
+    # missions come from it and are labelled by their routes; where a route's choice is not
+    # admissible, and on DAgger states, ``teacher`` labels.
+    schedules: Any = _f(None, _optional(lambda v: None if _paths(v) else "expected a path or a list of paths"))
 
     def __post_init__(self) -> None:
         _validate(self, "pretrain.")
@@ -253,6 +262,9 @@ class ValidationConfig:
     # > 0: that many broad-distribution missions (hmrta.families.BroadGenerator, 10-50 tasks) join
     # the validation set
     broad: int = _f(0, _integer(0))
+    # > 0: that many single-skill missions (SA-AT and SA-BT teams, rl/schedules.py's
+    # SingleSkillTraining, 10-50 tasks) join the validation set
+    single_skill: int = _f(0, _integer(0))
     # what best.pt keeps the lowest of: the mean makespan, or the mean ratio of the makespan to
     # greedy-coalition's on the same mission (comparable across missions of different time scales)
     metric: str = _f("makespan", lambda v: None if v in ("makespan", "ratio") else "expected makespan or ratio")

@@ -38,7 +38,7 @@ from ..instance import Instance
 from ..reading import InputError, short
 
 FORMAT = "hmrta-schedules/1"
-GENERATORS = ("broad", "paper")
+GENERATORS = ("broad", "paper", "single-skill")
 
 
 class ScheduleError(InputError):
@@ -62,15 +62,46 @@ class PaperTraining:
         return g.sample(rng)
 
 
+@dataclass(frozen=True)
+class SingleSkillTraining:
+    """Single-skill teams (the paper's SA scenarios, outside its training distribution): 3-5
+    species of 2-10 robots, each species with one of K = species skills, additive (SA-AT) or binary
+    (SA-BT) requirements with equal odds, ``min_tasks..max_tasks`` tasks; a seeded generator of
+    indexed instances on its own salted stream (never a paper test or dev row's)."""
+
+    max_tasks: int = 40
+    min_tasks: int = 10
+
+    def instance(self, seed: int, index: int) -> Instance:
+        import numpy as np
+
+        rng = np.random.default_rng([seed, index, 0x73696e67])  # "sing"
+        for _ in range(100):  # a team too small for the drawn requirements is redrawn
+            s, n = int(rng.integers(3, 6)), int(rng.integers(2, 11))
+            m = int(rng.integers(self.min_tasks, self.max_tasks + 1))
+            scenario = "SA-AT" if rng.random() < 0.5 else "SA-BT"
+            try:
+                return ScenarioGenerator(scenario, s * n, s, m, s).sample(rng, f"single-skill_{s * n}-{s}-{m}")
+            except ValueError:
+                continue
+        raise ValueError(f"single-skill generator: no feasible mission in 100 draws (seed {seed}, index {index})")
+
+    def generate(self, count: int, seed: int) -> list[Instance]:
+        return [self.instance(seed, i) for i in range(count)]
+
+
 def make_generator(spec: dict[str, Any]):
-    """A generator from its header entry (``{"kind": "broad"|"paper", "min_tasks", "max_tasks"}``)."""
+    """A generator from its header entry (``{"kind": "broad"|"paper"|"single-skill", "min_tasks",
+    "max_tasks"}``)."""
     kind = spec.get("kind")
     lo, hi = spec.get("min_tasks"), spec.get("max_tasks")
     if kind not in GENERATORS:
         raise ScheduleError(f"generator.kind: expected one of {', '.join(GENERATORS)}, got {short(kind)}")
     if not (isinstance(lo, int) and isinstance(hi, int) and 1 <= lo <= hi <= 200):
         raise ScheduleError(f"generator: expected integer min_tasks <= max_tasks in 1..200, got {short(lo)}..{short(hi)}")
-    return BroadGenerator(max_tasks=hi, min_tasks=lo) if kind == "broad" else PaperTraining(max_tasks=hi, min_tasks=lo)
+    if kind == "broad":
+        return BroadGenerator(max_tasks=hi, min_tasks=lo)
+    return (PaperTraining if kind == "paper" else SingleSkillTraining)(max_tasks=hi, min_tasks=lo)
 
 
 # ---- the labeller --------------------------------------------------------------------------------

@@ -55,6 +55,10 @@ def validation_set(cfg: TrainConfig) -> list:
         out += ScenarioGenerator("MA-AT", a, s, m, k).generate(n, v.seed)
     if v.broad:
         out += BroadGenerator(max_tasks=50).generate(v.broad, v.seed)
+    if v.single_skill:
+        from .schedules import SingleSkillTraining
+
+        out += SingleSkillTraining(max_tasks=50).generate(v.single_skill, v.seed)
     return out
 
 
@@ -84,7 +88,7 @@ class Trainer:
         self.greedy_val: float | None = None
         self._coalition_val: np.ndarray | None = None
         self.val_set = validation_set(self.cfg)
-        self._schedules = None  # (file size, ScheduleSet) of pretrain.schedules, reloaded as it grows
+        self._schedules: dict = {}  # {path: (file size, ScheduleSet)} of pretrain.schedules, reloaded as they grow
         self.train_rules = self.eval_rules = self.cfg.rule_set()
         self.fanout = Fanout(jobs, ray_address)
         self.imitation = Imitation(self)
@@ -217,24 +221,29 @@ class Trainer:
 
     # ---- data --------------------------------------------------------------------------------
     def schedule_items(self, n: int) -> list[tuple]:
-        """``n`` (instance, routes) of the ``pretrain.schedules`` dataset, drawn uniformly with the
-        run's random stream. The file is read again when it has grown (generation may still run)."""
+        """``n`` (instance, routes) of the ``pretrain.schedules`` datasets (one or a list, drawn from
+        as one), drawn uniformly with the run's random stream. A file is read again when it has
+        grown (generation may still run)."""
+        from .config import _paths
         from .schedules import ScheduleError, ScheduleSet
 
-        path = Path(self.cfg.pretrain.schedules)
-        try:
-            size = path.stat().st_size
-        except OSError as e:
-            raise ScheduleError(f"pretrain.schedules: {path}: cannot read ({e.strerror})") from None
-        if self._schedules is None or self._schedules[0] != size:
-            self._schedules = (size, ScheduleSet(path))
-        ss = self._schedules[1]
-        idx = ss.indices()
-        if not idx:
-            raise ScheduleError(f"pretrain.schedules: {path}: no schedules yet")
+        paths = [Path(x) for x in _paths(self.cfg.pretrain.schedules)]
+        pool = []  # (dataset, index) of every schedule, file after file
+        for path in paths:
+            try:
+                size = path.stat().st_size
+            except OSError as e:
+                raise ScheduleError(f"pretrain.schedules: {path}: cannot read ({e.strerror})") from None
+            if path not in self._schedules or self._schedules[path][0] != size:
+                self._schedules[path] = (size, ScheduleSet(path))
+            ss = self._schedules[path][1]
+            pool += [(ss, i) for i in ss.indices()]
+        if not pool:
+            raise ScheduleError(f"pretrain.schedules: {', '.join(map(str, paths))}: no schedules yet")
         out = []
-        for j in self.np_rng.integers(0, len(idx), size=n):
-            inst, routes, _ = ss.item(idx[int(j)])
+        for j in self.np_rng.integers(0, len(pool), size=n):
+            ss, i = pool[int(j)]
+            inst, routes, _ = ss.item(i)
             out.append((inst, routes))
         return out
 

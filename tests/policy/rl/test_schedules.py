@@ -13,7 +13,8 @@ import pytest
 from hmrta.baselines import BASELINES
 from hmrta.core import MissionState, Rules
 from hmrta.families import BroadGenerator
-from hmrta.rl.schedules import FORMAT, RouteTeacher, ScheduleError, ScheduleSet, generate, read_schedules
+from hmrta.rl.schedules import (FORMAT, RouteTeacher, ScheduleError, ScheduleSet, SingleSkillTraining, generate,
+                                 make_generator, read_schedules)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from test_schemas import assert_valid, errors  # noqa: E402
@@ -36,6 +37,18 @@ def test_broad_generator_is_seeded_and_spans_the_axes():
     assert {i.skills for i in a} >= {1, 5} and {i.n_species for i in a} >= {1, 3}
     assert all(10 <= i.n_tasks <= 30 and i.infeasibility() is None for i in a)
     assert len({round(i.velocity, 6) for i in a}) > 10
+
+
+def test_single_skill_generator_is_seeded_and_spans_sa_teams():
+    g = SingleSkillTraining(max_tasks=30)
+    a = [g.instance(5, i) for i in range(40)]
+    assert [x.to_dict() for x in a] == [x.to_dict() for x in g.generate(40, 5)]
+    assert a[0].to_dict() != g.instance(6, 0).to_dict()
+    for i in a:
+        assert (i.traits.sum(1) == 1).all() and i.skills == i.n_species in (3, 4, 5)  # one skill per species
+        assert 10 <= i.n_tasks <= 30 and i.infeasibility() is None
+    assert {bool(i.additive) for i in a} == {True, False}  # SA-AT and SA-BT
+    assert make_generator({"kind": "single-skill", "min_tasks": 10, "max_tasks": 30}) == g
 
 
 def test_routes_replay_exactly_without_a_cap(dataset):
@@ -161,3 +174,26 @@ def test_cloning_the_schedules_follows_the_routes(dataset, tmp_path):
     assert np.mean([r["bc_loss"] for r in rows[-3:]]) < np.mean([r["bc_loss"] for r in rows[:3]])
     v = tr.validate()
     assert v["val_makespan"] == v["val_ratio"] and v["val_ratio"] > 0.5
+
+
+def test_several_schedule_datasets_are_drawn_from_as_one(dataset, tmp_path):
+    """pretrain.schedules as a list: the missions come from every file (a single file in a list
+    draws exactly as the file alone), and a validation set can hold single-skill missions."""
+    from hmrta.rl.train import Trainer, validation_set
+
+    other = tmp_path / "sa.jsonl"
+    assert generate(other, {"kind": "single-skill", "min_tasks": 6, "max_tasks": 8}, 2, 3, time_limit=0.2,
+                    progress=False) == 3
+    cfg = {"name": "two", "seed": 1, "model": {"d_model": 32, "heads": 4, "ff_hidden": 32, "scale": "mission"},
+           "rules": {"max_open": None, "safety": True},
+           "pretrain": {"iterations": 1, "instances_per_iter": 4, "teacher": "greedy-coalition",
+                        "schedules": [str(dataset), str(other)]},
+           "train": {"iterations": 0},
+           "validation": {"seed": 5, "rows": [[6, 2, 8, 3, 1]], "single_skill": 2}}
+    tr = Trainer(cfg, tmp_path / "run", device="cpu", log=lambda s: None)
+    names = {inst.name.split("_")[0] for inst, _ in tr.schedule_items(40)}
+    assert any(n.startswith("single-skill") for n in names) and any(n.startswith("broad") for n in names)
+    assert [i.name.split("_")[0] for i in validation_set(tr.cfg)] == ["MA-AT", "single-skill", "single-skill"]
+    one = [Trainer({**cfg, "pretrain": {**cfg["pretrain"], "schedules": x}}, tmp_path / f"r{k}", device="cpu",
+                   log=lambda s: None).schedule_items(6) for k, x in enumerate((str(dataset), [str(dataset)]))]
+    assert [i.to_dict() for i, _ in one[0]] == [i.to_dict() for i, _ in one[1]]
