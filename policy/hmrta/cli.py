@@ -815,7 +815,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     t.add_argument("--threads", type=int, default=None, metavar="N",
                    help="torch CPU threads (default: torch's, one per core; fewer beside other busy processes)")
-    _fanout_args(t, "label the teachers' missions (behaviour cloning)",
+    _fanout_args(t, "label the teachers' missions (behaviour cloning) and roll out the validation set",
                  "; the labels, and so the run, are the same whatever N")
     t.add_argument("--export", default=None, help="after training, write the best weights + config here")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")

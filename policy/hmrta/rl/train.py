@@ -46,6 +46,18 @@ from .rollout import rollout
 DEFAULTS = defaults()  # every key with its default (a config file names only what it changes)
 
 
+def validation_makespans(job: tuple) -> list[tuple[float, bool]]:
+    """(makespan, success) of RL(g.) on a part of the validation set (``t_max`` for a failure);
+    ``job`` is (model config, weights, instances, rules, t_max). A Ray task with ``hmrta train
+    --jobs N``."""
+    model_cfg, weights, insts, rules, t_max = job
+    net = PolicyNet(model_cfg)
+    net.load_state_dict(weights)
+    states = [MissionState(i, seed=0, rules=rules) for i in insts]
+    rollout(net.eval(), states, sample=False)
+    return [(s.makespan if s.success else t_max, bool(s.success)) for s in states]
+
+
 def validation_set(cfg: TrainConfig) -> list:
     from ..families import BroadGenerator
 
@@ -278,10 +290,19 @@ class Trainer:
 
         if self.greedy_val is None:
             self.greedy_val = float(np.mean([solve(i, "greedy", 0).makespan for i in self.val_set]))
-        states = [MissionState(i, seed=0, rules=self.eval_rules) for i in self.val_set]
-        rollout(self.eval_model(), states, sample=False)
-        mk = np.array([s.makespan if s.success else self.cfg.train.t_max for s in states])
-        out = {"val_makespan": float(mk.mean()), "val_success": float(np.mean([s.success for s in states])),
+        t_max = self.cfg.train.t_max
+        if self.fanout.distributed:  # a part of the set per Ray CPU, each rolled out as one batch
+            weights = {k: v.detach().cpu() for k, v in self.eval_model().state_dict().items()}
+            parts = np.array_split(np.arange(len(self.val_set)), min(self.fanout.slots(), len(self.val_set)))
+            jobs = [(self.cfg.model, weights, [self.val_set[i] for i in part], self.eval_rules, t_max)
+                    for part in parts]
+            res = [r for part in self.fanout.map(validation_makespans, jobs) for r in part]
+        else:
+            states = [MissionState(i, seed=0, rules=self.eval_rules) for i in self.val_set]
+            rollout(self.eval_model(), states, sample=False)
+            res = [(s.makespan if s.success else t_max, s.success) for s in states]
+        mk = np.array([m for m, _ in res])  # [V]
+        out = {"val_makespan": float(mk.mean()), "val_success": float(np.mean([ok for _, ok in res])),
                "greedy_makespan": self.greedy_val}
         if self.cfg.validation.metric == "ratio":  # scored by the ratio to greedy-coalition per mission
             if self._coalition_val is None:

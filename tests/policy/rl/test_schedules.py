@@ -125,8 +125,8 @@ def test_cli_writes_and_resumes(tmp_path, capsys):
 def test_labels_fanned_out_on_ray_train_exactly_as_in_process(dataset, tmp_path):
     """hmrta train --jobs 2: the teachers' missions are labelled as Ray tasks; the rows (loss,
     labels, route share) and the weights after two iterations equal a run labelling them in its own
-    process: on schedules with DAgger, and on greedy-coalition with soft targets. The run shuts its
-    local Ray down."""
+    process: on schedules with DAgger, and on greedy-coalition with soft targets; so does the
+    validation score, rolled out in parts as Ray tasks. The run shuts its local Ray down."""
     pytest.importorskip("ray", reason="Ray is not installed (pip install 'hmrta[ray]')")
     import ray
     import torch
@@ -135,7 +135,7 @@ def test_labels_fanned_out_on_ray_train_exactly_as_in_process(dataset, tmp_path)
 
     base = {"name": "fan", "seed": 3, "model": {"d_model": 32, "heads": 4, "ff_hidden": 32, "scale": "mission"},
             "rules": {"max_open": None, "safety": True}, "train": {"iterations": 0},
-            "validation": {"every": 100, "seed": 5, "rows": [[6, 2, 8, 3, 2]], "broad": 2, "metric": "ratio"}}
+            "validation": {"every": 100, "seed": 5, "rows": [[6, 2, 8, 3, 3]], "broad": 3, "metric": "ratio"}}
     pre = {"iterations": 2, "instances_per_iter": 4, "lr": 2e-3, "epochs": 1, "batch": 64,
            "teacher": "greedy-coalition"}
     for extra in ({"schedules": str(dataset), "dagger": 0.3}, {"tau": 0.5}):
@@ -146,12 +146,14 @@ def test_labels_fanned_out_on_ray_train_exactly_as_in_process(dataset, tmp_path)
             tr = Trainer(cfg, tmp_path / f"run{jobs}{len(extra)}", device="cpu", log=lambda s: None, jobs=jobs)
             assert tr.fanout.distributed == (jobs > 1)
             rows = [tr.pretrain_step() for _ in range(2)]
+            val = tr.validate()
             tr.close()
             assert not ray.is_initialized()
-            runs.append((rows, tr.model.state_dict()))
-        (rows1, w1), (rows2, w2) = runs
+            runs.append((rows, tr.model.state_dict(), val))
+        (rows1, w1, v1), (rows2, w2, v2) = runs
         assert rows1 == rows2 and all(r["labels"] > 0 for r in rows1), extra
         assert all(torch.equal(w1[k], w2[k]) for k in w1), extra
+        assert v1 == v2 and v1["val_success"] == 1.0, extra  # validation rolled out in parts on Ray
 
 
 def test_cloning_the_schedules_follows_the_routes(dataset, tmp_path):
