@@ -184,9 +184,12 @@ def state_digest(st: BoardState) -> str:
     mode, target, current leg and number of legs. The board puts it in every version it
     publishes; a replica whose state gives another digest has diverged and resynchronises."""
     h = hashlib.blake2b(digest_size=8)
+    seq = [base + len(log) for base, log in zip(st.leg_base[:st.A], st.leg_log[:st.A])]  # leg_seq of each robot
+    for a in np.flatnonzero(st.mode[:st.A] == LOST).tolist():
+        seq[a] = -1
     h.update(repr((float(st.clock), st.agent, int(st.decisions), bool(st.done), int(st.n_done), int(st.n_cancelled),
                    st.A, st.M, len(st.log), len(st.pending), len(st.events), tuple(int(a) for a in st.queue),
-                   tuple(-1 if st.mode[a] == LOST else st.leg_seq(a) for a in range(st.A)))).encode())
+                   tuple(seq))).encode())
     for arr in (st.status, st.mode, st.target):
         h.update(np.ascontiguousarray(arr, dtype="<i8").tobytes())
     for arr in (st.depart, st.arrive, st.to_pos, st.rem):
@@ -396,13 +399,16 @@ class BoardCore:
         """Apply ``change`` to the state; robots it stopped short of their destination (no new
         commitment) get a hold leg."""
         st = self.state
-        before = [(len(log), float(st.to_pos[b, 0]), float(st.to_pos[b, 1])) for b, log in enumerate(st.leg_log)]
+        n_legs = [len(log) for log in st.leg_log]  # [B] the robots before the change
+        B = len(n_legs)
+        to_pos = st.to_pos[:B].copy()  # [B, 2]
         out = change()
-        for b, (n, x, y) in enumerate(before):
-            if b != skip and len(st.leg_log[b]) == n and (float(st.to_pos[b, 0]), float(st.to_pos[b, 1])) != (x, y):
+        moved = np.flatnonzero((st.to_pos[:B] != to_pos).any(axis=1))  # destination changed
+        for b in moved.tolist():
+            if b != skip and len(st.leg_log[b]) == n_legs[b]:  # ... with no new leg: stopped short
                 st.log_leg(b, HOLD)
-        for b in range(len(before)):
-            if st.mode[b] == LOST and b not in self.lost:  # lost by a scenario event
+        for b in np.flatnonzero(st.mode[:B] == LOST).tolist():
+            if b not in self.lost:  # lost by a scenario event
                 self.lost[b] = "lost (scenario event)"
         self._sync_robots()
         if bump:
