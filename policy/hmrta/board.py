@@ -104,6 +104,7 @@ class BoardState(MissionState):
         self.leg_log: list[list[tuple[int, float, float, float]]] = [[] for _ in range(inst.n_agents)]
         self.leg_arrive: list[list[float]] = [[] for _ in range(inst.n_agents)]  # planned arrival of each leg
         self.leg_base: list[int] = [0] * inst.n_agents  # legs before leg_log[a] (a replica's keyframe left out)
+        self.touched: set[int] = set()  # robots given legs since a reader last took this set (agent hosts)
         self.until = 0.0  # live: the state never runs ahead of the mission clock (MissionState.advance_to)
         super().__init__(inst, seed=seed, rules=rules)
 
@@ -114,7 +115,7 @@ class BoardState(MissionState):
         (``until``). SnapshotError (a ValueError) for a snapshot that does not fit ``inst``."""
         st = cls.from_snapshot(inst, snap)
         st.until = float(until)
-        st.leg_log, st.leg_arrive, st.leg_base = [], [], []
+        st.leg_log, st.leg_arrive, st.leg_base, st.touched = [], [], [], set()
         for a in range(st.A):
             e = legs[a] if a < len(legs) else None
             window = [(int(g[0]), float(g[1]), float(g[2]), float(g[3])) for g in e[1]] if e else []
@@ -144,6 +145,7 @@ class BoardState(MissionState):
         self.grow_legs()
         self.leg_log[a].append((node, float(self.to_pos[a, 0]), float(self.to_pos[a, 1]), float(self.depart[a])))
         self.leg_arrive[a].append(max(float(self.arrive[a]), float(self.depart[a])))
+        self.touched.add(a)
 
     def log_resend(self, a: int, i: int) -> None:
         """Repeat leg i of robot a as a RESEND leg (its agent publishes that goal again)."""
@@ -153,6 +155,7 @@ class BoardState(MissionState):
         _, x, y, depart = self.leg_log[a][j]
         self.leg_log[a].append((RESEND, x, y, depart))
         self.leg_arrive[a].append(self.leg_arrive[a][j])
+        self.touched.add(a)
 
     def leg_seq(self, a: int) -> int:
         """How many legs robot a has been given (the last one is numbered this)."""

@@ -3,8 +3,8 @@
 Builds its view only from received topics: the mission (``/hmrta/mission``), the board stream
 (``/hmrta/board``: every version's events) and keyframes (``/hmrta/board_keyframe``), and the
 mission clock (``clock_topic``, default ``/hmrta/clock``; never ``/clock``); the agents hosted in
-one process share one subscription to each, one replica of the board's state machine
-(:class:`hmrta.replica.Replica`: it starts from a keyframe and applies every version's events;
+one process share one subscription to each, one choice publisher, one replica of the board's
+state machine (:class:`hmrta.replica.Replica`: it starts from a keyframe and applies every version's events;
 a version it misses, or a state whose digest differs from the board's, makes it ask for a keyframe
 on ``/hmrta/keyframe_requests``, again every second until one comes, with the reason in the log)
 and one copy of the policy. When the board names this robot as the current decider, its agent
@@ -91,6 +91,10 @@ class Host:
         self.signer: Signer | None = None  # one per process: its counter orders every message it signs
         self._keystores: dict[str, dict[str, bytes]] = {}
         self._dispatched = -1  # the replica version the agents last acted on
+        self._walked: tuple = ()  # (state, mission, robots, lost, phase) at the last walk of every agent
+        self._by_index: dict[int, "AgentNode"] = {}  # hosted agents by robot index (as of that walk)
+        self._unsettled: list["AgentNode"] = []  # agents not yet following the board (acted on every version)
+        self._choice_pub = None  # one choice publisher for every agent of the process
         self._kf_sessions: set[str] = set()  # sessions a keyframe was received for (the first may be old)
         self._early: list[tuple[String, bool]] = []  # keyframes that came before the mission
         self.ignore: set[int] = set()  # testing (--ignore-board-version): versions dropped once, as if lost
@@ -225,22 +229,49 @@ class Host:
         self._request_pub.publish(keyframe_request_to_msg(KeyframeRequest(self.replica.session or "", version, why,
                                                                           self._host)))
 
+    def choice_publisher(self, node: Node):
+        """The process's publisher of choices (created on the first agent's node): one writer
+        however many robots the process hosts (each choice names and signs its robot)."""
+        if self._choice_pub is None:
+            self._choice_pub = node.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
+        return self._choice_pub
+
     def dispatch(self, t_recv: float | None = None) -> None:
-        """Hand the replica's version to every agent of the process (once it is current)."""
+        """Hand the replica's version to the agents of the process it concerns (once it is
+        current): the decider first (latency), every robot given legs since the last dispatch,
+        and the agents not yet settled (not ready, not in the mission, lost, new legs pending).
+        Hundreds of robots in one process: most versions concern a few, so the others are not
+        walked; a new state (keyframe), mission, team, loss or phase walks them all."""
         t_recv = time.perf_counter() if t_recv is None else t_recv
         r = self.replica
         if not r.current or self.mission is None or r.head.session != self.mission.session:
             return
         head, st = r.head, r.state
         self._dispatched = r.version
-        first = [a for a in self.agents if a.index == head.decider] if head.decider is not None else []
+        touched, st.touched = st.touched, set()
+        walk = (st, self.mission, st.A, head.lost, head.phase)  # (the objects themselves: an id can be reused)
+        w = self._walked
+        if not w or w[0] is not st or w[1] is not self.mission or w[2:] != walk[2:]:
+            self._walked = walk
+            self._by_index = {a.index: a for a in self.agents if a.index is not None}
+            todo = list(self.agents)
+        else:
+            todo = [self._by_index[i] for i in sorted(touched) if i in self._by_index] + self._unsettled
+        d = self._by_index.get(head.decider) if head.decider is not None else None
+        order = list({id(a): a for a in ([d] if d is not None else []) + todo}.values())  # the decider first
         lost = set(head.lost)
-        for a in first + [a for a in self.agents if a not in first]:  # the decider first: latency
-            i = a.index
-            if (head.phase != "done" and i is not None and i != head.decider and i < st.A and i not in lost
-                    and a.ready and not a.finished and a.leg_seq == st.leg_seq(i)):
-                continue  # nothing new for it (hundreds of robots in one process: most versions concern few)
-            a.act(head, t_recv)
+        for a in order:
+            if a is d or not self._settled(a, head, st, lost):
+                a.act(head, t_recv)
+        self._unsettled = [a for a in order if not self._settled(a, head, st, lost)]
+
+    @staticmethod
+    def _settled(a: "AgentNode", head, st, lost: set[int]) -> bool:
+        """Whether agent ``a`` follows the board with nothing new for it in this version (its
+        robot's legs unchanged, the mission not over)."""
+        i = a.index
+        return (head.phase != "done" and i is not None and i < st.A and i not in lost and a.ready
+                and not a.finished and a.leg_seq == st.leg_seq(i))
 
     def _on_clock(self, msg: Clock) -> None:
         t = clock_from_msg(msg)
@@ -254,7 +285,7 @@ class Host:
         if not rclpy.ok():
             return
         if any(not a.ready and a.is_ready() for a in self.agents):
-            self._dispatched = -1
+            self._dispatched, self._walked = -1, ()
             self.dispatch()  # what they saw while not ready (they held back: their messages would be lost)
         self._ask()  # a replica still waiting for a keyframe asks again
         sessions: dict[str, list[str]] = {}
@@ -314,7 +345,7 @@ class AgentNode(Node):
         self.seq = 0
         self._sent: tuple[int, int, float, float] | None = None  # (board version, node, compute ms, monotonic time)
         self._warned: set[str] = set()
-        self.choice_pub = self.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
+        self.choice_pub = host.choice_publisher(self)
         self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
         self._pose: PoseStamped | None = None  # its driver's latest pose (a robot asking to join reports it)
         if self.species_param >= 0:
