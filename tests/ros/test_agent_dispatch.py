@@ -82,7 +82,9 @@ def test_dispatch_reaches_the_same_agents_as_walking_all_of_them(case, monkeypat
     kw = {"tick": 0.1, "where": lambda a, xy: tuple(tb.INST.depots[a]) if a == 0 else xy} if stuck else {}
     (fast, looked), (full, looked_all) = (play(stuck, kw, False, monkeypatch), play(stuck, kw, True, monkeypatch))
     assert fast == full
-    assert looked < 0.8 * looked_all  # fewer agents looked at (6 robots here; hundreds in a fleet)
+    # fewer agents looked at: 34% and 21% of the full walk's here (6 robots; hundreds in a fleet). A
+    # walk of every agent whenever the phase changes (not only at the end) looked at 69% and 27%.
+    assert looked < 0.5 * looked_all
     assert sum(e[1] == "decide" for seen in fast for e in seen) > 10 and all(fast[:-1])
 
 

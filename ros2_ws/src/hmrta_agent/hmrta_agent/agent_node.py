@@ -91,7 +91,7 @@ class Host:
         self.signer: Signer | None = None  # one per process: its counter orders every message it signs
         self._keystores: dict[str, dict[str, bytes]] = {}
         self._dispatched = -1  # the replica version the agents last acted on
-        self._walked: tuple = ()  # (state, mission, robots, lost, phase) at the last walk of every agent
+        self._walked: tuple = ()  # (state, mission, robots, lost, done) at the last walk of every agent
         self._by_index: dict[int, "AgentNode"] = {}  # hosted agents by robot index (as of that walk)
         self._unsettled: list["AgentNode"] = []  # agents not yet following the board (acted on every version)
         self._choice_pub = None  # one choice publisher for every agent of the process
@@ -241,7 +241,7 @@ class Host:
         current): the decider first (latency), every robot given legs since the last dispatch,
         and the agents not yet settled (not ready, not in the mission, lost, new legs pending).
         Hundreds of robots in one process: most versions concern a few, so the others are not
-        walked; a new state (keyframe), mission, team, loss or phase walks them all."""
+        walked; a new state (keyframe), mission, team or loss, and the mission's end, walk them all."""
         t_recv = time.perf_counter() if t_recv is None else t_recv
         r = self.replica
         if not r.current or self.mission is None or r.head.session != self.mission.session:
@@ -249,7 +249,7 @@ class Host:
         head, st = r.head, r.state
         self._dispatched = r.version
         touched, st.touched = st.touched, set()
-        walk = (st, self.mission, st.A, head.lost, head.phase)  # (the objects themselves: an id can be reused)
+        walk = (st, self.mission, st.A, head.lost, head.phase == "done")  # (objects, not ids: an id can be reused)
         w = self._walked
         if not w or w[0] is not st or w[1] is not self.mission or w[2:] != walk[2:]:
             self._walked = walk
