@@ -186,6 +186,7 @@ class LabelJob:
 
 @dataclass
 class LabelResult:
+    """What :func:`teacher_labels` returns for one :class:`LabelJob`."""
     labels: Labels
     state: MissionState  # the finished mission (expert iteration compares its return)
     hits: int = 0  # decisions that followed the routes
