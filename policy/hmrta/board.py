@@ -84,6 +84,7 @@ KEYFRAME_INTERVAL = 0.25  # seconds: keyframes asked for by replicas, at most on
 KEYFRAME_REPEAT = 1.0  # seconds: the latest keyframe's version is published again at most this often
 HEADER_REPEAT = 0.25  # seconds: an idle board streams its latest header again (a replica that missed it sees the gap)
 CHECK_GATE = False  # tests: every incremental arrival gate is compared with the full scan
+GATE_RESCAN = 0.5  # seconds: while the arrival gate holds the mission clock, every robot is rescanned this often
 HEADER_BYTES = 330  # about the bytes of a stream header without its events (for the automatic keyframe period)
 
 
@@ -482,6 +483,7 @@ class MissionBoard(BoardCore):
         self._gate_dirty: set[int] = set()
         self._gate_waiting: set[int] = set()
         self._gate_clock = -math.inf
+        self._gate_rescanned = -math.inf  # board time of the last scan of every robot
         self._cache_rev = -1
         self._legs: tuple = ()
         self._state_json = ""
@@ -970,9 +972,11 @@ class MissionBoard(BoardCore):
         Incremental: each robot's part (its earliest unconfirmed task's start) is kept and
         recomputed only for the robots it can have changed for: every robot when the state
         changed, a robot that reported a pose, and, when the clock moved, the robots found at
-        their task before their leg there had departed; and every robot while the gate holds the
-        mission clock. So a pose message costs one robot's scan, not the whole team's. ``CHECK_GATE`` (tests) compares every call with the full
-        scan (:meth:`_gate_reference`)."""
+        their task before their leg there had departed; and, as a safety net, every robot every
+        ``GATE_RESCAN`` seconds while the gate holds the mission clock (a part kept by mistake
+        could delay the mission by that long, never hold it). So a pose message costs one robot's
+        scan, not the whole team's. ``CHECK_GATE`` (tests) compares every call with the full scan
+        (:meth:`_gate_reference`)."""
         st = self.state
         sig = (id(st), self.rev, st.A, st.M, st.decisions, len(st.log), int(st.n_done), int(st.n_cancelled),
                float(st.clock), st.done, len(self.lost))
@@ -990,14 +994,18 @@ class MissionBoard(BoardCore):
         self._gate_clock = self.clock
         for a in todo:
             self._gate_part[a] = self._gate_robot(a)
+        now = self.now()
+        if isinstance(todo, range):
+            self._gate_rescanned = now
         gate = float(self._gate_part.min()) if st.A else math.inf
         if CHECK_GATE:
             ptr, n_events = list(self.ptr), len(self._events)
             assert self._gate_reference() == gate and self.ptr == ptr and len(self._events) == n_events, \
                 "incremental arrival gate differs from the full scan"
-        if gate <= self.clock + EPS and not isinstance(todo, range):
-            # the gate holds the mission clock: every robot afresh (the full scan), so that a part
-            # kept by mistake could never hold a mission
+        if gate <= self.clock + EPS and now - self._gate_rescanned >= GATE_RESCAN:
+            # the gate has held the mission clock for a while: every robot afresh (the full scan),
+            # so that a part kept by mistake could never hold a mission
+            self._gate_rescanned = now
             for a in range(st.A):
                 self._gate_part[a] = self._gate_robot(a)
             gate = float(self._gate_part.min())

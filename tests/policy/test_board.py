@@ -630,3 +630,23 @@ def test_no_leg_timeout_when_factor_and_floor_are_zero():
         now.t += 100.0
         b.tick()
     assert b.lost == {} and not logs[1:]
+
+
+def test_a_wrong_gate_part_holds_the_mission_clock_at_most_gate_rescan_seconds(monkeypatch):
+    """The arrival gate's safety net: a robot's part kept by mistake (here: forced below the
+    clock) holds the clock only until the gate, still holding it, rescans every robot, at most
+    GATE_RESCAN seconds of board time later."""
+    from hmrta.board import GATE_RESCAN
+
+    monkeypatch.setattr("hmrta.board.CHECK_GATE", False)  # the mistake must reach the safety net
+    b = started_board()
+    drive(b, steps=6)
+    right = b.gate()
+    assert right > b.clock  # nothing holds the clock here
+    b._gate_part[0] = b.clock - 1.0  # a part kept by mistake
+    assert b.gate() == b.clock - 1.0  # held...
+    b.now.t += GATE_RESCAN / 2
+    assert b.gate() == b.clock - 1.0  # ... for a while
+    b.now.t += GATE_RESCAN / 2
+    assert b.gate() == right  # then every robot is scanned afresh
+    assert drive(b) > 0 and b.finished
