@@ -12,7 +12,7 @@ and where the policy won they are its own, learnable choices. With ``pretrain.ta
 coalition-start estimates.
 
 The teacher-driven missions are labelled by :func:`teacher_labels`, a pure function of a
-:class:`LabelJob`, mapped through the run's :class:`hmrta.fanout.Fanout` (Ray tasks with
+:class:`LabelJob`, mapped through the run's fan-out (``Trainer.fan_out``: Ray tasks with
 ``hmrta train --jobs N``; the same labels in the same order as in process).
 """
 from __future__ import annotations
@@ -60,7 +60,7 @@ class Imitation:
             jobs.append(LabelJob(inst, routes, seed, run.train_rules, p.teacher, tau, scale))
         followed = [0, 0]  # decisions labelled by a schedule's routes, by the fallback teacher
         pool = []  # (the teacher's finished state, its label range) per teacher-driven mission
-        for done in run.fanout.map(teacher_labels, jobs):  # Ray tasks with --jobs > 1 (item order kept)
+        for done in run.fan_out(teacher_labels, jobs):  # Ray tasks with --jobs > 1 (item order kept)
             first = len(labels.acts)
             labels.extend(done.labels)
             followed[0] += done.hits

@@ -385,6 +385,11 @@ class Trainer:
                 "greedy_val": self.greedy_val}
 
 
+    def fan_out(self, fn: Callable, jobs: list) -> list:
+        """``[fn(job) for job in jobs]``: as Ray tasks when the run fans out (``jobs`` > 1 or a
+        cluster), else here, with the run's own torch threads left as they are."""
+        return self.fanout.map(fn, jobs) if self.fanout.distributed else [fn(j) for j in jobs]
+
     def close(self) -> None:
         """Shut down the local Ray this run started, if any (a later step starts it again)."""
         self.fanout.close()

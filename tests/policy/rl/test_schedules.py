@@ -156,6 +156,27 @@ def test_labels_fanned_out_on_ray_train_exactly_as_in_process(dataset, tmp_path)
         assert v1 == v2 and v1["val_success"] == 1.0, extra  # validation rolled out in parts on Ray
 
 
+def test_labelling_in_process_leaves_the_runs_torch_threads_alone(dataset, tmp_path):
+    """hmrta train --jobs 1 (the default) labels in the training process without setting its
+    torch threads (a fan-out worker's one thread would slow a run given several)."""
+    import torch
+
+    from hmrta.rl.train import Trainer
+
+    cfg = {"name": "threads", "seed": 3, "model": {"d_model": 32, "heads": 4, "ff_hidden": 32, "scale": "mission"},
+           "rules": {"max_open": None, "safety": True}, "train": {"iterations": 0},
+           "pretrain": {"iterations": 1, "instances_per_iter": 2, "teacher": "greedy-coalition",
+                        "schedules": str(dataset)},
+           "validation": {"seed": 5, "rows": [[6, 2, 8, 3, 1]]}}
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        Trainer(cfg, tmp_path / "run", device="cpu", log=lambda s: None).pretrain_step()
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_cloning_the_schedules_follows_the_routes(dataset, tmp_path):
     """BC on a schedules dataset labels teacher-driven missions by their routes (route share 1 without
     a cap) and lowers the loss."""
