@@ -727,6 +727,7 @@ def _fanout_args(p: argparse.ArgumentParser, what: str, note: str = "") -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from .methods import add_arguments as add_method_arguments
+    from .rl.schedules import GENERATORS as SCHEDULE_GENERATORS
 
     p = argparse.ArgumentParser(
         prog="hmrta",
@@ -842,7 +843,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--out", required=True, help="schedules file (.jsonl), created or resumed")
     sc.add_argument("--count", type=int, required=True, help="missions 0..COUNT-1")
     sc.add_argument("--seed", type=int, default=1, help="generator seed (keep it apart from dev and test seeds)")
-    sc.add_argument("--generator", choices=("broad", "paper", "single-skill"), default="broad",
+    sc.add_argument("--generator", choices=SCHEDULE_GENERATORS, default="broad",
                     help="broad: every family axis (hmrta.families.BroadGenerator); paper: the paper's "
                          "training distribution (MA-AT, 3-5 species of 3-5 robots); single-skill: the "
                          "paper's SA teams (3-5 one-skill species of 2-10 robots, SA-AT or SA-BT)")

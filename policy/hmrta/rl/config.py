@@ -35,7 +35,6 @@ def _paths(v: Any) -> list[str] | None:
     return list(v) if ok else None
 
 
-
 def _integer(lo: int, hi: int | None = None) -> Callable[[Any], str | None]:
     def check(v: Any) -> str | None:
         if isinstance(v, bool) or not isinstance(v, int) or v < lo or (hi is not None and v > hi):
@@ -239,6 +238,11 @@ class PretrainConfig:
     # missions come from it and are labelled by their routes; where a route's choice is not
     # admissible, and on DAgger states, ``teacher`` labels.
     schedules: Any = _f(None, _optional(lambda v: None if _paths(v) else "expected a path or a list of paths"))
+
+    @property
+    def schedule_files(self) -> list[str]:
+        """``schedules`` as a list of paths (empty: none)."""
+        return _paths(self.schedules) or []
 
     def __post_init__(self) -> None:
         _validate(self, "pretrain.")

@@ -46,16 +46,20 @@ from .rollout import rollout
 DEFAULTS = defaults()  # every key with its default (a config file names only what it changes)
 
 
+def rollout_makespans(net: torch.nn.Module, insts: list, rules, t_max: float) -> list[tuple[float, bool]]:
+    """(makespan, success) of RL(g.) of ``net`` on each instance (``t_max`` for a failure)."""
+    states = [MissionState(i, seed=0, rules=rules) for i in insts]
+    rollout(net, states, sample=False)
+    return [(s.makespan if s.success else t_max, bool(s.success)) for s in states]
+
+
 def validation_makespans(job: tuple) -> list[tuple[float, bool]]:
-    """(makespan, success) of RL(g.) on a part of the validation set (``t_max`` for a failure);
-    ``job`` is (model config, weights, instances, rules, t_max). A Ray task with ``hmrta train
-    --jobs N``."""
+    """:func:`rollout_makespans` on a part of the validation set; ``job`` is (model config,
+    weights, instances, rules, t_max). A Ray task with ``hmrta train --jobs N``."""
     model_cfg, weights, insts, rules, t_max = job
     net = PolicyNet(model_cfg)
     net.load_state_dict(weights)
-    states = [MissionState(i, seed=0, rules=rules) for i in insts]
-    rollout(net.eval(), states, sample=False)
-    return [(s.makespan if s.success else t_max, bool(s.success)) for s in states]
+    return rollout_makespans(net.eval(), insts, rules, t_max)
 
 
 def validation_set(cfg: TrainConfig) -> list:
@@ -236,10 +240,9 @@ class Trainer:
         """``n`` (instance, routes) of the ``pretrain.schedules`` datasets (one or a list, drawn from
         as one), drawn uniformly with the run's random stream. A file is read again when it has
         grown (generation may still run)."""
-        from .config import _paths
         from .schedules import ScheduleError, ScheduleSet
 
-        paths = [Path(x) for x in _paths(self.cfg.pretrain.schedules)]
+        paths = [Path(x) for x in self.cfg.pretrain.schedule_files]
         pool = []  # (dataset, index) of every schedule, file after file
         for path in paths:
             try:
@@ -296,11 +299,9 @@ class Trainer:
             parts = np.array_split(np.arange(len(self.val_set)), min(self.fanout.slots(), len(self.val_set)))
             jobs = [(self.cfg.model, weights, [self.val_set[i] for i in part], self.eval_rules, t_max)
                     for part in parts]
-            res = [r for part in self.fanout.map(validation_makespans, jobs) for r in part]
+            res = [r for part in self.fan_out(validation_makespans, jobs) for r in part]
         else:
-            states = [MissionState(i, seed=0, rules=self.eval_rules) for i in self.val_set]
-            rollout(self.eval_model(), states, sample=False)
-            res = [(s.makespan if s.success else t_max, s.success) for s in states]
+            res = rollout_makespans(self.eval_model(), self.val_set, self.eval_rules, t_max)
         mk = np.array([m for m, _ in res])  # [V]
         out = {"val_makespan": float(mk.mean()), "val_success": float(np.mean([ok for _, ok in res])),
                "greedy_makespan": self.greedy_val}

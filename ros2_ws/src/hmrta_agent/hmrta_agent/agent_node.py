@@ -4,10 +4,10 @@ Builds its view only from received topics: the mission (``/hmrta/mission``), the
 (``/hmrta/board``: every version's events) and keyframes (``/hmrta/board_keyframe``), and the
 mission clock (``clock_topic``, default ``/hmrta/clock``; never ``/clock``); the agents hosted in
 one process share one subscription to each, one choice publisher, one replica of the board's
-state machine (:class:`hmrta.replica.Replica`: it starts from a keyframe and applies every version's events;
-a version it misses, or a state whose digest differs from the board's, makes it ask for a keyframe
-on ``/hmrta/keyframe_requests``, again every second until one comes, with the reason in the log)
-and one copy of the policy. When the board names this robot as the current decider, its agent
+state machine (:class:`hmrta.replica.Replica`: it starts from a keyframe and applies every
+version's events; a version it misses, or a state whose digest differs from the board's, makes it
+ask for a keyframe on ``/hmrta/keyframe_requests``, again every second until one comes, with the
+reason in the log) and one copy of the policy. When the board names this robot as the current decider, its agent
 runs its own copy of the policy on the replica's state and publishes its choice
 (``/hmrta/choice``, tagged with the board session and version it answers). The board's state
 lists every leg the robot must drive (its own choices and automatic ones such as going home);
