@@ -370,11 +370,30 @@ def uses_checkpoint(method: str) -> bool:
     return get(parse(method)[0]).option("checkpoint") is not None
 
 
+def fixed_rules(method: str, solve_opts: dict[str, Any]) -> dict[str, dict]:
+    """The rules of ``method`` (a portfolio: of each of its candidates) that are fixed in code,
+    by method name: the baselines'. The learned policy's rules are its checkpoint's."""
+    from .methods import get, parse, rules
+    from .portfolio import _candidates
+
+    m = get(parse(method)[0])
+    names = _candidates(solve_opts.get("candidates")) if m.choose else [m.name]
+    out = {}
+    for n in names:
+        name = parse(n)[0]
+        if get(name).rules is not None and not uses_checkpoint(name):
+            out[name] = rules(name).to_dict()
+    return out
+
+
 def method_variant(method: str, solve_opts: dict[str, Any]) -> str:
     """What a cached result depends on besides (row, method, instance, seed): the solve options and,
     for the learned policy, the checkpoint's content. A retrained checkpoint or another time limit
     therefore never reuses stale cached results."""
     parts: dict[str, Any] = {"opts": {k: solve_opts[k] for k in sorted(solve_opts)}}
+    rules = fixed_rules(method, solve_opts)
+    if rules:  # a baseline's rules (a portfolio: its candidates'), so a changed rule re-solves
+        parts["rules"] = rules
     if uses_checkpoint(method):
         from .rl.checkpoint_info import checkpoint_path
 

@@ -15,10 +15,12 @@ from pathlib import Path
 import pytest
 
 from hmrta import methods
-from hmrta.baselines import GREEDY_RULES
+from hmrta.baselines import COALITION_RULES, GREEDY_RULES
 from hmrta.core import Rules
 from hmrta.formats import load_instance
+from hmrta.generators import ScenarioGenerator
 from hmrta.methods import METHODS, MethodError
+from hmrta.sim import simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "policy" / "hmrta" / "data" / "example.yaml"
@@ -73,7 +75,23 @@ def test_options_for_keeps_what_each_method_takes():
 def test_baseline_rules_and_live_form():
     assert methods.rules("greedy") == GREEDY_RULES
     decide, rules = methods.decider("greedy-coalition")
-    assert rules == GREEDY_RULES and callable(decide)
+    assert rules == COALITION_RULES and rules.max_open == "team" and callable(decide)
+    # the method's offline solve runs under the same rules as its live form
+    inst = ScenarioGenerator("MA-AT", 50, 5, 50, 5).generate(1, 3)[0]
+    sol = methods.solve(inst, "greedy-coalition")
+    assert sol.makespan == simulate(inst, decide, 0, COALITION_RULES).makespan
+    assert sol.makespan != simulate(inst, decide, 0, GREEDY_RULES).makespan
+
+
+def test_bench_variant_follows_a_baselines_rules(monkeypatch):
+    from hmrta import baselines, bench
+
+    before = {m: bench.method_variant(m, {}) for m in ("greedy", "greedy-coalition", "portfolio", "rl")}
+    monkeypatch.setattr(baselines, "COALITION_RULES", GREEDY_RULES)
+    after = {m: bench.method_variant(m, {}) for m in before}
+    assert after["greedy-coalition"] != before["greedy-coalition"]
+    assert after["portfolio"] != before["portfolio"]  # greedy-coalition is one of its candidates
+    assert after["greedy"] == before["greedy"] and after["rl"] == before["rl"]
 
 
 @pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
