@@ -268,17 +268,34 @@ class BroadGenerator:
     or multi (entries 0..2-3, requirements up to 4), 20% binary tasks, 25% clustered tasks, 20% one
     shared depot, speed log-uniform in [0.05, 1], durations [0, 5) or, one time in five, [10, 30).
 
-    Instance ``i`` of seed ``s`` is a pure function of ``(max_tasks, s, i)`` on a salted stream
-    (``BROAD_SALT``), never one of a family's or a paper row's.
+    ``team_scale`` (low, high) > 1 grows the teams for larger missions: every species' robot count
+    is multiplied by one factor per instance, drawn log-uniform in the range (rounded, at least 1),
+    so the same shapes reach 100+ robots. At (1, 1), the default, nothing more is drawn.
+
+    Instance ``i`` of seed ``s`` is a pure function of ``(min_tasks, max_tasks, s, i)`` (and of
+    ``team_scale`` when it is not (1, 1)) on a salted stream (``BROAD_SALT``), never one of a
+    family's or a paper row's.
     """
 
     max_tasks: int = 30
     min_tasks: int = 10
+    team_scale: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self) -> None:
         if not 1 <= self.min_tasks <= self.max_tasks:
             raise ValueError(f"broad generator: expected 1 <= min_tasks <= max_tasks, got "
                              f"{self.min_tasks}..{self.max_tasks}")
+        lo, hi = self.team_scale
+        if not 1.0 <= lo <= hi:
+            raise ValueError(f"broad generator: expected team_scale (low, high) with 1 <= low <= high, "
+                             f"got {self.team_scale}")
+
+    def _grow(self, rng: np.random.Generator, counts: tuple[int, ...]) -> tuple[int, ...]:
+        lo, hi = self.team_scale
+        if (lo, hi) == (1.0, 1.0):
+            return counts
+        f = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+        return tuple(max(1, round(c * f)) for c in counts)
 
     @property
     def name(self) -> str:
@@ -290,14 +307,15 @@ class BroadGenerator:
         shape = ("paper", "homog", "few-large", "many-small")[int(rng.integers(4))]
         if shape == "paper":
             s, n = int(rng.integers(3, 6)), int(rng.integers(3, 6))
-            return FamilyGenerator("broad", m, (n,) * s, 5)
+            return FamilyGenerator("broad", m, self._grow(rng, (n,) * s), 5)
         if shape == "homog":
-            return FamilyGenerator("broad", m, (int(rng.integers(6, 26)),), 1, traits="one-hot",
+            return FamilyGenerator("broad", m, self._grow(rng, (int(rng.integers(6, 26)),)), 1, traits="one-hot",
                                    req_min=1, req_max=int(rng.integers(2, 6)), **self._world(rng))
         if shape == "few-large":
             counts = tuple(int(c) for c in rng.integers(4, 11, size=int(rng.integers(2, 4))))
         else:
             counts = tuple(int(c) for c in rng.integers(1, 3, size=int(rng.integers(6, 11))))
+        counts = self._grow(rng, counts)
         traits = ("one-hot", "binary", "multi")[int(rng.integers(3))]
         k_hi = min(MAX_SKILLS, len(counts)) if traits == "one-hot" else MAX_SKILLS
         K = int(rng.integers(1, k_hi + 1))

@@ -69,6 +69,12 @@ def _range(lo: int) -> Callable[[Any], str | None]:
     return check
 
 
+def _scale_range(v: Any) -> str | None:
+    if (not isinstance(v, (list, tuple)) or len(v) != 2 or any(_number(1)(x) for x in v) or v[0] > v[1]):
+        return "expected [low, high]: two numbers with 1 <= low <= high"
+    return None
+
+
 def _optional(check: Callable[[Any], str | None]) -> Callable[[Any], str | None]:
     def opt(v: Any) -> str | None:
         err = check(v)
@@ -141,12 +147,15 @@ def _section(cls: type) -> Any:
 class Distribution:
     """``train.distribution``: the training missions. ``generator: ma-at`` (the paper's: task,
     species and robots-per-species ranges) or ``broad`` (:class:`hmrta.families.BroadGenerator`
-    over the ``tasks`` range: every family axis; ``species``, ``per_species`` and ``skills`` unused)."""
+    over the ``tasks`` range: every family axis, teams grown by a factor in ``team_scale``;
+    ``species``, ``per_species`` and ``skills`` unused)."""
     generator: str = _f("ma-at", lambda v: None if v in ("ma-at", "broad") else "expected ma-at or broad")
     tasks: list = _f([15, 50], _range(1))
     species: list = _f([3, 5], _range(1))
     per_species: list = _f([3, 5], _range(1))
     skills: int = _f(5, _integer(1, K_MAX))
+    # broad: the factor range of hmrta.families.BroadGenerator.team_scale ([1, 1]: its own team sizes)
+    team_scale: list = _f([1, 1], _scale_range)
 
     def __post_init__(self) -> None:
         _validate(self, "train.distribution.")
@@ -238,6 +247,9 @@ class PretrainConfig:
     # missions come from it and are labelled by their routes; where a route's choice is not
     # admissible, and on DAgger states, ``teacher`` labels.
     schedules: Any = _f(None, _optional(lambda v: None if _paths(v) else "expected a path or a list of paths"))
+    # with schedules: that many missions per iteration are drawn from train.distribution as well
+    # (larger missions than the solver can schedule), driven and labelled by ``teacher`` (and DAgger)
+    generated: int = _f(0, _integer(0))
 
     @property
     def schedule_files(self) -> list[str]:
@@ -246,6 +258,9 @@ class PretrainConfig:
 
     def __post_init__(self) -> None:
         _validate(self, "pretrain.")
+        if self.generated and self.schedules is None:
+            raise ValueError("pretrain.generated: adds generated missions to pretrain.schedules' (set schedules, "
+                             "or use instances_per_iter without them)")
         if self.schedules is not None and self.tau > 0:
             raise ValueError("pretrain.tau: soft targets are not defined for pretrain.schedules (use tau: 0)")
         if not isinstance(self.teacher, str) or self.teacher not in TEACHERS:

@@ -43,8 +43,8 @@ class Imitation:
     def step(self) -> dict:
         run, lr_ = self.run, self.run.learner
         p = run.cfg.pretrain
-        if p.schedules:  # the solver as teacher: missions with their routes
-            items = run.schedule_items(p.instances_per_iter)
+        if p.schedules:  # the solver as teacher: missions with their routes (and generated ones)
+            items = run.schedule_items(p.instances_per_iter) + [(inst, None) for inst in run._instances(p.generated)]
         else:
             items = [(inst, None) for inst in run._instances(p.instances_per_iter)]
         insts = [inst for inst, _ in items]

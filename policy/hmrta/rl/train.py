@@ -279,7 +279,7 @@ class Trainer:
         if dist.generator == "broad":  # a mission family per instance, every axis of the suite
             from ..families import BroadGenerator
 
-            broad = BroadGenerator(max_tasks=hi, min_tasks=lo)
+            broad = BroadGenerator(max_tasks=hi, min_tasks=lo, team_scale=tuple(map(float, dist.team_scale)))
             return [broad.sample(rng) for _ in range(n)]
         s = int(rng.integers(dist.species[0], dist.species[1] + 1))
         per = int(rng.integers(dist.per_species[0], dist.per_species[1] + 1))

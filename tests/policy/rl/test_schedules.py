@@ -39,6 +39,20 @@ def test_broad_generator_is_seeded_and_spans_the_axes():
     assert len({round(i.velocity, 6) for i in a}) > 10
 
 
+def test_broad_team_scale_grows_every_species_and_leaves_the_default_stream_alone():
+    base, grown = BroadGenerator(max_tasks=30), BroadGenerator(max_tasks=30, team_scale=(3.0, 3.0))
+    assert BroadGenerator(max_tasks=30, team_scale=(1.0, 1.0)) == base
+    for k in range(20):  # the family is drawn first: a factor of 3 triples every species' count
+        f0, f1 = base.family(np.random.default_rng(k)), grown.family(np.random.default_rng(k))
+        assert f1.counts == tuple(3 * c for c in f0.counts) and f1.tasks == f0.tasks
+    a = BroadGenerator(max_tasks=200, min_tasks=40, team_scale=(1.0, 6.0)).generate(30, 7)
+    assert max(i.n_agents for i in a) > 25 and all(40 <= i.n_tasks <= 200 for i in a)
+    assert [i.to_dict() for i in a[:3]] == [i.to_dict() for i in BroadGenerator(
+        max_tasks=200, min_tasks=40, team_scale=(1.0, 6.0)).generate(3, 7)]
+    with pytest.raises(ValueError, match="team_scale"):
+        BroadGenerator(team_scale=(0.5, 2.0))
+
+
 def test_single_skill_generator_is_seeded_and_spans_sa_teams():
     g = SingleSkillTraining(max_tasks=30)
     a = [g.instance(5, i) for i in range(40)]
@@ -220,3 +234,30 @@ def test_several_schedule_datasets_are_drawn_from_as_one(dataset, tmp_path):
     one = [Trainer({**cfg, "pretrain": {**cfg["pretrain"], "schedules": x}}, tmp_path / f"r{k}", device="cpu",
                    log=lambda s: None).schedule_items(6) for k, x in enumerate((str(dataset), [str(dataset)]))]
     assert [i.to_dict() for i, _ in one[0]] == [i.to_dict() for i, _ in one[1]]
+
+
+def test_generated_missions_join_the_schedules_labelled_by_the_teacher(dataset, tmp_path):
+    """pretrain.generated: each iteration also clones that many missions of train.distribution (here
+    larger than the dataset's), labelled by the teacher; without schedules the key is an error."""
+    from hmrta.rl.config import TrainConfig
+    from hmrta.rl.train import Trainer
+
+    cfg = {"name": "gen", "seed": 1, "model": {"d_model": 32, "heads": 4, "ff_hidden": 32, "scale": "mission"},
+           "rules": {"max_open": None, "safety": True},
+           "pretrain": {"iterations": 1, "instances_per_iter": 2, "teacher": "greedy-coalition",
+                        "schedules": str(dataset), "generated": 2},
+           "train": {"iterations": 0, "distribution": {"generator": "broad", "tasks": [30, 40],
+                                                       "team_scale": [2, 3]}},
+           "validation": {"seed": 5, "rows": [[6, 2, 8, 3, 1]]}}
+    tr = Trainer(cfg, tmp_path / "run", device="cpu", log=lambda s: None)
+    alone = Trainer({**cfg, "pretrain": {**cfg["pretrain"], "generated": 0}}, tmp_path / "r0", device="cpu",
+                    log=lambda s: None)
+    with_gen, without = tr.pretrain_step(), alone.pretrain_step()
+    # the same dataset missions (no DAgger: their labels are their routes), plus two of 30-40 tasks
+    assert with_gen["route_share"] == without["route_share"] == 1.0
+    assert with_gen["labels"] >= without["labels"] + 2 * 30
+    bad = {**cfg, "pretrain": {k: v for k, v in cfg["pretrain"].items() if k != "schedules"}}
+    with pytest.raises(ValueError, match="pretrain.generated"):
+        TrainConfig.from_dict(bad)
+    with pytest.raises(ValueError, match="team_scale"):
+        TrainConfig.from_dict({**cfg, "train": {"distribution": {"generator": "broad", "team_scale": [3, 2]}}})
