@@ -25,6 +25,8 @@ and is ignored.
 """
 from __future__ import annotations
 
+import heapq
+import itertools
 import math
 import os
 import socket
@@ -109,6 +111,10 @@ class SimRobot(Node):
         self.replica: Replica | None = Replica()  # until synced: the board's state, to start from
         self.synced = False  # clock and robots rebuilt from the board's current version (start or restart)
         self._early_goals: list[tuple[SimulatedRobot, PoseStamped]] = []  # goals before that
+        # (arrival, n, robot) of every leg added: as fast as possible, a clock step announces only
+        # the robots with an arrival due instead of walking the team (stale entries are harmless)
+        self._due: list[tuple[float, int, SimulatedRobot]] = []
+        self._seq = itertools.count()
         self.done = Future()
         self.pub_clock = self.create_publisher(Clock, clock_topic, topics.CLOCK_QOS)
         self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
@@ -319,6 +325,8 @@ class SimRobot(Node):
         r.legs = [g for g in r.legs if g.depart < t]  # a goal replaces whatever was planned after it
         dist = math.hypot(x - start[0], y - start[1])
         r.legs.append(Leg(start, (x, y), t, t + dist / self.mission.instance.velocity))
+        if self.time_scale <= 0:
+            heapq.heappush(self._due, (r.legs[-1].arrive, next(self._seq), r))
         self.get_logger().debug(f"{r.name}: goal ({x:.3f}, {y:.3f}) from ({start[0]:.3f}, {start[1]:.3f}) departing "
                                 f"t={t:.6f}, arriving t={r.legs[-1].arrive:.6f} (now {self.now:.6f})")
 
@@ -341,12 +349,17 @@ class SimRobot(Node):
             return
         self.now = t
         m = self.mission
-        for r in self.robots.values():
-            if not r.placed:
-                continue
-            self._announce(r)
-            if self.time_scale > 0 and r.moving(t):
-                r.pub.publish(pose_to_msg(r.position(t), t, m.frame_id, m.scale))
+        if self.time_scale > 0:  # paced: every moving robot reports its pose
+            for r in self.robots.values():
+                if not r.placed:
+                    continue
+                self._announce(r)
+                if r.moving(t):
+                    r.pub.publish(pose_to_msg(r.position(t), t, m.frame_id, m.scale))
+        else:  # only the robots with an arrival due by now
+            due = self._due
+            while due and due[0][0] <= t + EPS:
+                self._announce(heapq.heappop(due)[2])
         self.pub_clock.publish(clock_to_msg(t))
 
     def on_tick(self) -> None:
