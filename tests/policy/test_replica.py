@@ -352,6 +352,9 @@ def test_a_board_state_clone_branches_like_an_offline_state():
     assert not st.done and st.leg_log is not None
 
 
+DIGEST_OF_THE_TEST_STATE = "cd28c4cba08b1473"
+
+
 def test_the_digest_sees_a_change_of_any_robot_or_task():
     inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
     st = BoardState(inst, seed=3, rules=RULES)
@@ -359,8 +362,16 @@ def test_the_digest_sees_a_change_of_any_robot_or_task():
     assert len(d) == 16 and d == state_digest(st)
     for change in (lambda s: s.status.__setitem__(3, 4), lambda s: s.arrive.__setitem__(2, 1.0),
                    lambda s: s.rem.__setitem__((1, 0), 0.5), lambda s: s.leg_log[1].append((1, 0.0, 0.0, 0.0)),
-                   lambda s: s.mode.__setitem__(0, LOST), lambda s: setattr(s, "clock", 1e-9)):
+                   lambda s: s.mode.__setitem__(0, LOST), lambda s: setattr(s, "clock", 1e-9),
+                   lambda s: s.queue.reverse(), lambda s: s.depart.__setitem__(5, -0.0),
+                   lambda s: s.leg_log[5].__setitem__(slice(None), [(1, 0.0, 0.0, 0.0)]) or s.leg_log[4].append(
+                       (1, 0.0, 0.0, 0.0))):
         other = BoardState(inst, seed=3, rules=RULES)
         change(other)
         assert state_digest(other) != d
     assert np.array_equal(st.status, BoardState(inst, seed=3, rules=RULES).status)
+    # integer arithmetic on a fixed weight stream: the same digest on every machine and in every
+    # process, however long the weights have grown (the value below was computed once and kept)
+    big = ScenarioGenerator("MA-AT", 60, 10, 300, 5).instance(1, 0)  # arrays longer than any before
+    assert state_digest(BoardState(big, seed=0, rules=RULES)) == state_digest(BoardState(big, seed=0, rules=RULES))
+    assert state_digest(BoardState(inst, seed=3, rules=RULES)) == d == DIGEST_OF_THE_TEST_STATE
