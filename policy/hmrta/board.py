@@ -503,6 +503,13 @@ class MissionBoard(BoardCore):
         self._gate_waiting: set[int] = set()
         self._gate_clock = -math.inf
         self._gate_rescanned = -math.inf  # board time of the last scan of every robot
+        # what each robot's part was computed from (between changes of the structure, a new
+        # decision rescans only the robots whose route, legs or gate task's start changed)
+        self._gate_task = np.zeros(0, dtype=np.int64)  # [A] the task its scan stopped at (-1: none)
+        self._gate_rlen = np.zeros(0, dtype=np.int64)  # [A] its route's length then
+        self._gate_llen = np.zeros(0, dtype=np.int64)  # [A] its leg log's length then
+        self._gate_start = np.zeros(0)  # [M] every task's start then
+        self._gate_progress: tuple | None = None
         self._cache_rev = -1
         self._legs: tuple = ()
         self._state_json = ""
@@ -989,23 +996,31 @@ class MissionBoard(BoardCore):
         (``ptr``, journaled ``arrival`` events, in robot order) the arrivals it passes.
 
         Incremental: each robot's part (its earliest unconfirmed task's start) is kept and
-        recomputed only for the robots it can have changed for: every robot when the state
-        changed, a robot that reported a pose, and, when the clock moved, the robots found at
-        their task before their leg there had departed; and, as a safety net, every robot every
+        recomputed only for the robots it can have changed for: every robot when the mission's
+        structure changed (a keyframe, robots or tasks added, cancelled or lost); after a
+        decision or an event, the robots whose route or leg log grew and those whose task (where
+        their scan stopped) got a new start time (:meth:`_gate_changed`); a robot that reported
+        a pose; and, when the clock moved, the robots found at their task before their leg there
+        had departed; and, as a safety net, every robot every
         ``GATE_RESCAN`` seconds while the gate holds the mission clock (a part kept by mistake
         could delay the mission by that long, never hold it). So a pose message costs one robot's
         scan, not the whole team's. ``CHECK_GATE`` (tests) compares every call with the full scan
-        (:meth:`_gate_reference`)."""
+        (:meth:`_gate_reference_parts`)."""
         st = self.state
-        sig = (id(st), self.rev, st.A, st.M, st.decisions, len(st.log), int(st.n_done), int(st.n_cancelled),
-               float(st.clock), st.done, len(self.lost))
-        if sig != self._gate_sig:  # the state changed: every robot again
-            self._gate_sig = sig
+        sig = (id(st), st.A, st.M, int(st.n_cancelled), st.done, len(self.lost))
+        progress = (self.rev, st.decisions, len(st.log), int(st.n_done), float(st.clock))
+        if sig != self._gate_sig:  # the structure changed (or an arrival was confirmed elsewhere)
+            self._gate_sig, self._gate_progress = sig, progress
             self._gate_part = np.full(st.A, math.inf)  # [A] each robot's part of the gate
+            self._gate_task = np.full(st.A, -1, dtype=np.int64)
             self._gate_waiting = set()
             todo: Iterable[int] = range(st.A)
+            self._gate_lengths()
         else:
             todo = self._gate_dirty
+            if progress != self._gate_progress:  # decisions, completions: the robots they can have changed
+                self._gate_progress = progress
+                todo = todo | self._gate_changed()
             if self.clock != self._gate_clock:
                 todo = todo | self._gate_waiting
             todo = sorted(todo)
@@ -1017,10 +1032,12 @@ class MissionBoard(BoardCore):
         if isinstance(todo, range):
             self._gate_rescanned = now
         gate = float(self._gate_part.min()) if st.A else math.inf
-        if CHECK_GATE:
+        if CHECK_GATE:  # every robot's part, not just the gate
             ptr, n_events = list(self.ptr), len(self._events)
-            assert self._gate_reference() == gate and self.ptr == ptr and len(self._events) == n_events, \
-                "incremental arrival gate differs from the full scan"
+            parts = self._gate_reference_parts()
+            assert np.array_equal(parts, self._gate_part) and self.ptr == ptr and len(self._events) == n_events, \
+                f"incremental arrival gate differs from the full scan at robots " \
+                f"{np.flatnonzero(parts != self._gate_part).tolist()}"
         if gate <= self.clock + EPS and now - self._gate_rescanned >= GATE_RESCAN:
             # the gate has held the mission clock for a while: every robot afresh (the full scan),
             # so that a part kept by mistake could never hold a mission
@@ -1030,10 +1047,33 @@ class MissionBoard(BoardCore):
             gate = float(self._gate_part.min())
         return gate
 
+    def _gate_lengths(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every robot's route and leg-log lengths, and every task's start, as the gate saw them."""
+        st = self.state
+        rlen = np.fromiter(map(len, st.routes[:st.A]), dtype=np.int64, count=st.A)  # [A]
+        llen = np.fromiter(map(len, st.leg_log[:st.A]), dtype=np.int64, count=st.A)  # [A]
+        self._gate_rlen, self._gate_llen, self._gate_start = rlen, llen, st.start[:st.M].copy()
+        return rlen, llen
+
+    def _gate_changed(self) -> set[int]:
+        """The robots whose part a decision or an event can have changed since the last gate: a
+        longer route or leg log (it committed, was given a leg), or a new start time (or status)
+        of the task its scan stopped at."""
+        old_r, old_l, old_s = self._gate_rlen, self._gate_llen, self._gate_start
+        rlen, llen = self._gate_lengths()
+        new_s = self._gate_start
+        moved = ~((new_s == old_s) | (np.isnan(new_s) & np.isnan(old_s)))  # [M] a start set or changed
+        changed = (rlen != old_r) | (llen != old_l)  # [A]
+        if moved.any():
+            t = self._gate_task
+            changed |= (t >= 0) & moved[np.maximum(t, 0)]
+        return set(np.flatnonzero(changed).tolist())
+
     def _gate_robot(self, a: int) -> float:
         """Robot a's part of :meth:`gate` (it confirms a's arrivals)."""
         st = self.state
         self._gate_waiting.discard(a)
+        self._gate_task[a] = -1
         if st.mode[a] == LOST:
             return math.inf
         locs = st.inst.task_locations
@@ -1047,6 +1087,7 @@ class MissionBoard(BoardCore):
                     p += 1
                     continue
                 self._gate_waiting.add(a)  # there before its leg departed: the clock can change this
+            self._gate_task[a] = m
             s = st.start[m]
             if s == s:  # not NaN: the task has its coalition and a start time
                 part = float(s)
@@ -1056,13 +1097,13 @@ class MissionBoard(BoardCore):
             self._events.append({"type": "arrival", "t": float(st.clock), "robot": a, "ptr": p})
         return part
 
-    def _gate_reference(self) -> float:
-        """The gate with every robot's part computed afresh (what the incremental :meth:`gate`
-        must equal); the incremental bookkeeping is left as it was."""
-        waiting = set(self._gate_waiting)
-        gate = min((self._gate_robot(a) for a in range(self.state.A)), default=math.inf)
-        self._gate_waiting = waiting
-        return gate
+    def _gate_reference_parts(self) -> np.ndarray:
+        """Every robot's part of the gate computed afresh (what the incremental :meth:`gate` must
+        hold); the incremental bookkeeping is left as it was."""
+        waiting, tasks = set(self._gate_waiting), self._gate_task.copy()
+        parts = np.array([self._gate_robot(a) for a in range(self.state.A)], dtype=float)  # [A]
+        self._gate_waiting, self._gate_task = waiting, tasks
+        return parts
 
     def waiting_for(self) -> str:
         """What the clock is waiting for (diagnostics)."""
