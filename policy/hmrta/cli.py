@@ -552,6 +552,13 @@ def cmd_schedules(args) -> int:
     if out.is_dir():
         raise UserError(f"--out {out}: is a folder, expected a .jsonl file name")
     spec = {"kind": args.generator, "min_tasks": args.min_tasks, "max_tasks": args.max_tasks}
+    if args.team_scale is not None:
+        lo, hi = args.team_scale
+        if args.generator != "broad" or not 1 <= lo <= hi <= 20:
+            raise UserError(f"--team-scale: expected LOW HIGH with 1 <= LOW <= HIGH <= 20, with --generator broad; "
+                            f"got {lo:g} {hi:g} with {args.generator}")
+        if (lo, hi) != (1, 1):  # the default draws nothing: the header stays that of a plain broad file
+            spec["team_scale"] = [lo, hi]
     n = generate(out, spec, args.seed, args.count, args.time_limit, args.workers, args.jobs, args.ray_address,
                  progress=not args.no_progress)
     ss = ScheduleSet(out)
@@ -849,6 +856,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "paper's SA teams (3-5 one-skill species of 2-10 robots, SA-AT or SA-BT)")
     sc.add_argument("--min-tasks", type=int, default=10, help="fewest tasks per mission")
     sc.add_argument("--max-tasks", type=int, default=30, help="most tasks per mission")
+    sc.add_argument("--team-scale", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
+                    help="broad: grow every team by one factor per mission, log-uniform in [LOW, HIGH] "
+                         "(1 <= LOW <= HIGH <= 20; default 1 1: the generator's own sizes, up to 25 robots)")
     sc.add_argument("--time-limit", type=float, default=1.5, help="solver seconds per mission")
     sc.add_argument("--workers", type=int, default=1, help="CP-SAT search workers per mission")
     _fanout_args(sc, "solve the missions")

@@ -92,15 +92,22 @@ class SingleSkillTraining:
 
 def make_generator(spec: dict[str, Any]):
     """A generator from its header entry (``{"kind": "broad"|"paper"|"single-skill", "min_tasks",
-    "max_tasks"}``)."""
+    "max_tasks"}``, and for broad optionally ``"team_scale": [low, high]``: teams grown by a
+    factor in that range, :class:`hmrta.families.BroadGenerator`)."""
     kind = spec.get("kind")
     lo, hi = spec.get("min_tasks"), spec.get("max_tasks")
     if kind not in GENERATORS:
         raise ScheduleError(f"generator.kind: expected one of {', '.join(GENERATORS)}, got {short(kind)}")
     if not (isinstance(lo, int) and isinstance(hi, int) and 1 <= lo <= hi <= 200):
         raise ScheduleError(f"generator: expected integer min_tasks <= max_tasks in 1..200, got {short(lo)}..{short(hi)}")
+    scale = spec.get("team_scale", [1, 1])
+    if not (isinstance(scale, (list, tuple)) and len(scale) == 2
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in scale)
+            and 1 <= scale[0] <= scale[1] <= 20) or (kind != "broad" and "team_scale" in spec):
+        raise ScheduleError(f"generator.team_scale: expected [low, high] with 1 <= low <= high <= 20 "
+                            f"(broad only), got {short(scale)}")
     if kind == "broad":
-        return BroadGenerator(max_tasks=hi, min_tasks=lo)
+        return BroadGenerator(max_tasks=hi, min_tasks=lo, team_scale=(float(scale[0]), float(scale[1])))
     return (PaperTraining if kind == "paper" else SingleSkillTraining)(max_tasks=hi, min_tasks=lo)
 
 

@@ -113,6 +113,10 @@ def test_dataset_lines_validate_against_the_schema(dataset):
      '"solver": {"time_limit": 1}}\n{"index": -1, "makespan": 1, "routes": []}\n', ":2: index"),
     ('{"format": "hmrta-schedules/1", "generator": {"kind": "broad", "min_tasks": 1, "max_tasks": 2}, "seed": 1, '
      '"solver": {"time_limit": 1}}\nnot json\n', ":2: not a JSON line"),
+    ('{"format": "hmrta-schedules/1", "generator": {"kind": "paper", "min_tasks": 1, "max_tasks": 2, '
+     '"team_scale": [2, 3]}, "seed": 1, "solver": {"time_limit": 1}}\n', ":1: generator.team_scale"),
+    ('{"format": "hmrta-schedules/1", "generator": {"kind": "broad", "min_tasks": 1, "max_tasks": 2, '
+     '"team_scale": [3, 2]}, "seed": 1, "solver": {"time_limit": 1}}\n', ":1: generator.team_scale"),
 ])
 def test_bad_files_are_one_line_errors(tmp_path, text, message):
     p = tmp_path / "bad.jsonl"
@@ -134,6 +138,33 @@ def test_cli_writes_and_resumes(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["solved_now"] == 1
     assert main(args[:-2] + ["0.5", "--no-progress"]) == 2  # another solver setting: refused
     assert "another generator" in capsys.readouterr().err
+
+
+def test_cli_grows_broad_teams_and_keeps_the_plain_header_at_scale_one(tmp_path, capsys):
+    """--team-scale: the header names the factor range (schema-valid), the missions regenerate with
+    the grown teams; 1 1 writes the plain broad header; a bad range or another generator exits 2."""
+    from hmrta.cli import main
+
+    out = tmp_path / "big.jsonl"
+    assert main(["schedules", "--out", str(out), "--count", "2", "--min-tasks", "6", "--max-tasks", "8",
+                 "--team-scale", "3", "4", "--time-limit", "0.2", "--no-progress"]) == 0
+    capsys.readouterr()
+    head = json.loads(out.read_text().splitlines()[0])
+    assert head["generator"] == {"kind": "broad", "min_tasks": 6, "max_tasks": 8, "team_scale": [3.0, 4.0]}
+    assert_valid("hmrta-schedules/1", head)
+    ss = ScheduleSet(out)
+    plain = BroadGenerator(max_tasks=8, min_tasks=6)
+    for i in ss.indices():
+        inst, routes, _ = ss.item(i)
+        assert inst.n_agents >= 3 * plain.instance(1, i).n_agents and len(routes) == inst.n_agents
+    one = tmp_path / "one.jsonl"
+    assert main(["schedules", "--out", str(one), "--count", "1", "--min-tasks", "6", "--max-tasks", "8",
+                 "--team-scale", "1", "1", "--time-limit", "0.2", "--no-progress"]) == 0
+    capsys.readouterr()
+    assert "team_scale" not in json.loads(one.read_text().splitlines()[0])["generator"]
+    for bad in (["--team-scale", "4", "3"], ["--team-scale", "2", "3", "--generator", "paper"]):
+        assert main(["schedules", "--out", str(tmp_path / "x.jsonl"), "--count", "1", *bad]) == 2
+        assert "--team-scale" in capsys.readouterr().err
 
 
 def test_labels_fanned_out_on_ray_train_exactly_as_in_process(dataset, tmp_path):
