@@ -1057,8 +1057,8 @@ class MissionBoard(BoardCore):
 
     def _gate_changed(self) -> set[int]:
         """The robots whose part a decision or an event can have changed since the last gate: a
-        longer route or leg log (it committed, was given a leg), or a new start time (or status)
-        of the task its scan stopped at."""
+        longer route or leg log (it committed, was given a leg), or a new start time of the task
+        its scan stopped at (a task's start is set when its coalition is complete)."""
         old_r, old_l, old_s = self._gate_rlen, self._gate_llen, self._gate_start
         rlen, llen = self._gate_lengths()
         new_s = self._gate_start
