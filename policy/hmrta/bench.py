@@ -374,10 +374,10 @@ def fixed_rules(method: str, solve_opts: dict[str, Any]) -> dict[str, dict]:
     """The rules of ``method`` (a portfolio: of each of its candidates) that are fixed in code,
     by method name: the baselines'. The learned policy's rules are its checkpoint's."""
     from .methods import get, parse, rules
-    from .portfolio import _candidates
+    from .portfolio import candidate_methods
 
     m = get(parse(method)[0])
-    names = _candidates(solve_opts.get("candidates")) if m.choose else [m.name]
+    names = candidate_methods(solve_opts.get("candidates")) if m.choose else [m.name]
     out = {}
     for n in names:
         name = parse(n)[0]

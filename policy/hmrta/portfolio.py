@@ -32,7 +32,7 @@ def initial_view(inst: Instance) -> Instance:
                                added_agents=())
 
 
-def _candidates(candidates: str | None) -> list[str]:
+def candidate_methods(candidates: str | None) -> list[str]:
     """The candidate methods (default: the method table's default of the ``candidates`` option).
     Each must have a per-decision form, so that a live mission can run the one chosen."""
     from . import methods
@@ -60,7 +60,7 @@ def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
     view = initial_view(inst)
     out: dict[str, Solution] = {}
     missing = []
-    for c in _candidates(candidates):
+    for c in candidate_methods(candidates):
         try:
             out[c] = methods.solve(view, c, seed=seed, **methods.options_for(c, {"checkpoint": checkpoint}))
         except MissingDependency as e:
@@ -82,7 +82,7 @@ def select(inst: Instance, seed: int = 0, checkpoint: str | None = None,
     With no task known at time 0 there is nothing to compare: the first candidate runs, and the
     scores are empty."""
     if initial_view(inst).n_tasks == 0:
-        return _candidates(candidates)[0], {}
+        return candidate_methods(candidates)[0], {}
     results = evaluate(inst, seed, checkpoint, candidates)
     return choose(results), {c: s.makespan for c, s in results.items()}
 
@@ -93,7 +93,7 @@ def solve_portfolio(inst: Instance, seed: int = 0, checkpoint: str | None = None
 
     t0 = time.perf_counter()
     if initial_view(inst).n_tasks == 0:  # nothing known at time 0 to choose by
-        chosen, results = _candidates(candidates)[0], {}
+        chosen, results = candidate_methods(candidates)[0], {}
     else:
         results = evaluate(inst, seed, checkpoint, candidates)
         chosen = choose(results)
