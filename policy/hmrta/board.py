@@ -1047,23 +1047,22 @@ class MissionBoard(BoardCore):
             gate = float(self._gate_part.min())
         return gate
 
-    def _gate_lengths(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every robot's route and leg-log lengths, and every task's start, as the gate saw them."""
+    def _gate_lengths(self) -> None:
+        """Record every robot's route and leg-log lengths, and every task's start, as the gate saw them."""
         st = self.state
-        rlen = np.fromiter(map(len, st.routes[:st.A]), dtype=np.int64, count=st.A)  # [A]
-        llen = np.fromiter(map(len, st.leg_log[:st.A]), dtype=np.int64, count=st.A)  # [A]
-        self._gate_rlen, self._gate_llen, self._gate_start = rlen, llen, st.start[:st.M].copy()
-        return rlen, llen
+        self._gate_rlen = np.fromiter(map(len, st.routes[:st.A]), dtype=np.int64, count=st.A)  # [A]
+        self._gate_llen = np.fromiter(map(len, st.leg_log[:st.A]), dtype=np.int64, count=st.A)  # [A]
+        self._gate_start = st.start[:st.M].copy()  # [M]
 
     def _gate_changed(self) -> set[int]:
         """The robots whose part a decision or an event can have changed since the last gate: a
         longer route or leg log (it committed, was given a leg), or a new start time of the task
         its scan stopped at (a task's start is set when its coalition is complete)."""
         old_r, old_l, old_s = self._gate_rlen, self._gate_llen, self._gate_start
-        rlen, llen = self._gate_lengths()
+        self._gate_lengths()
         new_s = self._gate_start
         moved = ~((new_s == old_s) | (np.isnan(new_s) & np.isnan(old_s)))  # [M] a start set or changed
-        changed = (rlen != old_r) | (llen != old_l)  # [A]
+        changed = (self._gate_rlen != old_r) | (self._gate_llen != old_l)  # [A]
         if moved.any():
             t = self._gate_task
             changed |= (t >= 0) & moved[np.maximum(t, 0)]

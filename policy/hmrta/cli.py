@@ -538,7 +538,7 @@ def cmd_checkpoint(args) -> int:
 
 
 def cmd_schedules(args) -> int:
-    from .rl.schedules import ScheduleSet, generate
+    from .rl.schedules import ScheduleError, ScheduleSet, generate, make_generator
 
     if args.count < 1:
         raise UserError(f"--count: expected a positive integer, got {args.count}")
@@ -552,13 +552,13 @@ def cmd_schedules(args) -> int:
     if out.is_dir():
         raise UserError(f"--out {out}: is a folder, expected a .jsonl file name")
     spec = {"kind": args.generator, "min_tasks": args.min_tasks, "max_tasks": args.max_tasks}
-    if args.team_scale is not None:
-        lo, hi = args.team_scale
-        if args.generator != "broad" or not 1 <= lo <= hi <= 20:
-            raise UserError(f"--team-scale: expected LOW HIGH with 1 <= LOW <= HIGH <= 20, with --generator broad; "
-                            f"got {lo:g} {hi:g} with {args.generator}")
-        if (lo, hi) != (1, 1):  # the default draws nothing: the header stays that of a plain broad file
-            spec["team_scale"] = [lo, hi]
+    if args.team_scale is not None and tuple(args.team_scale) != (1, 1):  # 1 1: the plain broad header
+        spec["team_scale"] = list(args.team_scale)
+        try:
+            make_generator(spec)  # the header's own check
+        except ScheduleError as e:
+            raise UserError(f"--team-scale {args.team_scale[0]:g} {args.team_scale[1]:g} with --generator "
+                            f"{args.generator}: {e}") from None
     n = generate(out, spec, args.seed, args.count, args.time_limit, args.workers, args.jobs, args.ray_address,
                  progress=not args.no_progress)
     ss = ScheduleSet(out)
