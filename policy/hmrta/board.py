@@ -52,7 +52,6 @@ decoded messages and clock values, call :meth:`MissionBoard.poll` and publish th
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import hashlib
 import json
@@ -68,7 +67,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from .core import DONE, LOST, STATUS_NAMES, EventRejected, MissionState, Rules, apply_event
+from .core import DONE, LOST, STATUS_NAMES, EventRejected, MissionState, Rules, apply_event, copy_fields
 from .instance import Instance
 from .keys import rejection_code
 from .solution import Solution, solution_from_state
@@ -91,6 +90,10 @@ HEADER_BYTES = 330  # about the bytes of a stream header without its events (for
 class JournalError(ValueError):
     """A journal that cannot be replayed (written for another mission, or corrupt before its last
     line); one line naming the file and line."""
+
+
+# BoardState's own fields, left out of its plain MissionState clone
+_BOARD_ONLY = frozenset(("leg_log", "leg_arrive", "leg_base", "until"))
 
 
 class BoardState(MissionState):
@@ -174,11 +177,8 @@ class BoardState(MissionState):
     def clone(self) -> MissionState:
         """A plain :class:`MissionState` copy, without the leg log and the live hold (``until``):
         what a lookahead branches on, exactly as offline."""
-        memo: dict[int, Any] = {id(self.inst): self.inst, id(self.rules): self.rules}
         twin = MissionState.__new__(MissionState)
-        for k, v in self.__dict__.items():
-            if k not in ("leg_log", "leg_arrive", "leg_base", "until"):
-                twin.__dict__[k] = copy.deepcopy(v, memo)
+        twin.__dict__.update(copy_fields(self.__dict__, (self.inst, self.rules), _BOARD_ONLY))
         return twin
 
 

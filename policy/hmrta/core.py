@@ -229,6 +229,40 @@ def apply_event(state: "MissionState", record: dict) -> Any:
                         f"add_agent or drop_agent)")
 
 
+_ATOMS = (int, float, bool, str, type(None), np.integer, np.floating, np.bool_)
+# list fields of MissionState holding lists of numbers (one level of copy is a full copy), and
+# those holding immutable entries (numbers, strings, tuples of numbers)
+_NESTED_LISTS = frozenset(("members", "routes"))
+_FLAT_LISTS = frozenset(("queue", "events", "names"))
+
+
+def copy_fields(fields: dict[str, Any], shared: tuple = (), skip: frozenset[str] = frozenset()) -> dict[str, Any]:
+    """An independent copy of a state's fields (``MissionState.__dict__``) but ``skip``: arrays,
+    sets and the random stream by their own copy, the known list fields one level deep, numbers
+    and strings as they are, the objects in ``shared`` (the instance, the rules: read-only) as
+    they are, anything else by ``copy.deepcopy`` (tests/policy/test_core.py checks that the copy
+    shares nothing mutable)."""
+    memo = {id(o): o for o in shared}
+    out: dict[str, Any] = {}
+    for k, v in fields.items():
+        if k in skip:
+            continue
+        if id(v) in memo or isinstance(v, _ATOMS):
+            out[k] = v
+        elif type(v) is np.ndarray:
+            out[k] = v.copy()
+        elif k in _NESTED_LISTS and type(v) is list:
+            out[k] = [list(x) for x in v]
+        elif (k in _FLAT_LISTS and type(v) is list) or type(v) is set:
+            out[k] = type(v)(v)
+        elif type(v) is random.Random:
+            out[k] = random.Random()
+            out[k].setstate(v.getstate())
+        else:
+            out[k] = copy.deepcopy(v, memo)
+    return out
+
+
 class MissionState:
     """Exact event-driven state of one mission (SPEC §3). See the module docstring."""
 
@@ -1088,8 +1122,12 @@ class MissionState:
     # ------------------------------------------------------------------------------------------
     def clone(self) -> "MissionState":
         """Independent copy of the running state (the instance and rules are shared, read-only):
-        lookahead and branching without replaying the mission from the start."""
-        return copy.deepcopy(self, memo={id(self.inst): self.inst, id(self.rules): self.rules})
+        lookahead and branching without replaying the mission from the start. Copies field by
+        field (:func:`copy_fields`): 0.35 ms at 600 robots and 2,000 tasks, where a deep copy
+        takes 5 ms (``benchmarks/clone.py``)."""
+        twin = MissionState.__new__(MissionState)
+        twin.__dict__.update(copy_fields(self.__dict__, (self.inst, self.rules)))
+        return twin
 
     def snapshot(self) -> dict[str, Any]:
         """The full state as an ``hmrta-state/1`` mapping (docs/schemas/hmrta-state-1.schema.json).
