@@ -250,6 +250,9 @@ class PretrainConfig:
     # with schedules: that many missions per iteration are drawn from train.distribution as well
     # (larger missions than the solver can schedule), driven and labelled by ``teacher`` (and DAgger)
     generated: int = _f(0, _integer(0))
+    # what one unit of the loss is: a label (every decision counts once, so a mission of hundreds
+    # of decisions outweighs a small one) or a mission (its labels share one unit)
+    label_weight: str = _f("label", lambda v: None if v in ("label", "mission") else "expected label or mission")
 
     @property
     def schedule_files(self) -> list[str]:

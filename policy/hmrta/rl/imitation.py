@@ -60,22 +60,28 @@ class Imitation:
             jobs.append(LabelJob(inst, routes, seed, run.train_rules, p.teacher, tau, scale))
         followed = [0, 0]  # decisions labelled by a schedule's routes, by the fallback teacher
         pool = []  # (the teacher's finished state, its label range) per teacher-driven mission
-        for done in run.fan_out(teacher_labels, jobs):  # Ray tasks with --jobs > 1 (item order kept)
+        mission: list[int] = []  # [n] the mission of each label (label_weight: mission)
+        for k, done in enumerate(run.fan_out(teacher_labels, jobs)):  # Ray tasks with --jobs > 1 (item order kept)
             first = len(labels.acts)
             labels.extend(done.labels)
+            mission += [k] * (len(labels.acts) - first)
             followed[0] += done.hits
             followed[1] += done.misses
             pool.append((done.state, first, len(labels.acts)))
         obs, deciders, acts, soft = labels.obs, labels.deciders, labels.acts, labels.soft
         lr_.model.eval()
         if on_policy:  # DAgger: the teacher labels the states the policy visits
-            rollout(lr_.model, on_policy, sample=False,
-                    before_step=lambda idx, o, nodes, act: [labels.add(on_policy[i], teacher, teacher, tau, scale)
-                                                            for i in idx])
+            def label(idx, o, nodes, act) -> None:
+                for i in idx:
+                    before = len(acts)
+                    labels.add(on_policy[i], teacher, teacher, tau, scale)
+                    mission.extend([len(jobs) + i] * (len(acts) - before))
+            rollout(lr_.model, on_policy, sample=False, before_step=label)
         pool_stats = self.pool(pool, obs, deciders, acts) if p.samples and pool else {}
         lr_.set_lr(p.lr)
         lr_.model.train()
         n = len(acts)
+        weight = mission_weights(mission) if p.label_weight == "mission" else None  # [n] mean 1
         losses = []
         for _ in range(p.epochs):
             perm = lr_.np_rng.permutation(n)
@@ -89,10 +95,13 @@ class Imitation:
                     for r, i in enumerate(idx):
                         q[r, :len(soft[i])] = torch.tensor(soft[i])  # (a copy: arrays from Ray are read-only)
                     logp = torch.log_softmax(logits, -1).masked_fill(~batch["action_mask"], 0.0)  # [b, T]
-                    loss = -(q * logp).sum(-1).mean()
+                    per_label = -(q * logp).sum(-1)  # [b]
                 else:
                     target = torch.tensor([acts[i] for i in idx], device=lr_.device)
-                    loss = torch.nn.functional.cross_entropy(logits, target)
+                    per_label = torch.nn.functional.cross_entropy(logits, target, reduction="none")  # [b]
+                if weight is not None:  # every mission one unit
+                    per_label = per_label * torch.as_tensor(weight[idx], dtype=per_label.dtype, device=lr_.device)
+                loss = per_label.mean()
                 lr_.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(lr_.model.parameters(), run.cfg.train.grad_clip)
@@ -139,6 +148,17 @@ class Imitation:
         mk_best = np.array([s.makespan for s in states])[np.arange(len(pool)) * S + R.argmax(1)]  # [I]
         return {"teacher_makespan": float(mk_t.mean()), "pool_makespan": float(np.where(win, mk_best, mk_t).mean()),
                 "teacher_wins": float(1 - win.mean())}
+
+
+def mission_weights(mission: list[int]) -> np.ndarray:
+    """Per-label loss weights under which every mission counts the same: a label of a mission
+    with c labels weighs 1 / c, scaled so that the weights average 1 ([n] for n labels)."""
+    m = np.asarray(mission, dtype=np.int64)  # [n]
+    if not len(m):
+        return np.ones(0)
+    _, inv, counts = np.unique(m, return_inverse=True, return_counts=True)
+    w = 1.0 / counts[inv]  # [n]
+    return w * (len(m) / w.sum())
 
 
 @dataclass

@@ -292,3 +292,31 @@ def test_generated_missions_join_the_schedules_labelled_by_the_teacher(dataset, 
         TrainConfig.from_dict(bad)
     with pytest.raises(ValueError, match="team_scale"):
         TrainConfig.from_dict({**cfg, "train": {"distribution": {"generator": "broad", "team_scale": [3, 2]}}})
+
+
+def test_label_weight_mission_gives_every_mission_one_unit_of_the_loss(dataset, tmp_path):
+    """pretrain.label_weight: mission weighs each label 1 / its mission's labels (weights averaging
+    1), so a mission of hundreds of decisions counts as much as a small one: the same labels (the
+    same missions, routes and DAgger states) enter the loss with other weights."""
+    from hmrta.rl.config import TrainConfig
+    from hmrta.rl.imitation import mission_weights
+    from hmrta.rl.train import Trainer
+
+    w = mission_weights([0, 1, 1, 1, 2, 2])
+    assert np.allclose(w, [2.0, 2 / 3, 2 / 3, 2 / 3, 1.0, 1.0]) and math.isclose(w.mean(), 1.0)
+    assert len(mission_weights([])) == 0
+    cfg = {"name": "w", "seed": 1, "model": {"d_model": 32, "heads": 4, "ff_hidden": 32, "scale": "mission"},
+           "rules": {"max_open": None, "safety": True},
+           "pretrain": {"iterations": 1, "instances_per_iter": 3, "teacher": "greedy-coalition", "dagger": 0.5,
+                        "schedules": str(dataset), "generated": 1},
+           "train": {"iterations": 0, "distribution": {"generator": "broad", "tasks": [30, 40]}},
+           "validation": {"seed": 5, "rows": [[6, 2, 8, 3, 1]]}}
+    rows = {}
+    for how in ("label", "mission"):
+        tr = Trainer({**cfg, "pretrain": {**cfg["pretrain"], "label_weight": how}}, tmp_path / how, device="cpu",
+                     log=lambda s: None)
+        rows[how] = tr.pretrain_step()
+    assert rows["label"]["labels"] == rows["mission"]["labels"] > 0
+    assert rows["label"]["bc_loss"] != rows["mission"]["bc_loss"]
+    with pytest.raises(ValueError, match="pretrain.label_weight"):
+        TrainConfig.from_dict({**cfg, "pretrain": {**cfg["pretrain"], "label_weight": "task"}})
