@@ -264,6 +264,9 @@ class PretrainConfig:
         if self.generated and self.schedules is None:
             raise ValueError("pretrain.generated: adds generated missions to pretrain.schedules' (set schedules, "
                              "or use instances_per_iter without them)")
+        if self.label_weight == "mission" and self.samples:
+            raise ValueError("pretrain.label_weight: mission is not defined with expert iteration (samples > 0: a "
+                             "winning sample's labels replace its mission's)")
         if self.schedules is not None and self.tau > 0:
             raise ValueError("pretrain.tau: soft targets are not defined for pretrain.schedules (use tau: 0)")
         if not isinstance(self.teacher, str) or self.teacher not in TEACHERS:

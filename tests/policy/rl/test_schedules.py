@@ -318,5 +318,6 @@ def test_label_weight_mission_gives_every_mission_one_unit_of_the_loss(dataset, 
         rows[how] = tr.pretrain_step()
     assert rows["label"]["labels"] == rows["mission"]["labels"] > 0
     assert rows["label"]["bc_loss"] != rows["mission"]["bc_loss"]
-    with pytest.raises(ValueError, match="pretrain.label_weight"):
-        TrainConfig.from_dict({**cfg, "pretrain": {**cfg["pretrain"], "label_weight": "task"}})
+    for bad in ({"label_weight": "task"}, {"label_weight": "mission", "samples": 2}):
+        with pytest.raises(ValueError, match="pretrain.label_weight"):
+            TrainConfig.from_dict({**cfg, "pretrain": {**cfg["pretrain"], **bad}})
