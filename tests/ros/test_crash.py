@@ -199,7 +199,10 @@ def test_killed_board_ends_the_launcher_with_a_partial_result(tmp_path, domain, 
     # without a gap: it may lag the test's own view), never the whole mission
     assert len(done) == result["tasks_done"] < len(result["tasks"])
     v = result["board_version"]
-    assert v is not None and (v not in seen["n_done"] or seen["n_done"][v] == len(done)), (v, len(done))
+    if v is None:  # the latched keyframe topic matched later than the stream (DDS discovery) and the
+        assert result["tasks_done"] == 0  # board died first: nothing heard, nothing reported as done
+    else:
+        assert v not in seen["n_done"] or seen["n_done"][v] == len(done), (v, len(done))
     assert sorted(result["undone_tasks"] + done) == list(range(len(result["tasks"])))
     assert all(m in {n for r in result["routes"] for n in r} for m in done)  # done tasks are on routes
     assert ended < 15
