@@ -93,7 +93,7 @@ class JournalError(ValueError):
 
 
 # BoardState's own fields, left out of its plain MissionState clone
-_BOARD_ONLY = frozenset(("leg_log", "leg_arrive", "leg_base", "until"))
+_BOARD_ONLY = frozenset(("leg_log", "leg_arrive", "leg_base", "leg_seqs", "until"))
 
 
 class BoardState(MissionState):
@@ -108,6 +108,9 @@ class BoardState(MissionState):
         self.leg_log: list[list[tuple[int, float, float, float]]] = [[] for _ in range(inst.n_agents)]
         self.leg_arrive: list[list[float]] = [[] for _ in range(inst.n_agents)]  # planned arrival of each leg
         self.leg_base: list[int] = [0] * inst.n_agents  # legs before leg_log[a] (a replica's keyframe left out)
+        # [A] legs each robot has been given: leg_base[a] + len(leg_log[a]), kept as the logs grow
+        # (the digest and the arrival gate read it every version: no walk over the robots' logs)
+        self.leg_seqs = np.zeros(inst.n_agents, dtype=np.int64)
         self.touched: set[int] = set()  # robots given legs since a reader last took this set (agent hosts)
         self.until = 0.0  # live: the state never runs ahead of the mission clock (MissionState.advance_to)
         super().__init__(inst, seed=seed, rules=rules)
@@ -126,6 +129,7 @@ class BoardState(MissionState):
             st.leg_log.append(window)
             st.leg_arrive.append([math.nan] * len(window))  # not on the wire (the board's leg timers only)
             st.leg_base.append(int(e[0]) - len(window) if e else 0)
+        st.leg_seqs = np.array([b + len(w) for b, w in zip(st.leg_base, st.leg_log)], dtype=np.int64)  # [A]
         return st
 
     def grow_legs(self) -> None:
@@ -136,6 +140,8 @@ class BoardState(MissionState):
             self.leg_arrive.append([])
         while len(self.leg_base) < len(self.leg_log):
             self.leg_base.append(0)
+        if len(self.leg_seqs) < len(self.leg_log):
+            self.leg_seqs = np.concatenate([self.leg_seqs, np.zeros(len(self.leg_log) - len(self.leg_seqs), np.int64)])
 
     def commit(self, a: int, node: int) -> None:
         before = (float(self.depart[a]), float(self.arrive[a]))
@@ -149,6 +155,7 @@ class BoardState(MissionState):
         self.grow_legs()
         self.leg_log[a].append((node, float(self.to_pos[a, 0]), float(self.to_pos[a, 1]), float(self.depart[a])))
         self.leg_arrive[a].append(max(float(self.arrive[a]), float(self.depart[a])))
+        self.leg_seqs[a] += 1
         self.touched.add(a)
 
     def log_resend(self, a: int, i: int) -> None:
@@ -159,11 +166,12 @@ class BoardState(MissionState):
         _, x, y, depart = self.leg_log[a][j]
         self.leg_log[a].append((RESEND, x, y, depart))
         self.leg_arrive[a].append(self.leg_arrive[a][j])
+        self.leg_seqs[a] += 1
         self.touched.add(a)
 
     def leg_seq(self, a: int) -> int:
         """How many legs robot a has been given (the last one is numbered this)."""
-        return self.leg_base[a] + len(self.leg_log[a])
+        return int(self.leg_seqs[a])
 
     def legs(self, a: int, after: int | None = None) -> tuple[int, tuple] | None:
         """Robot a's legs as on the board: ``(seq, legs)``, its latest LEG_WINDOW legs, or every
@@ -207,7 +215,7 @@ def state_digest(st: BoardState) -> str:
     of entries), the scalars as text, all through blake2b."""
     h = hashlib.blake2b(digest_size=8)
     A = st.A
-    seq = np.fromiter(map(len, st.leg_log[:A]), dtype=np.int64, count=A) + np.asarray(st.leg_base[:A], dtype=np.int64)
+    seq = st.leg_seqs[:A].copy()
     seq[st.mode[:A] == LOST] = -1  # [A] leg_seq of each robot (-1: lost)
     h.update(repr((float(st.clock), st.agent, int(st.decisions), bool(st.done), int(st.n_done), int(st.n_cancelled),
                    A, st.M, len(st.log), len(st.pending), len(st.events), len(st.queue))).encode())
@@ -422,13 +430,13 @@ class BoardCore:
         """Apply ``change`` to the state; robots it stopped short of their destination (no new
         commitment) get a hold leg."""
         st = self.state
-        n_legs = [len(log) for log in st.leg_log]  # [B] the robots before the change
+        n_legs = st.leg_seqs.copy()  # [B] the robots' legs before the change
         B = len(n_legs)
         to_pos = st.to_pos[:B].copy()  # [B, 2]
         out = change()
         moved = np.flatnonzero((st.to_pos[:B] != to_pos).any(axis=1))  # destination changed
         for b in moved.tolist():
-            if b != skip and len(st.leg_log[b]) == n_legs[b]:  # ... with no new leg: stopped short
+            if b != skip and st.leg_seqs[b] == n_legs[b]:  # ... with no new leg: stopped short
                 st.log_leg(b, HOLD)
         for b in np.flatnonzero(st.mode[:B] == LOST).tolist():
             if b not in self.lost:  # lost by a scenario event
@@ -1051,7 +1059,7 @@ class MissionBoard(BoardCore):
         """Record every robot's route and leg-log lengths, and every task's start, as the gate saw them."""
         st = self.state
         self._gate_rlen = np.fromiter(map(len, st.routes[:st.A]), dtype=np.int64, count=st.A)  # [A]
-        self._gate_llen = np.fromiter(map(len, st.leg_log[:st.A]), dtype=np.int64, count=st.A)  # [A]
+        self._gate_llen = st.leg_seqs[:st.A].copy()  # [A]
         self._gate_start = st.start[:st.M].copy()  # [M]
 
     def _gate_changed(self) -> set[int]:

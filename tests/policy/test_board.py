@@ -602,6 +602,8 @@ def test_a_robot_that_never_arrives_gets_its_goal_again_then_is_dropped_and_the_
     b.close()
     r = MissionBoard(INST, seed=SEED, rules=RULES, journal=j, now=FakeTime())
     assert r.state.leg_log == b.state.leg_log and r.rev == b.rev and r.finished
+    for st in (b.state, r.state):  # the resend counts as a leg in the counter the digest reads
+        assert st.leg_seqs.tolist() == [n + len(log) for n, log in zip(st.leg_base, st.leg_log)]
 
 
 def test_a_late_robot_that_arrives_after_its_goal_was_re_sent_is_kept():

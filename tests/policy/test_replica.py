@@ -66,6 +66,8 @@ def same_state(rep: Replica, b: MissionBoard) -> None:
     assert rep.rev == b.rev and set(rep.lost) == set(b.lost) and rep.digest == state_digest(b.state)
     for a in range(b.state.A):
         assert rep.legs(a) == b.state.legs(a), a
+    for st in (rep.state, b.state):  # the leg counter the digest reads follows the logs
+        assert st.leg_seqs.tolist() == [n + len(log) for n, log in zip(st.leg_base, st.leg_log)]
 
 
 class Mission:
@@ -361,11 +363,10 @@ def test_the_digest_sees_a_change_of_any_robot_or_task():
     d = state_digest(st)
     assert len(d) == 16 and d == state_digest(st)
     for change in (lambda s: s.status.__setitem__(3, 4), lambda s: s.arrive.__setitem__(2, 1.0),
-                   lambda s: s.rem.__setitem__((1, 0), 0.5), lambda s: s.leg_log[1].append((1, 0.0, 0.0, 0.0)),
+                   lambda s: s.rem.__setitem__((1, 0), 0.5), lambda s: s.log_leg(1, 1),
                    lambda s: s.mode.__setitem__(0, LOST), lambda s: setattr(s, "clock", 1e-9),
                    lambda s: s.queue.reverse(), lambda s: s.depart.__setitem__(5, -0.0),
-                   lambda s: s.leg_log[5].__setitem__(slice(None), [(1, 0.0, 0.0, 0.0)]) or s.leg_log[4].append(
-                       (1, 0.0, 0.0, 0.0))):
+                   lambda s: s.log_leg(5, 1) or s.log_leg(4, 1)):
         other = BoardState(inst, seed=3, rules=RULES)
         change(other)
         assert state_digest(other) != d
