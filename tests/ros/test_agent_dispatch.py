@@ -6,6 +6,7 @@ the full walk; the process publishes every choice through one writer."""
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -106,3 +107,41 @@ def test_the_agents_of_one_process_share_one_choice_writer(graph):
     sub = listener.create_subscription(String, topics.CHOICE, lambda m: None, topics.CHOICE_QOS)
     graph.spin_until(lambda: sub.get_publisher_count() >= 1, 10, "the agents' choice writer")
     assert listener.count_publishers(topics.CHOICE) == 1
+
+
+def test_a_goal_waits_for_its_departure_and_the_clock_sends_only_the_goals_due(graph):
+    """Real rclpy nodes: a robot's leg departing later is published when the mission clock
+    reaches its departure, not before; the clock looks only at the agents holding such legs."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.parameter import Parameter
+
+    from hmrta_agent.agent_node import AgentNode
+    from hmrta_msgs_py import topics
+    from hmrta_msgs_py.codec import clock_to_msg, pose_from_msg
+
+    host = Host()
+    agents = [AgentNode(host, context=graph.context, namespace=f"/robot_{a}", start_parameter_services=False,
+                        parameter_overrides=[Parameter("robot", value=f"robot_{a}")]) for a in range(3)]
+    graph.nodes.extend(agents)
+    listener = graph.node("goal_listener")
+    got: dict[str, list[tuple[float, float, float]]] = {a.robot: [] for a in agents}
+    for a in agents:
+        listener.create_subscription(PoseStamped, f"/{a.robot}/{topics.GOAL}",
+                                     lambda m, r=a.robot: got[r].append(pose_from_msg(m)), topics.GOAL_QOS)
+        a.mission = SimpleNamespace(frame_id="map", scale=1.0)
+        a.leg_seq = 0
+    graph.spin_until(lambda: all(a.goal_pub.get_subscription_count() >= 1 for a in agents), 10, "the goal listener")
+
+    agents[0]._take_legs(2, ((1, 0.1, 0.2, 0.0), (2, 0.3, 0.4, 5.0)))  # one leg now, one departing at t=5
+    agents[1]._take_legs(1, ((1, 0.5, 0.6, 0.0),))
+    assert list(host.waiting.values()) == [agents[0]] and len(agents[0].pending) == 1
+    host._on_clock(clock_to_msg(4.0))
+    graph.spin_until(lambda: len(got["robot_0"]) >= 1 and len(got["robot_1"]) >= 1, 10, "the goals due at t=0")
+    assert got["robot_0"] == [pytest.approx((0.1, 0.2, 0.0))] and agents[0].pending
+    host._on_clock(clock_to_msg(5.0))
+    graph.spin_until(lambda: len(got["robot_0"]) >= 2, 10, "the goal departing at t=5")
+    assert got["robot_0"][1] == pytest.approx((0.3, 0.4, 5.0)) and not agents[0].pending and not host.waiting
+    quiet = time.monotonic() + 0.5  # anything else published would have arrived by now
+    while time.monotonic() < quiet:
+        graph.executor.spin_once(timeout_sec=0.05)
+    assert got["robot_1"] == [pytest.approx((0.5, 0.6, 0.0))] and got["robot_2"] == []

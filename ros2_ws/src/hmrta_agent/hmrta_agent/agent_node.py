@@ -87,6 +87,7 @@ class Host:
         self._status_pub = None
         self._request_pub = None
         self.clock = 0.0
+        self.waiting: dict[int, "AgentNode"] = {}  # agents with legs not yet due, by id (the clock flushes them)
         self.keys: dict[str, bytes] = {}  # the hosted robots' keys (authenticated missions)
         self.signer: Signer | None = None  # one per process: its counter orders every message it signs
         self._keystores: dict[str, dict[str, bytes]] = {}
@@ -277,9 +278,10 @@ class Host:
         t = clock_from_msg(msg)
         if t > self.clock:
             self.clock = t
-            for a in self.agents:
-                if a.pending:
-                    a.flush_goals()
+            for k, a in list(self.waiting.items()):  # only the robots with goals waiting, not the whole team
+                a.flush_goals()
+                if not a.pending:
+                    del self.waiting[k]
 
     def _beat(self) -> None:
         if not rclpy.ok():
@@ -464,6 +466,8 @@ class AgentNode(Node):
             self.leg_seq = seq
             self.pending += [g for g in new if g[0] != RESEND]
             self.flush_goals()
+            if self.pending:
+                self.host.waiting[id(self)] = self
             m = self.mission
             for node, x, y, depart in new:  # a goal the robot has not reached in time: published again now
                 if node == RESEND and not self.finished:
