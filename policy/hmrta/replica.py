@@ -17,6 +17,9 @@ replica's state equals the board's after every version; the digest checks it.
   the board published, before versions the subscriber never saw): the replica loads it but is not
   :attr:`~Replica.current` until a later version applies on top of it, or the board confirms that
   it is the latest (a replica at the board's version that asks gets the header again).
+* **No keyframe at all.** A reader that knows the mission (instance, seed, rules) and holds the
+  stream from version 1 can start from the board's version 0 (:meth:`Replica.genesis`): the
+  initial state the board itself starts from. Version 1's digest checks it like any other.
 * **Never a hang.** While it is not current, :meth:`Replica.request` returns a request (the
   replica's version and the reason) at once and then every ``retry`` seconds, so the caller asks
   again and logs why for as long as no keyframe comes.
@@ -32,6 +35,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 from .board import BOARD_FORMAT, BoardCore, BoardState, Header, state_digest
+from .core import Rules
 from .instance import Instance
 
 
@@ -144,6 +148,18 @@ class Replica(BoardCore):
         while len(self.ahead) > self.max_ahead:
             del self.ahead[min(self.ahead)]
         return "ahead"
+
+    def genesis(self, session: str, inst: Instance, seed: int, rules: Rules) -> None:
+        """Start from the board's version 0 of ``session``: the state the board builds before its
+        first version (``BoardState(inst, seed, rules)``, the mission's seed and rules). For a
+        reader that has the stream from version 1 but no keyframe (a listener whose keyframe
+        subscription matched after the board died); it is :attr:`current` once version 1 applies,
+        and a version 1 whose digest differs drops it, as any divergence does."""
+        self.session = session
+        self._reset()
+        self.state = BoardState(inst, seed=seed, rules=rules)
+        self.version, self.rev, self.digest = 0, 0, state_digest(self.state)
+        self.why = "at version 0 (the mission's initial state): waiting for version 1"
 
     def _load(self, f: Any, legs: Sequence[Any], snap: dict[str, Any], inst: Instance) -> None:
         st = BoardState.from_keyframe(inst, snap, legs, f.until if f.until is not None else 0.0)

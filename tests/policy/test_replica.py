@@ -199,6 +199,40 @@ def test_the_replica_equals_the_board_after_every_version_of_random_dynamic_miss
     assert b.finished
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_replica_without_any_keyframe_starts_from_version_0_of_the_mission(seed):
+    """A reader holding the stream from version 1 and the mission (instance, seed, rules) but no
+    keyframe: from the board's version 0 it follows every version (scenario events included); a
+    version 0 built from another instance diverges at version 1."""
+    rng = random.Random(seed)
+    inst = ScenarioGenerator("MA-AT", 9, 3, 16, 3).instance(seed, 0)
+    if seed % 2:
+        inst = scenario(inst, rng)
+    m = Mission(inst, seed, rng=None)
+    heads = []
+    poll = m.b.poll
+
+    def recorded():
+        v = poll()
+        if v is not None and (not heads or v.version > heads[-1][0].version):
+            heads.append((wire(v)[0], v))
+        return v
+
+    m.b.poll = recorded
+    b = m.run()
+    assert heads[0][0].version == 1 and [f.version for f, _ in heads] == list(range(1, b.version + 1))
+    rep = Replica()
+    rep.genesis(b.session, inst, seed, RULES)
+    assert rep.version == 0 and not rep.current
+    for f, v in heads:
+        assert rep.receive(f) == "applied", rep.why
+        assert rep.current and rep.version == f.version and rep.digest == v.digest
+    same_state(rep, b)
+    other = Replica()
+    other.genesis(b.session, ScenarioGenerator("MA-AT", 9, 3, 16, 3).instance(seed + 10, 0), seed, RULES)
+    assert other.receive(heads[0][0]) == "diverged" and "digest" in other.why and not other.synced
+
+
 def test_dynamic_missions_exercise_every_kind_of_event():
     seen: set[str] = set()
     for seed in range(4):

@@ -199,10 +199,54 @@ def test_killed_board_ends_the_launcher_with_a_partial_result(tmp_path, domain, 
     # without a gap: it may lag the test's own view), never the whole mission
     assert len(done) == result["tasks_done"] < len(result["tasks"])
     v = result["board_version"]
-    if v is None:  # the latched keyframe topic matched later than the stream (DDS discovery) and the
-        assert result["tasks_done"] == 0  # board died first: nothing heard, nothing reported as done
+    if v is None:  # neither a keyframe nor the stream from version 1 reached the launcher before the
+        assert result["tasks_done"] == 0  # board died (DDS discovery): nothing reported as done
     else:
         assert v not in seen["n_done"] or seen["n_done"][v] == len(done), (v, len(done))
     assert sorted(result["undone_tasks"] + done) == list(range(len(result["tasks"])))
     assert all(m in {n for r in result["routes"] for n in r} for m in done)  # done tasks are on routes
     assert ended < 15
+
+
+def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_version_1():
+    """The launcher's keyframe subscription may match after the board died (DDS discovery): with
+    the stream from version 1 it rebuilds the board's state from the mission's initial state, so
+    the partial result still says what was done. No processes: the board's own test drivers play
+    the mission, every version goes through the ROS codec."""
+    from types import SimpleNamespace
+
+    from hmrta.methods import rules
+    from hmrta_coordinator.mission import partial_result
+    from hmrta_msgs_py.codec import Board, board_to_msg
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "policy"))
+    import test_board as tb
+
+    tail: list[str] = []
+    pump = tb.pump
+
+    def streamed(board):
+        v = pump(board)
+        if v is not None and v.version > len(tail):
+            tail.append(board_to_msg(Board(v.session, v.version, v.rev, v.phase, v.decider, v.clock, v.horizon,
+                                           v.n_done, v.n_cancelled, v.n_tasks, v.lost, prev=v.prev, events=v.events,
+                                           digest=v.digest)).data)
+        return v
+
+    b = tb.started_board()
+    tb.pump = streamed
+    try:
+        tb.drive(b, clock=10.0)
+    finally:
+        tb.pump = pump
+    assert 0 < b.state.n_done < tb.INST.n_tasks and tb.RULES == rules("greedy")
+    procs = SimpleNamespace(last_board=None, board_tail=tail, method="greedy", method_options={},
+                            robots=b.names, incidents=[])
+    sol = partial_result(tb.INST, procs, "greedy", tb.SEED, 1.0, "board process died (SIGKILL)")
+    d = sol.to_dict()
+    assert d["board_version"] == b.version and d["tasks_done"] == b.state.n_done > 0
+    assert d["routes"] == [list(r) for r in b.state.routes]
+    # without version 1 (the stream matched late too) nothing can be rebuilt: nothing is reported done
+    procs.board_tail = tail[1:]
+    d = partial_result(tb.INST, procs, "greedy", tb.SEED, 1.0, "board process died (SIGKILL)").to_dict()
+    assert d["board_version"] is None and d["tasks_done"] == 0
