@@ -729,13 +729,20 @@ class MissionBoard(BoardCore):
         self.join_refused[name] = why
         return f"robot {name!r} cannot join: {why}"
 
-    def pose(self, a: int, x: float, y: float) -> None:
-        """Robot a reports its position (mission coordinates)."""
+    def pose(self, a: int, x: float, y: float) -> bool:
+        """Robot a reports its position (mission coordinates). Returns whether the report can
+        change what the board publishes: a new position, or one before the start. A robot that
+        reports where it already was (a driver's periodic pose) only shows that it is alive: its
+        part of the arrival gate, which reads nothing else of the report, stays as it is."""
         self.seen_pose[a] = self.now()
-        self.last_pose[a] = (x, y)
-        self._gate_dirty.add(a)
+        moved = self.last_pose[a] != (x, y)
+        if moved:
+            self.last_pose[a] = (x, y)
+            self._gate_dirty.add(a)
         if not self.started:
             self._maybe_start()
+            return True
+        return moved
 
     def set_clock(self, t: float) -> bool:
         """The mission clock; returns whether it advanced. The state runs up to it (completions,

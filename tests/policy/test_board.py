@@ -245,6 +245,25 @@ def test_the_clock_is_held_until_members_report_at_their_task():
         assert b._key[3] <= min(starts) + 1e-9 and "arrivals not confirmed" in b.waiting_for()
 
 
+def test_a_repeated_pose_keeps_the_robot_alive_and_changes_nothing_to_publish():
+    """A driver's periodic pose from where the robot already was: the board notes that the robot
+    is alive, and has nothing to recompute (the node then skips its publish step)."""
+    now = FakeTime()
+    b = started_board(now=now)
+    for a in range(INST.n_agents):
+        assert b.pose(a, *INST.depots[a]) is True  # the first report of each
+    drive(b, steps=3)
+    while b.poll() is not None:  # what the drive left to publish
+        pass
+    v = b.version
+    now.t += 0.1  # (within HEADER_REPEAT: an idle board would repeat its latest header after it)
+    for a in range(INST.n_agents):
+        assert b.pose(a, *b.last_pose[a]) is False and b.seen_pose[a] == now.t
+    assert not b._gate_dirty and b.poll() is None and b.version == v
+    x, y = b.last_pose[2]
+    assert b.pose(2, x + 0.01, y) is True and b._gate_dirty == {2}
+
+
 def test_silent_robot_is_lost_and_the_others_finish():
     now = FakeTime()
     b = started_board(now=now, heartbeat_timeout=5.0)

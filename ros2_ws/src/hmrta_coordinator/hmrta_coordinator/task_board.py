@@ -353,8 +353,8 @@ class TaskBoard(Node):
         except DecodeError as e:
             self.board.malformed()
             return self._reject("malformed", f"malformed pose of {self.names[a]}: {e}", self.names[a])
-        self.board.pose(a, x, y)
-        self._flush()
+        if self.board.pose(a, x, y):  # a pose repeated (heartbeat) changes nothing to publish
+            self._flush()
 
     def on_clock(self, msg: Clock) -> None:
         if self.board.set_clock(clock_from_msg(msg)):
