@@ -118,7 +118,7 @@ class SimRobot(Node):
         self.done = Future()
         self.pub_clock = self.create_publisher(Clock, clock_topic, topics.CLOCK_QOS)
         self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
-        self.create_subscription(String, topics.BOARD, self.on_board, topics.BOARD_QOS)
+        self.create_subscription(String, topics.BOARD, self.on_board, topics.BOARD_SIM_QOS)
         self.create_subscription(String, topics.KEYFRAME, self.on_keyframe, topics.KEYFRAME_QOS)
         self.pub_request = self.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
         self._who = f"{socket.gethostname()}:{os.getpid()} sim_robot"

@@ -50,6 +50,10 @@ KEYFRAME_QOS = MISSION_QOS = RESULT_QOS = LATCHED_QOS
 # keyframe). Volatile: a late reader gets no history it could mistake for the present; it starts
 # from the latched keyframe, and an idle board streams its latest header again every 0.25 s
 BOARD_QOS = _qos(1000)
+# sim_robot reads the stream for the latest horizon only (it moves the clock there; once in step
+# it applies no events): best effort spares the board a reliable reader on the path of every
+# decision. A version it misses is made up by the next one, or by the repeat 0.25 s later
+BOARD_SIM_QOS = _qos(1000, reliable=False)
 KEYFRAME_REQUEST_QOS = _qos(100)
 # choices: reliable, deeper queue (a burst of agents must not lose any)
 CHOICE_QOS = _qos(100)
