@@ -168,15 +168,16 @@ def test_foreign_clock_moves_nothing(tmp_path, graph, mission_procs):
         sent[0] += 1
 
     node.create_timer(0.05, tick)
-    boards: list[C.Board] = []  # the stream's headers, and the keyframes (latched: a mission over before
-    # this node discovered the board still leaves its final keyframe)
+    boards: list[C.Board] = []  # the stream's headers and keyframes this node hears (the mission lasts
+    # about a second: the board may finish and exit before DDS discovery matched this node, so the
+    # result is the evidence and the boards heard, if any, a second look)
     for name, qos in ((topics.BOARD, topics.BOARD_QOS), (topics.KEYFRAME, topics.KEYFRAME_QOS)):
         node.create_subscription(String, name, lambda m: boards.append(C.board_from_msg(m, state=False)), qos)
     procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots_of(inst), seed=seed,
                           agents_per_process=6, board_params={"progress_period": 0.0})
-    graph.spin_until(lambda: boards, 60, "the first board")
     wait_board_exit(graph, procs, 150)
-    assert sent[0] > 10 and boards
+    assert sent[0] > 10  # the foreign clock ran through the mission
     result = json.loads((tmp_path / "result.json").read_text())
-    assert_same_as_offline(result, inst, seed)
-    assert result["lost_robots"] == [] and max(b.clock for b in boards) < 1004.0
+    assert_same_as_offline(result, inst, seed)  # a clock taken from /clock would end it past t=1004
+    assert result["lost_robots"] == [] and result["makespan"] < 1004.0
+    assert all(b.clock < 1004.0 for b in boards)
