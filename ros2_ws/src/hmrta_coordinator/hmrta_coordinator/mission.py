@@ -401,28 +401,23 @@ def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: 
     from hmrta_msgs_py.codec import DecodeError, board_from_msg
 
     state, b = None, None
-    if procs.last_board is not None:  # the latest keyframe, and the versions streamed after it
-        try:
-            kf = board_from_msg(String(data=procs.last_board))
-            rep = Replica()
+    try:  # the latest keyframe and the versions streamed after it; with no keyframe heard (its latched
+        # topic matched after the board died), the mission's initial state and the stream from version 1
+        kf = board_from_msg(String(data=procs.last_board)) if procs.last_board is not None else None
+        heads = [board_from_msg(String(data=text), legs=False, state=False) for text in procs.board_tail]
+        rep = Replica()
+        if kf is not None:
             rep.receive(kf, lambda: (kf.legs, kf.state), inst)
-            for text in procs.board_tail:
-                rep.receive(board_from_msg(String(data=text), legs=False, state=False))
-            state, b = (rep.state, rep.head) if rep.synced else (MissionState.from_snapshot(inst, kf.state), kf)
-        except (DecodeError, KeyError, TypeError, ValueError):
-            state, b = None, None
-    elif procs.board_tail:  # no keyframe heard (its latched topic matched after the board died): the
-        try:  # stream from version 1 holds every event since the mission's initial state
-            heads = [board_from_msg(String(data=text), legs=False, state=False) for text in procs.board_tail]
-            if heads[0].version == 1:
-                rep = Replica()
-                rep.genesis(heads[0].session, inst, seed, methods.rules(procs.method, **procs.method_options))
-                for h in heads:
-                    rep.receive(h)
-                if rep.synced and rep.version >= 1:
-                    state, b = rep.state, rep.head
-        except (DecodeError, KeyError, TypeError, ValueError):  # (MethodError is a ValueError)
-            state, b = None, None
+        elif heads and heads[0].version == 1:
+            rep.genesis(heads[0].session, inst, seed, methods.rules(procs.method, **procs.method_options))
+        for h in heads:
+            rep.receive(h)
+        if rep.synced and rep.version >= 1:
+            state, b = rep.state, rep.head
+        elif kf is not None:
+            state, b = MissionState.from_snapshot(inst, kf.state), kf
+    except (DecodeError, KeyError, TypeError, ValueError):  # (MethodError is a ValueError)
+        state, b = None, None
     if state is None:  # no board seen: nothing was done
         state = MissionState(inst, seed=seed)
     sol = solution_from_state(state, method, seed, wall)
