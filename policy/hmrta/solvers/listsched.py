@@ -164,6 +164,18 @@ def best_list_schedule(inst: Instance, seed: int = 0, seconds: float = 1.0, max_
 # ---------------------------------------------------------------------------------------------
 # serial schedule generation from a task order + simulated annealing over orders
 # ---------------------------------------------------------------------------------------------
+def prune_latest(members: list, have: list, need: list, ks: list, cap: list) -> list:
+    """``members`` ((arrival, robot) by arrival) without those whose capability is not needed to
+    cover ``need`` on skills ``ks``, latest arrivals first (``have``, their total, is updated)."""
+    for i in range(len(members) - 1, -1, -1):
+        ca = cap[members[i][1]]
+        if all(have[k] - ca[k] >= need[k] for k in ks):
+            for k in ks:
+                have[k] -= ca[k]
+            members[i] = None
+    return [x for x in members if x is not None]
+
+
 class SerialDecoder:
     """Decode a task order: each task in turn gets the earliest-assembling coalition (agents sorted
     by arrival, smallest satisfying prefix, then unnecessary members pruned, latest first) and
@@ -217,14 +229,8 @@ class SerialDecoder:
                     have[k] += ca[k]
                 if all(have[k] >= req[k] for k in ks):
                     break
-            if len(members) > 1:  # prune unnecessary members, latest arrivals first
-                for i in range(len(members) - 1, -1, -1):
-                    ca = cap[members[i][1]]
-                    if all(have[k] - ca[k] >= req[k] for k in ks):
-                        for k in ks:
-                            have[k] -= ca[k]
-                        members[i] = None
-                members = [x for x in members if x is not None]
+            if len(members) > 1:
+                members = prune_latest(members, have, req, ks, cap)
             fin = max(t for t, _ in members) + dur[m]
             for _, a in members:
                 ready[a] = fin
@@ -247,14 +253,16 @@ def order_of(sol: Solution) -> list[int]:
 
 def anneal(inst: Instance, order: list[int], seed: int = 0, seconds: float = 1.0,
            max_evals: int = 10**9, patience: int | None = None, target: float = 0.0,
-           t0_frac: float = 0.02, cycles: int = 2) -> tuple[float, list[int]]:
+           t0_frac: float = 0.02, cycles: int = 2, decoder=None) -> tuple[float, list[int]]:
     """Simulated annealing over task orders with the serial decoder (insert / swap moves; only
-    the suffix after the first changed position is re-decoded). ``cycles`` equal cooling cycles
+    the suffix after the first changed position is re-decoded). ``decoder``: another decoder with
+    :meth:`SerialDecoder.run`'s protocol (:class:`hmrta.solvers.fromstate.StateDecoder` plans
+    from a mid-mission state); an order it cannot decode has an infinite makespan. ``cycles`` equal cooling cycles
     (linear cooling from ``t0_frac`` x makespan, halved each cycle), each restarting from the best
     order so far. Stops after ``seconds``, ``max_evals`` decodes, ``patience`` decodes without
     improvement (default max(20000, 2000 x tasks)), or on reaching ``target`` (a lower bound).
     Returns (best makespan, best order)."""
-    dec = SerialDecoder(inst)
+    dec = SerialDecoder(inst) if decoder is None else decoder
     rng = random.Random(seed)
     M = len(order)
     best_v, _, _ = dec.run(order, 0, None, record=False)
