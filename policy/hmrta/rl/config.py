@@ -238,6 +238,11 @@ class PretrainConfig:
     teacher: str = "greedy"  # greedy | greedy-coalition (the baseline whose choices are cloned)
     # share of instances whose visited states come from the policy's argmax rollout
     dagger: float = _f(0.0, _number(0, 1, hi_open=False, text="expected a share in [0, 1]"))
+    # who labels them: ``teacher`` at every state the policy visits, or ``solver``: the policy
+    # drives to a random decision, the solver plans the rest from there (hmrta.solvers.fromstate,
+    # ``dagger_evals`` annealing decodes) and its plan labels every decision from there on
+    dagger_teacher: str = _f("teacher", lambda v: None if v in ("teacher", "solver") else "expected teacher or solver")
+    dagger_evals: int = _f(2000, _integer(0))
     tau: float = _f(0.0, _number(0))  # > 0 (greedy-coalition): soft targets from its start estimates
     # expert iteration: > 0 policy samples compete with the teacher's trajectory, the best is cloned
     samples: int = _f(0, _integer(0))

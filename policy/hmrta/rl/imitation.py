@@ -4,9 +4,11 @@ Cross-entropy on a baseline's choices (``pretrain.teacher``: ``greedy`` or the c
 ``greedy-coalition``), so that later phases start from a baseline-level policy. With
 ``pretrain.dagger`` > 0 that share of the instances is driven by the policy's own argmax and
 labelled by the teacher (DAgger, Ross et al. 2011), so the policy also learns to recover from its
-own mistakes. With ``pretrain.samples`` > 0 (expert iteration) that many sampled rollouts of the
-policy (``pretrain.temperature``) compete with the teacher's trajectory on each teacher-driven
-instance, and the best of them by return is cloned: the targets are never worse than the teacher,
+own mistakes; with ``pretrain.dagger_teacher: solver`` the policy drives each such mission to a
+random decision and a plan from that state (:mod:`hmrta.solvers.fromstate`) labels the rest of it
+(:meth:`Imitation.solver_dagger`). With ``pretrain.samples`` > 0 (expert iteration) that many
+sampled rollouts of the policy (``pretrain.temperature``) compete with the teacher's trajectory on
+each teacher-driven instance, and the best of them by return is cloned: the targets are never worse than the teacher,
 and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
 (greedy-coalition) the targets are soft: half on the teacher's choice, half spread by its
 coalition-start estimates.
@@ -27,6 +29,7 @@ from ..core import MissionState, Rules
 from .config import TEACHERS
 from .features import collate, observe
 from .rollout import returns, rollout
+from ..solvers.fromstate import plan_from_state
 from .schedules import RouteTeacher
 
 if TYPE_CHECKING:
@@ -52,10 +55,12 @@ class Imitation:
         teacher = TEACHERS[p.teacher]()
         tau, scale = p.tau, lr_.model.cfg.scale
         on_policy, jobs = [], []  # DAgger states; the teacher-driven missions (LabelJob)
+        estimates = []  # [len(on_policy)] decisions expected in each DAgger mission
         for inst, routes in items:
             seed = int(lr_.np_rng.integers(2**31))
             if lr_.np_rng.random() < p.dagger:
                 on_policy.append(MissionState(inst, seed=seed, rules=run.train_rules))  # the policy drives
+                estimates.append(sum(map(len, routes)) if routes is not None else 2 * inst.n_tasks)
                 continue
             jobs.append(LabelJob(inst, routes, seed, run.train_rules, p.teacher, tau, scale))
         followed = [0, 0]  # decisions labelled by a schedule's routes, by the fallback teacher
@@ -70,7 +75,10 @@ class Imitation:
             pool.append((done.state, first, len(labels.acts)))
         obs, deciders, acts, soft = labels.obs, labels.deciders, labels.acts, labels.soft
         lr_.model.eval()
-        if on_policy:  # DAgger: the teacher labels the states the policy visits
+        plan_stats = {}
+        if on_policy and p.dagger_teacher == "solver":  # DAgger: the solver plans from a state the policy reached
+            plan_stats = self.solver_dagger(on_policy, estimates, labels, mission, len(jobs))
+        elif on_policy:  # DAgger: the teacher labels the states the policy visits
             def label(idx, o, nodes, act) -> None:
                 for i in idx:
                     before = len(acts)
@@ -110,7 +118,35 @@ class Imitation:
         run.pretrain_done += 1
         extra = {"route_share": followed[0] / max(1, sum(followed))} if p.schedules else {}
         return {"iteration": run.pretrain_done, "bc_loss": float(np.mean(losses)), "labels": n,
-                "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, **pool_stats, **extra}
+                "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, **pool_stats, **plan_stats, **extra}
+
+    def solver_dagger(self, on_policy: list[MissionState], estimates: list[int], labels: "Labels",
+                      mission: list[int], first: int) -> dict:
+        """``pretrain.dagger_teacher: solver``: the policy drives each DAgger mission to a decision
+        drawn uniformly below its expected count (``estimates``); the solver plans the rest from
+        that state (:func:`plan_from_state`) and the plan labels every decision from there on
+        (:func:`plan_labels`, fanned out like the teacher's missions). Returns the plans' mean
+        makespan ratio to greedy-coalition's continuation from the same states."""
+        run, lr_ = self.run, self.run.learner
+        p = run.cfg.pretrain
+        cuts = [int(lr_.np_rng.integers(0, max(1, e))) for e in estimates]
+        reached: dict[int, MissionState] = {}
+
+        def cut(idx, o, nodes, act) -> None:
+            for i in idx:
+                if i not in reached and on_policy[i].decisions >= cuts[i]:
+                    reached[i] = on_policy[i].clone()
+        rollout(lr_.model, on_policy, sample=False, before_step=cut)
+        order = sorted(reached)
+        jobs = [PlanJob(reached[i], p.dagger_evals, int(lr_.np_rng.integers(2**31)), p.teacher, p.tau,
+                        lr_.model.cfg.scale) for i in order]
+        ratios = []
+        for i, done in zip(order, run.fan_out(plan_labels, jobs)):
+            before = len(labels.acts)
+            labels.extend(done.labels)
+            mission.extend([first + i] * (len(labels.acts) - before))
+            ratios.append(done.plan_ratio)
+        return {"dagger_plan_ratio": float(np.mean(ratios))} if ratios else {}
 
     def pool(self, pool: list[tuple[MissionState, int, int]], obs: list, deciders: list, acts: list) -> dict:
         """Expert iteration (``pretrain.samples``): ``samples`` sampled rollouts of the policy compete
@@ -211,6 +247,7 @@ class LabelResult:
     state: MissionState  # the finished mission (expert iteration compares its return)
     hits: int = 0  # decisions that followed the routes
     misses: int = 0  # decisions the teacher took where the routes had nothing admissible
+    plan_ratio: float = 1.0  # plan_labels: the plan's makespan over greedy-coalition's from the same state
 
 
 def teacher_labels(job: LabelJob) -> LabelResult:
@@ -224,6 +261,34 @@ def teacher_labels(job: LabelJob) -> LabelResult:
         st.step(labels.add(st, decide, teacher, job.tau, job.scale))
     hits, misses = (decide.hits, decide.misses) if job.routes is not None else (0, 0)
     return LabelResult(labels, st, hits, misses)
+
+
+@dataclass
+class PlanJob:
+    """A mission state the policy reached, to be planned from and labelled (a pure function of these
+    fields, like :class:`LabelJob`)."""
+    state: MissionState
+    evals: int
+    seed: int
+    teacher: str
+    tau: float
+    scale: str
+
+
+def plan_labels(job: PlanJob) -> LabelResult:
+    """Plan the rest of ``job``'s mission from its state (:func:`plan_from_state`) and drive it to
+    the end by the plan's routes (the teacher where a planned choice is not admissible, or where
+    the teacher's own continuation was the better plan), labelling every decision."""
+    teacher = TEACHERS[job.teacher]()
+    plan = plan_from_state(job.state, job.evals, job.seed)
+    decide = teacher if plan.routes is None else RouteTeacher(plan.routes, teacher)
+    st = job.state.clone()
+    labels = Labels()
+    while not st.done:
+        st.step(labels.add(st, decide, teacher, job.tau, job.scale))
+    hits, misses = (decide.hits, decide.misses) if plan.routes is not None else (0, 0)
+    ratio = plan.makespan / plan.greedy_coalition if plan.greedy_coalition > 0 else 1.0
+    return LabelResult(labels, st, hits, misses, ratio)
 
 
 def soft_target(teacher, st: MissionState, nodes: np.ndarray, row: int, tau: float) -> np.ndarray:

@@ -183,7 +183,8 @@ def test_labels_fanned_out_on_ray_train_exactly_as_in_process(dataset, tmp_path)
             "validation": {"every": 100, "seed": 5, "rows": [[6, 2, 8, 3, 3]], "broad": 3, "metric": "ratio"}}
     pre = {"iterations": 2, "instances_per_iter": 4, "lr": 2e-3, "epochs": 1, "batch": 64,
            "teacher": "greedy-coalition"}
-    for extra in ({"schedules": str(dataset), "dagger": 0.3}, {"tau": 0.5}):
+    for extra in ({"schedules": str(dataset), "dagger": 0.3}, {"tau": 0.5},
+                  {"schedules": str(dataset), "dagger": 0.5, "dagger_teacher": "solver", "dagger_evals": 100}):
         cfg = {**base, "pretrain": {**pre, **extra}}
         runs = []
         for jobs in (1, 2):
@@ -197,6 +198,7 @@ def test_labels_fanned_out_on_ray_train_exactly_as_in_process(dataset, tmp_path)
             runs.append((rows, tr.model.state_dict(), val))
         (rows1, w1, v1), (rows2, w2, v2) = runs
         assert rows1 == rows2 and all(r["labels"] > 0 for r in rows1), extra
+        assert ("dagger_teacher" in extra) == any("dagger_plan_ratio" in r for r in rows1)  # plans made on Ray
         assert all(torch.equal(w1[k], w2[k]) for k in w1), extra
         assert v1 == v2 and v1["val_success"] == 1.0, extra  # validation rolled out in parts on Ray
 
@@ -321,3 +323,35 @@ def test_label_weight_mission_gives_every_mission_one_unit_of_the_loss(dataset, 
     for bad in ({"label_weight": "task"}, {"label_weight": "mission", "samples": 2}):
         with pytest.raises(ValueError, match="pretrain.label_weight"):
             TrainConfig.from_dict({**cfg, "pretrain": {**cfg["pretrain"], **bad}})
+
+
+def test_solver_dagger_labels_the_rest_of_a_mission_by_a_plan_from_the_state_the_policy_reached(dataset, tmp_path):
+    """pretrain.dagger_teacher: solver: each DAgger mission is driven by the policy to a decision, then
+    labelled to its end by a plan from that state (plan_labels): the plan's routes, followed,
+    give its makespan, never worse than greedy-coalition's continuation; the run logs the ratio."""
+    from hmrta.rl.config import TrainConfig
+    from hmrta.rl.imitation import PlanJob, plan_labels
+    from hmrta.rl.train import Trainer
+    from hmrta.solvers.fromstate import greedy_coalition_continuation
+
+    inst = BroadGenerator(max_tasks=20, min_tasks=15).sample(np.random.default_rng(8))
+    st = MissionState(inst, seed=1, rules=Rules(max_open=None))
+    gc = BASELINES["greedy"]()  # a weaker driver, so that the plan has room to improve
+    for _ in range(6):
+        st.step(gc(st))
+    before = st.decisions
+    done = plan_labels(PlanJob(st, 300, 0, "greedy-coalition", 0.0, "mission"))
+    assert st.decisions == before  # the job's state is left as it was
+    assert len(done.labels.acts) == done.state.decisions - before > 0  # every decision from there, labelled
+    assert done.misses == 0 and done.plan_ratio < 1.0
+    assert math.isclose(done.state.makespan / greedy_coalition_continuation(st)[0], done.plan_ratio, rel_tol=1e-12)
+
+    cfg = {"name": "sdag", "seed": 1, "model": {"d_model": 32, "heads": 4, "ff_hidden": 32, "scale": "mission"},
+           "rules": {"max_open": None, "safety": True},
+           "pretrain": {"iterations": 1, "instances_per_iter": 4, "teacher": "greedy-coalition", "dagger": 1.0,
+                        "dagger_teacher": "solver", "dagger_evals": 100, "schedules": str(dataset)},
+           "train": {"iterations": 0}, "validation": {"seed": 5, "rows": [[6, 2, 8, 3, 1]]}}
+    row = Trainer(cfg, tmp_path / "run", device="cpu", log=lambda s: None).pretrain_step()
+    assert row["labels"] > 0 and 0.5 < row["dagger_plan_ratio"] <= 1.0
+    with pytest.raises(ValueError, match="pretrain.dagger_teacher: expected teacher or solver"):
+        TrainConfig.from_dict({**cfg, "pretrain": {**cfg["pretrain"], "dagger_teacher": "cpsat"}})
