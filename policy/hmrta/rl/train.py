@@ -354,8 +354,12 @@ class Trainer:
                   "decisions_per_s", "episodes_per_s", "sil_loss", "best_makespan", "lookahead_gain", "changed",
                   "labels", "tasks", "agents", "seconds", "bc_loss", "teacher_makespan", "pool_makespan",
                   "teacher_wins",
-                  "val_makespan", "val_success", "greedy_makespan", "wall", "route_share", "val_mean_makespan"]
+                  "val_makespan", "val_success", "greedy_makespan", "wall", "route_share", "val_mean_makespan",
+                  "dagger_plan_ratio"]
         new = not log_path.exists()
+        if not new:  # a resumed run keeps its log's columns (one written by an older version has fewer)
+            with open(log_path, newline="") as old:
+                fields = next(csv.reader(old), None) or fields
         f = open(log_path, "a", newline="")
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         if new:

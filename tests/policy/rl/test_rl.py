@@ -839,3 +839,23 @@ def test_mission_scale_is_the_fixed_scale_on_paper_missions():
     assert abs(np.mean([s.time for s in sc]) - 10.0) < 0.6
     assert abs(np.mean([s.length for s in sc]) - 1.0) < 0.06
     assert all(np.allclose(s.cap, 1.0) for s in sc)
+
+
+def test_a_resumed_run_keeps_the_columns_of_its_log(tmp_path):
+    """log.csv: a run resumed on a log written with fewer columns (an older version) appends rows
+    under that log's header, so every row has as many fields as the header."""
+    import csv
+
+    cfg = _tiny_cfg(train={"iterations": 1}, pretrain={"iterations": 1, "instances_per_iter": 1, "epochs": 1})
+    Trainer(cfg, tmp_path, device="cpu", log=lambda s: None).run(progress=False)
+    log = tmp_path / "log.csv"
+    rows = list(csv.reader(open(log)))
+    assert rows[0][-1] == "dagger_plan_ratio"
+    with open(log, "w", newline="") as f:  # as an older version wrote it
+        csv.writer(f).writerows([r[:-1] for r in rows])
+    tr = Trainer(_tiny_cfg(train={"iterations": 2}, pretrain={"iterations": 1, "instances_per_iter": 1, "epochs": 1}),
+                 tmp_path, device="cpu", log=lambda s: None)
+    tr.load(tmp_path / "last.pt")
+    tr.run(progress=False)
+    after = list(csv.reader(open(log)))
+    assert len(after) > len(rows) and {len(r) for r in after} == {len(rows[0]) - 1}
