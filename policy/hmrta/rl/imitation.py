@@ -8,8 +8,8 @@ own mistakes; with ``pretrain.dagger_teacher: solver`` the policy drives each su
 random decision and a plan from that state (:mod:`hmrta.solvers.fromstate`) labels the rest of it
 (:meth:`Imitation.solver_dagger`). With ``pretrain.samples`` > 0 (expert iteration) that many
 sampled rollouts of the policy (``pretrain.temperature``) compete with the teacher's trajectory on
-each teacher-driven instance, and the best of them by return is cloned: the targets are never worse than the teacher,
-and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
+each teacher-driven instance, and the best of them by return is cloned: the targets are never
+worse than the teacher, and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
 (greedy-coalition) the targets are soft: half on the teacher's choice, half spread by its
 coalition-start estimates.
 
@@ -26,10 +26,10 @@ import numpy as np
 import torch
 
 from ..core import MissionState, Rules
+from ..solvers.fromstate import plan_from_state
 from .config import TEACHERS
 from .features import collate, observe
 from .rollout import returns, rollout
-from ..solvers.fromstate import plan_from_state
 from .schedules import RouteTeacher
 
 if TYPE_CHECKING:

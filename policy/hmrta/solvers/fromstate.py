@@ -64,7 +64,7 @@ class StateDecoder:
             raise ValueError("plan from state: the mission has no pending decision")
         inst = st.inst
         M, A, K = st.M, st.A, st.K
-        self.M, self.A, self.K = M, A, K
+        self.A, self.K = A, K
         v = inst.velocity
         status = st.status
         self.tasks = [m for m in range(M) if status[m] in (EMPTY, OPEN)]
@@ -99,7 +99,7 @@ class StateDecoder:
         self.T = [[math.hypot(q[0] - s[0], q[1] - s[1]) / v for q in loc] for s in loc]  # [M][M]
         self.T_home = [[math.hypot(home[a][0] - s[0], home[a][1] - s[1]) / v for a in range(A)] for s in loc]  # [M][A]
         self.T_start = [[math.hypot(q[0] - s[0], q[1] - s[1]) / v for q in loc] for s in start]  # [A][M]
-        self.start_home = [math.hypot(home[a][0] - start[a][0], home[a][1] - start[a][1]) / v for a in range(A)]
+        start_home = [math.hypot(home[a][0] - start[a][0], home[a][1] - start[a][1]) / v for a in range(A)]
         self.dur = [float(d) for d in inst.durations]
         cap = st.cap.tolist()  # [A][K] (0/1 coverage for binary requirements)
         self.cap = cap
@@ -112,7 +112,7 @@ class StateDecoder:
             if hold[a] >= 0:
                 self.pre[hold[a]].append(a)
         self.ready0, self.hold0, self.arrival = ready, hold, arrival
-        self.ret0 = [r if r is not None else (ready[a] + self.start_home[a] if ready[a] < INF else None)
+        self.ret0 = [r if r is not None else (ready[a] + start_home[a] if ready[a] < INF else None)
                      for a, r in enumerate(ret0)]
         self.lost = [st.mode[a] == LOST for a in range(A)]
 
@@ -195,15 +195,10 @@ def plan_from_state(st: MissionState, evals: int = 2000, seed: int = 0, seconds:
     schedule. Within the time limit the plan is a deterministic function of (state, evals, seed)."""
     gc_ms, order = greedy_coalition_continuation(st)
     dec = StateDecoder(st)
-    if len(order) >= 2 and evals > 0:
-        v0 = dec.decode(order)
-        if math.isfinite(v0):
-            v, best = anneal(st.inst, order, seed, seconds, max_evals=evals, decoder=dec)
-            if v < gc_ms - 1e-9:
-                ms, routes = dec.decode(best, routes_out=True)
-                return Plan(routes, ms, "anneal", gc_ms)
-    elif order:
-        ms, routes = dec.decode(order, routes_out=True)
-        if ms < gc_ms - 1e-9:
-            return Plan(routes, ms, "anneal", gc_ms)
+    ms, best = dec.decode(order), order
+    if len(order) >= 2 and evals > 0 and math.isfinite(ms):
+        ms, best = anneal(st.inst, order, seed, seconds, max_evals=evals, decoder=dec)
+    if ms < gc_ms - 1e-9:
+        ms, routes = dec.decode(best, routes_out=True)
+        return Plan(routes, ms, "anneal", gc_ms)
     return Plan(None, gc_ms, "greedy-coalition", gc_ms)
