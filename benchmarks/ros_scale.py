@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -48,15 +49,18 @@ def cpu_s(pid: int) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--agents", type=int, default=150)
-    p.add_argument("--species", type=int, default=10)
-    p.add_argument("--tasks", type=int, default=500)
-    p.add_argument("--skills", type=int, default=5)
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--policy", default="greedy", choices=("greedy", "rl"))
-    p.add_argument("--checkpoint", default="")
+    p.add_argument("--agents", type=int, default=150, help="robots of the MA-AT mission (default 150)")
+    p.add_argument("--species", type=int, default=10, help="species (default 10)")
+    p.add_argument("--tasks", type=int, default=500, help="tasks (default 500)")
+    p.add_argument("--skills", type=int, default=5, help="skills K (default 5)")
+    p.add_argument("--seed", type=int, default=1, help="mission seed (default 1)")
+    p.add_argument("--policy", default="greedy", choices=("greedy", "rl"), help="the agents' method (default greedy)")
+    p.add_argument("--checkpoint", default="", help="rl: policy checkpoint (default: the shipped one)")
     p.add_argument("--out", default=None, help="also write the figures as JSON here")
-    p.add_argument("--timeout", type=float, default=900.0)
+    p.add_argument("--timeout", type=float, default=900.0, help="seconds before the mission is stopped (default 900)")
+    p.add_argument("--keep-logs", action="store_true",
+                   help="keep the mission's folder (instance, result, process logs) after a completed run; "
+                        "a run that fails always keeps it")
     args = p.parse_args(argv)
 
     from hmrta.generators import ScenarioGenerator
@@ -118,10 +122,13 @@ def main(argv: list[str] | None = None) -> int:
     w = max(map(len, figures))
     for k, v in figures.items():
         print(f"{k:>{w}}: {v}")
+    ok = res["success"] and same
+    if ok and not args.keep_logs:
+        shutil.rmtree(work, ignore_errors=True)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(figures, indent=1) + "\n")
-    return 0 if res["success"] and same else 3
+    return 0 if ok else 3
 
 
 if __name__ == "__main__":
