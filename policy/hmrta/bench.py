@@ -390,7 +390,14 @@ def method_variant(method: str, solve_opts: dict[str, Any]) -> str:
     """What a cached result depends on besides (row, method, instance, seed): the solve options and,
     for the learned policy, the checkpoint's content. A retrained checkpoint or another time limit
     therefore never reuses stale cached results."""
+    from .methods import get, parse
+
     parts: dict[str, Any] = {"opts": {k: solve_opts[k] for k in sorted(solve_opts)}}
+    name, implied = parse(method)
+    defaults = {o.name: o.default for o in get(name).options
+                if o.name not in solve_opts and o.name not in implied and o.name != "checkpoint"}
+    if defaults:  # the options left at their defaults, so a changed default re-solves
+        parts["defaults"] = defaults
     rules = fixed_rules(method, solve_opts)
     if rules:  # a baseline's rules (a portfolio: its candidates'), so a changed rule re-solves
         parts["rules"] = rules

@@ -89,6 +89,10 @@ class Method:
 
 CHECKPOINT = Option("checkpoint", str, None, "policy checkpoint file (default: the shipped one, or $HMRTA_CHECKPOINT)")
 _RL = dict(rules="hmrta.rl.checkpoint_info:checkpoint_rules", needs=("torch",))
+# rl-sample's default temperature, chosen on the dev missions (docs/training.md, "Sampling
+# temperature"): the shipped policies are cloned from schedules, and at T = 1 their samples wander
+# so far from their greedy decoding that the best of ten is often worse than it
+SAMPLE_TEMPERATURE = 0.15
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("greedy", "the nearest admissible task, the cheap rule",
@@ -103,7 +107,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("rl-sample", "learned policy, N sampled rollouts, best kept: RL(s.N); live: sampled decoding",
            "hmrta.rl.inference:solve_rl_sample", "hmrta.rl.inference:sample_decider",
            options=(Option("samples", int, 10, "sampled rollouts per mission (offline; rl-sN is shorthand)",
-                           minimum=1, live=False), CHECKPOINT), **_RL),
+                           minimum=1, live=False),
+                    Option("temperature", float, SAMPLE_TEMPERATURE,
+                           "sampling temperature: softmax(logits / T); below 1 the samples stay nearer the greedy "
+                           "decoding (docs/semantics.md#sampling-temperature)", minimum=0.01),
+                    CHECKPOINT), **_RL),
     Method("rl-lookahead", "one-step lookahead over the policy's greedy continuations: slower, better",
            "hmrta.rl.inference:solve_rl_lookahead", "hmrta.rl.inference:lookahead_decider",
            options=(CHECKPOINT,), **_RL),

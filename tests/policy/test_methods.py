@@ -31,11 +31,14 @@ CHECKPOINTS = sorted((ROOT / "policy" / "hmrta" / "checkpoints").glob("*.pt"))
 def test_entry_points_take_exactly_the_declared_options(name):
     m = METHODS[name]
     pytest.importorskip(m.needs[0]) if m.needs else None
-    params = set(inspect.signature(methods._resolve(m.solve)).parameters) - {"inst", "seed", "progress"}
-    assert params == {o.name for o in m.options}
+    params = inspect.signature(methods._resolve(m.solve)).parameters
+    assert set(params) - {"inst", "seed", "progress"} == {o.name for o in m.options}
+    for o in m.options:  # an option left out runs at the default --help states (None: the entry resolves it)
+        assert params[o.name].default in (o.default, None), o.name
     if m.decide is not None:
-        live = set(inspect.signature(methods._resolve(m.decide)).parameters) - {"seed"}
-        assert live == {o.name for o in m.options if o.live}
+        live = inspect.signature(methods._resolve(m.decide)).parameters
+        assert set(live) - {"seed"} == {o.name for o in m.options if o.live}
+        assert all(live[o.name].default in (o.default, None) for o in m.options if o.live)
 
 
 def test_option_errors_name_the_method():

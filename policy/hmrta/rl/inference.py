@@ -19,6 +19,7 @@ import torch
 from ..core import IN_PROGRESS, MissionState, Rules
 from ..errors import MethodError
 from ..instance import Instance
+from ..methods import SAMPLE_TEMPERATURE
 from ..solution import Solution, solution_from_state
 from .features import batch_observations
 from .checkpoint_info import DEFAULT_CHECKPOINT, CheckpointError, checkpoint_path  # noqa: F401 (re-exported)
@@ -101,19 +102,25 @@ def solve_rl(inst: Instance, seed: int = 0, checkpoint: str | None = None) -> So
     return solution_from_state(state, "rl", seed, time.perf_counter() - t0)
 
 
-def solve_rl_sample(inst: Instance, seed: int = 0, samples: int = 10, checkpoint: str | None = None) -> Solution:
+def solve_rl_sample(inst: Instance, seed: int = 0, samples: int = 10,
+                    temperature: float = SAMPLE_TEMPERATURE, checkpoint: str | None = None) -> Solution:
+    """RL(s.N): ``samples`` rollouts sampled from softmax(logits / ``temperature``), one batch,
+    the shortest successful one kept."""
     _check(inst)
     if samples < 1:
         raise MethodError(f"samples: expected a positive integer, got {samples}")
+    if not temperature > 0:
+        raise MethodError(f"temperature: expected a positive number, got {temperature}")
     pol = load_policy(checkpoint)
     t0 = time.perf_counter()
     states = [MissionState(inst, seed=seed + k, rules=pol.rules) for k in range(samples)]
     gen = torch.Generator().manual_seed(seed)
-    rollout(pol.model, states, sample=True, generator=gen)
+    rollout(pol.model, states, sample=True, generator=gen, temperature=temperature)
     ok = [s for s in states if s.success]
     best = min(ok, key=lambda s: s.makespan) if ok else states[0]
     sol = solution_from_state(best, f"rl-s{samples}", best.seed, time.perf_counter() - t0)
     sol.extra["samples"] = samples
+    sol.extra["temperature"] = temperature
     return sol
 
 
@@ -161,8 +168,10 @@ def solve_rl_lookahead(inst: Instance, seed: int = 0, checkpoint: str | None = N
 class RLDecider:
     """Per-decision form of the policy (one forward per decision), for live agents."""
 
-    def __init__(self, pol: LoadedPolicy, sample: bool, seed: int):
-        self.pol, self.sample = pol, sample
+    def __init__(self, pol: LoadedPolicy, sample: bool, seed: int, temperature: float = 1.0):
+        if not temperature > 0:
+            raise MethodError(f"temperature: expected a positive number, got {temperature}")
+        self.pol, self.sample, self.temperature = pol, sample, temperature
         self.gen = torch.Generator().manual_seed(seed)
         self.name = "rl-sample" if sample else "rl"
 
@@ -171,7 +180,8 @@ class RLDecider:
             obs, nodes = batch_observations([state], scale=self.pol.model.cfg.scale)
             logits = self.pol.model(**obs)[0]  # [T]
             if self.sample:
-                row = int(torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen)[0])
+                probs = torch.softmax(logits / self.temperature, -1)  # [T] as in a sampled rollout
+                row = int(torch.multinomial(probs, 1, generator=self.gen)[0])
             else:
                 row = int(logits.argmax())
             return int(nodes[0][row])
@@ -181,8 +191,8 @@ def rl_decider(seed: int = 0, checkpoint: str | None = None) -> RLDecider:
     return RLDecider(load_policy(checkpoint), False, seed)
 
 
-def sample_decider(seed: int = 0, checkpoint: str | None = None) -> RLDecider:
-    return RLDecider(load_policy(checkpoint), True, seed)
+def sample_decider(seed: int = 0, temperature: float = SAMPLE_TEMPERATURE, checkpoint: str | None = None) -> RLDecider:
+    return RLDecider(load_policy(checkpoint), True, seed, temperature)
 
 
 class LookaheadDecider:

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from hmrta.core import MissionState, Rules
+from hmrta.errors import MethodError
 from hmrta.generators import ScenarioGenerator
 from hmrta.rl.features import batch_observations
 from hmrta.rl.inference import DEFAULT_CHECKPOINT, CheckpointError, LoadedPolicy, RLDecider, load_policy
@@ -506,6 +507,38 @@ def test_shipped_checkpoint_solves():
 
     for sol in (g, s):
         assert evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
+
+
+@pytest.mark.skipif(not DEFAULT_CHECKPOINT.exists(), reason="no shipped checkpoint")
+def test_sampling_temperature_is_the_same_live_and_offline():
+    """A live sampled agent and a sampled rollout of one mission, same seed and temperature, make
+    the same choices; the temperature changes them (so both paths apply it)."""
+    pol = load_policy(None)
+    inst = ScenarioGenerator("MA-AT", 9, 3, 20, 3).instance(4242, 0)
+    seen = {}
+    for t in (1.0, 0.3):
+        offline = MissionState(inst, seed=0, rules=pol.rules)
+        rollout(pol.model, [offline], sample=True, generator=torch.Generator().manual_seed(5), temperature=t)
+        decide, live = RLDecider(pol, True, 5, t), MissionState(inst, seed=0, rules=pol.rules)
+        while not live.done:
+            live.step(decide(live))
+        assert live.routes == offline.routes and live.makespan == offline.makespan
+        seen[t] = offline.makespan
+    assert seen[1.0] != seen[0.3]
+    with pytest.raises(MethodError, match="temperature: expected a positive number"):
+        RLDecider(pol, True, 5, 0.0)
+
+
+@pytest.mark.skipif(not DEFAULT_CHECKPOINT.exists(), reason="no shipped checkpoint")
+def test_rl_sample_temperature_option():
+    from hmrta.methods import SAMPLE_TEMPERATURE, decider, solve
+
+    inst = ScenarioGenerator("MA-AT", 9, 3, 20, 3).instance(4242, 0)
+    assert solve(inst, "rl-s2", seed=0).extra["temperature"] == SAMPLE_TEMPERATURE
+    assert solve(inst, "rl-s2", seed=0, temperature=0.5).extra["temperature"] == 0.5
+    assert decider("rl-sample", temperature=0.5)[0].temperature == 0.5
+    with pytest.raises(MethodError, match="rl-sample: option temperature: expected a number >= 0.01"):
+        solve(inst, "rl-s2", temperature=0)
 
 
 CHECKPOINTS = [("default.pt", "team"), ("coalition-open.pt", None), ("broad.pt", None)]
