@@ -90,8 +90,9 @@ class Method:
 CHECKPOINT = Option("checkpoint", str, None, "policy checkpoint file (default: the shipped one, or $HMRTA_CHECKPOINT)")
 _RL = dict(rules="hmrta.rl.checkpoint_info:checkpoint_rules", needs=("torch",))
 # rl-sample's default temperature, chosen on the dev missions (docs/training.md, "Sampling
-# temperature"): the shipped policies are cloned from schedules, and at T = 1 their samples wander
-# so far from their greedy decoding that the best of ten is often worse than it
+# temperature"): the shipped policies are cloned (from greedy-coalition, from the solver's
+# schedules), and at T = 1 their samples wander so far from their greedy decoding that the best of
+# ten is often worse than it
 SAMPLE_TEMPERATURE = 0.15
 
 METHODS: dict[str, Method] = {m.name: m for m in (
