@@ -52,6 +52,20 @@ def test_rl_variant_follows_the_checkpoint_content(tmp_path):
     assert method_variant("cpsat", {"time_limit": 2.0}) != method_variant("cpsat", {"time_limit": 1.0})
 
 
+def test_a_changed_option_default_changes_the_variant(monkeypatch):
+    """A result cached under one default of an option left out (rl-sample's temperature) is not
+    reused once the default changes."""
+    import dataclasses
+
+    from hmrta import methods
+
+    m = methods.METHODS["rl-sample"]
+    before = method_variant("rl-s10", {})
+    hotter = tuple(dataclasses.replace(o, default=1.0) if o.name == "temperature" else o for o in m.options)
+    monkeypatch.setitem(methods.METHODS, "rl-sample", dataclasses.replace(m, options=hotter))
+    assert method_variant("rl-s10", {}) != before
+
+
 def test_t_quantiles_match_the_tables():
     # two-sided 95% critical values of Student's t (any statistics table)
     for df, t in ((1, 12.7062), (2, 4.3027), (3, 3.1824), (9, 2.2622), (10, 2.2281), (49, 2.0096)):
