@@ -247,6 +247,9 @@ class PretrainConfig:
     # expert iteration: > 0 policy samples compete with the teacher's trajectory, the best is cloned
     samples: int = _f(0, _integer(0))
     temperature: float = _f(1.0, _number(0, lo_open=True))
+    # what ranks the pool: ``return`` (-T - W, the REINFORCE reward) or ``makespan`` (the mission's
+    # objective; a failed episode counts T_max, ties keep the teacher)
+    select: str = _f("return", lambda v: None if v in ("return", "makespan") else "expected return or makespan")
     # the solver as teacher: a schedules dataset, or a list of them drawn from as one (hmrta
     # schedules; rl/schedules.py, relative paths from the working directory). Teacher-driven
     # missions come from it and are labelled by their routes; where a route's choice is not

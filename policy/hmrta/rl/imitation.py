@@ -8,7 +8,8 @@ own mistakes; with ``pretrain.dagger_teacher: solver`` the policy drives each su
 random decision and a plan from that state (:mod:`hmrta.solvers.fromstate`) labels the rest of it
 (:meth:`Imitation.solver_dagger`). With ``pretrain.samples`` > 0 (expert iteration) that many
 sampled rollouts of the policy (``pretrain.temperature``) compete with the teacher's trajectory on
-each teacher-driven instance, and the best of them by return is cloned: the targets are never
+each teacher-driven instance, and the best of them (by return, or by makespan with
+``pretrain.select: makespan``) is cloned: the targets are never
 worse than the teacher, and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
 (greedy-coalition) the targets are soft: half on the teacher's choice, half spread by its
 coalition-start estimates.
@@ -150,8 +151,8 @@ class Imitation:
 
     def pool(self, pool: list[tuple[MissionState, int, int]], obs: list, deciders: list, acts: list) -> dict:
         """Expert iteration (``pretrain.samples``): ``samples`` sampled rollouts of the policy compete
-        with the teacher's trajectory on each pooled instance; where a sample has the better return
-        (-T - W), its decisions replace the teacher's labels of that instance. The targets are then
+        with the teacher's trajectory on each pooled instance; where a sample has the better score
+        (``pretrain.select``: the return -T - W, or the makespan), its decisions replace the teacher's labels of that instance. The targets are then
         never worse than the teacher and are, where the policy won, its own (learnable) choices.
         ``pool``: (the teacher's finished state, [first, end) of its labels) per instance; the other
         labels (DAgger's) are kept."""
@@ -163,8 +164,9 @@ class Imitation:
                        amp=lr_.amp, temperature=p.temperature)
         run.episodes += len(states)
         run.decisions += traj.decisions
-        R = returns(states, t.t_max).reshape(len(pool), S)  # [I, S]
-        Rt = returns([st for st, _, _ in pool], t.t_max)  # [I] the teacher's
+        score = returns if p.select == "return" else neg_makespans
+        R = score(states, t.t_max).reshape(len(pool), S)  # [I, S]
+        Rt = score([st for st, _, _ in pool], t.t_max)  # [I] the teacher's
         win = R.max(1) > Rt + 1e-9  # [I] a sample beats the teacher
         keep = np.ones(len(acts), dtype=bool)
         for (_, first, end), w in zip(pool, win):
@@ -184,6 +186,12 @@ class Imitation:
         mk_best = np.array([s.makespan for s in states])[np.arange(len(pool)) * S + R.argmax(1)]  # [I]
         return {"teacher_makespan": float(mk_t.mean()), "pool_makespan": float(np.where(win, mk_best, mk_t).mean()),
                 "teacher_wins": float(1 - win.mean())}
+
+
+def neg_makespans(states: list[MissionState], t_max: float) -> np.ndarray:
+    """[E] minus each episode's makespan (``t_max`` for a failed one): the score of
+    ``pretrain.select: makespan``, higher is better like a return."""
+    return -np.array([s.makespan if s.success else t_max for s in states], dtype=np.float64)
 
 
 def mission_weights(mission: list[int]) -> np.ndarray:

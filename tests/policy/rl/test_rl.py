@@ -16,7 +16,7 @@ from hmrta.generators import ScenarioGenerator
 from hmrta.rl.features import batch_observations
 from hmrta.rl.inference import DEFAULT_CHECKPOINT, CheckpointError, LoadedPolicy, RLDecider, load_policy
 from hmrta.rl.model import ModelConfig, PolicyNet
-from hmrta.rl.rollout import rollout
+from hmrta.rl.rollout import returns, rollout
 from hmrta.rl.train import DEFAULTS, Trainer, deep_update
 from hmrta.sim import run
 
@@ -336,19 +336,12 @@ def test_behaviour_cloning_learns_the_coalition_teacher(tmp_path, dagger, tau):
     assert agreement() > before
 
 
-def test_expert_iteration_clones_the_best_of_teacher_and_samples(tmp_path):
-    """pretrain.samples: where a policy sample beats the teacher's trajectory, that sample's own
-    decisions replace the teacher's labels (replaying them reproduces the sample's schedule);
-    where the teacher wins, its labels stay; and the phase runs end to end."""
+def _farthest_labels(inst):
+    """A poor but valid teacher's labelled trajectory: always the farthest admissible task.
+    Returns (observations, deciders, actions, the finished state)."""
     from hmrta.rl.features import observe
 
-    inst = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
-    FixedTrainer.fixed = inst
-    cfg = _tiny_cfg(pretrain={"iterations": 4, "instances_per_iter": 2, "lr": 3e-3, "epochs": 1, "batch": 64,
-                              "teacher": "greedy-coalition", "samples": 6, "temperature": 1.0})
-    tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
-
-    def farthest(st):  # a poor but valid teacher: always the farthest admissible task
+    def farthest(st):
         cand = np.flatnonzero(st.mask()[1:])
         if len(cand) == 0:
             return 0
@@ -362,6 +355,47 @@ def test_expert_iteration_clones_the_best_of_teacher_and_samples(tmp_path):
         obs.append((tf, af, mask)), deciders.append(row)
         acts.append(farthest(st))  # (no observation window: row = node)
         st.step(acts[-1])
+    return obs, deciders, acts, st
+
+
+def test_expert_iteration_ranks_the_pool_by_makespan_or_return(tmp_path):
+    """pretrain.select: ``makespan`` clones the sample of the shortest makespan; ``return``
+    (-T - W) the sample of the best return, here another one (the same six samples both times)."""
+    inst = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 1)
+    FixedTrainer.fixed = inst
+    cfg = _tiny_cfg(pretrain={"iterations": 1, "instances_per_iter": 1, "teacher": "greedy-coalition",
+                              "samples": 6, "temperature": 1.0, "select": "makespan"})
+    tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
+    tr.model.eval()
+    picked = {}
+    for select in ("return", "makespan"):
+        tr.cfg.pretrain.select = select
+        tr.learner.torch_gen.manual_seed(0)  # a draw where the two rankings disagree
+        obs, deciders, acts, st = _farthest_labels(inst)
+        stats = tr._pool([(st, 0, len(acts))], obs, deciders, acts)
+        assert stats["teacher_wins"] == 0.0
+        picked[select] = stats["pool_makespan"]
+    tr.learner.torch_gen.manual_seed(0)
+    states = [MissionState(inst, seed=0, rules=RULES) for _ in range(6)]
+    rollout(tr.model, states, sample=True, generator=tr.learner.torch_gen, record=True, amp=False, temperature=1.0)
+    mk = np.array([s.makespan for s in states])
+    best_return = mk[np.argmax(returns(states, tr.cfg.train.t_max))]
+    assert picked["makespan"] == pytest.approx(mk.min()) and picked["return"] == pytest.approx(best_return)
+    assert mk.min() < best_return
+
+
+def test_expert_iteration_clones_the_best_of_teacher_and_samples(tmp_path):
+    """pretrain.samples: where a policy sample beats the teacher's trajectory, that sample's own
+    decisions replace the teacher's labels (replaying them reproduces the sample's schedule);
+    where the teacher wins, its labels stay; and the phase runs end to end."""
+    from hmrta.rl.features import observe
+
+    inst = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
+    FixedTrainer.fixed = inst
+    cfg = _tiny_cfg(pretrain={"iterations": 4, "instances_per_iter": 2, "lr": 3e-3, "epochs": 1, "batch": 64,
+                              "teacher": "greedy-coalition", "samples": 6, "temperature": 1.0})
+    tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
+    obs, deciders, acts, st = _farthest_labels(inst)
     teacher_labels = list(acts)
     n = len(acts)
     other = ("dagger-obs", 0, 7)  # labels of other instances (e.g. DAgger's) after the pooled range stay
@@ -578,7 +612,6 @@ def test_shipped_checkpoints_run_under_their_own_max_open_rule(name, max_open):
 
 def test_lookahead_is_never_worse_than_its_policy(model):
     from hmrta.rl.inference import lookahead_step
-    from hmrta.rl.rollout import returns
 
     for inst in _insts():
         base = MissionState(inst, seed=3, rules=RULES)
@@ -611,6 +644,7 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\npretrain: {dagger: 2}\n", "pretrain.dagger: expected a share in [0, 1]"),
     ("version: 1\npretrain: {tau: 1}\n", "pretrain.tau: soft targets need a teacher with start estimates"),
     ("version: 1\npretrain: {samples: -1}\n", "pretrain.samples: expected an integer >= 0"),
+    ("version: 1\npretrain: {samples: 4, select: regret}\n", "pretrain.select: expected return or makespan"),
     ("version: 1\ntrain: {ema: 1.0}\n", "train.ema: expected a decay in [0, 1)"),
     ("version: 1\npretrain: {samples: 4, temperature: 0}\n", "pretrain.temperature: expected a number in (0, inf)"),
     ("version: 1\npretrain: {teacher: greedy-coalition, samples: 4, tau: 0.5}\n", "pretrain.samples needs hard targets"),
