@@ -8,7 +8,8 @@ own mistakes; with ``pretrain.dagger_teacher: solver`` the policy drives each su
 random decision and a plan from that state (:mod:`hmrta.solvers.fromstate`) labels the rest of it
 (:meth:`Imitation.solver_dagger`). With ``pretrain.samples`` > 0 (expert iteration) that many
 sampled rollouts of the policy (``pretrain.temperature``) compete with the teacher's trajectory on
-each teacher-driven instance, and the best of them (by return, or by makespan with
+each teacher-driven instance (with ``pretrain.generated_teacher: policy``, on the generated
+missions, with the policy's own greedy decoding: self-improvement), and the best of them (by return, or by makespan with
 ``pretrain.select: makespan``) is cloned: the targets are never
 worse than the teacher, and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
 (greedy-coalition) the targets are soft: half on the teacher's choice, half spread by its
@@ -52,6 +53,7 @@ class Imitation:
         else:
             items = [(inst, None) for inst in run._instances(p.instances_per_iter)]
         insts = [inst for inst, _ in items]
+        own = []  # generated_teacher: policy: the missions its greedy decoding drives
         labels = Labels()
         teacher = TEACHERS[p.teacher]()
         tau, scale = p.tau, lr_.model.cfg.scale
@@ -59,6 +61,9 @@ class Imitation:
         estimates = []  # [len(on_policy)] decisions expected in each DAgger mission
         for inst, routes in items:
             seed = int(lr_.np_rng.integers(2**31))
+            if routes is None and p.generated_teacher == "policy":
+                own.append(MissionState(inst, seed=seed, rules=run.train_rules))
+                continue
             if lr_.np_rng.random() < p.dagger:
                 on_policy.append(MissionState(inst, seed=seed, rules=run.train_rules))  # the policy drives
                 estimates.append(sum(map(len, routes)) if routes is not None else 2 * inst.n_tasks)
@@ -86,6 +91,11 @@ class Imitation:
                     labels.add(on_policy[i], teacher, teacher, tau, scale)
                     mission.extend([len(jobs) + i] * (len(acts) - before))
             rollout(lr_.model, on_policy, sample=False, before_step=label)
+        if own:  # the policy's greedy decoding is the trajectory to beat; it labels nothing itself
+            rollout(lr_.model, own, sample=False, amp=lr_.amp)
+            run.episodes += len(own)
+            run.decisions += sum(st.decisions for st in own)
+            pool += [(st, len(acts), len(acts)) for st in own]
         pool_stats = self.pool(pool, obs, deciders, acts) if p.samples and pool else {}
         lr_.set_lr(p.lr)
         lr_.model.train()
@@ -118,7 +128,8 @@ class Imitation:
                 losses.append(loss.item())
         run.pretrain_done += 1
         extra = {"route_share": followed[0] / max(1, sum(followed))} if p.schedules else {}
-        return {"iteration": run.pretrain_done, "bc_loss": float(np.mean(losses)), "labels": n,
+        loss_ = {"bc_loss": float(np.mean(losses))} if losses else {}  # (none: no sample won)
+        return {"iteration": run.pretrain_done, **loss_, "labels": n,
                 "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, **pool_stats, **plan_stats, **extra}
 
     def solver_dagger(self, on_policy: list[MissionState], estimates: list[int], labels: "Labels",

@@ -384,6 +384,28 @@ def test_expert_iteration_ranks_the_pool_by_makespan_or_return(tmp_path):
     assert mk.min() < best_return
 
 
+def test_self_improvement_clones_only_samples_that_beat_the_greedy_decoding(tmp_path):
+    """pretrain.generated_teacher: policy: the policy's greedy decoding is the trajectory to beat
+    and labels nothing itself. Samples that only repeat it (temperature near 0) teach nothing and
+    leave the weights as they are; samples that beat it are cloned."""
+    inst = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
+    FixedTrainer.fixed = inst
+    cfg = _tiny_cfg(pretrain={"iterations": 2, "instances_per_iter": 3, "lr": 3e-3, "epochs": 1, "batch": 64,
+                              "teacher": "greedy-coalition", "samples": 6, "temperature": 1e-3,
+                              "generated_teacher": "policy", "select": "makespan"})
+    tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
+    start = {k: v.clone() for k, v in tr.model.state_dict().items()}
+    row = tr.pretrain_step()
+    assert row["labels"] == 0 and row["teacher_wins"] == 1.0 and "bc_loss" not in row
+    assert all(torch.equal(v, start[k]) for k, v in tr.model.state_dict().items())
+    tr.cfg.pretrain.temperature = 1.0
+    row = tr.pretrain_step()
+    assert row["teacher_wins"] < 1.0 and row["labels"] > 0 and row["pool_makespan"] < row["teacher_makespan"]
+    with pytest.raises(ValueError, match="generated_teacher: policy needs policy samples"):
+        FixedTrainer(_tiny_cfg(pretrain={"generated_teacher": "policy"}), tmp_path / "b", device="cpu",
+                     log=lambda s: None)
+
+
 def test_expert_iteration_clones_the_best_of_teacher_and_samples(tmp_path):
     """pretrain.samples: where a policy sample beats the teacher's trajectory, that sample's own
     decisions replace the teacher's labels (replaying them reproduces the sample's schedule);
