@@ -91,8 +91,8 @@ class Imitation:
                     labels.add(on_policy[i], teacher, teacher, tau, scale)
                     mission.extend([len(jobs) + i] * (len(acts) - before))
             rollout(lr_.model, on_policy, sample=False, before_step=label)
-        if own:  # the policy's greedy decoding is the trajectory to beat; it labels nothing itself
-            rollout(lr_.model, own, sample=False, amp=lr_.amp)
+        if own:  # the policy's greedy decoding (in float32, as RL(g.) runs) is the trajectory to beat; it labels nothing
+            rollout(lr_.model, own, sample=False)
             run.episodes += len(own)
             run.decisions += sum(st.decisions for st in own)
             pool += [(st, len(acts), len(acts)) for st in own]
