@@ -9,9 +9,9 @@ random decision and a plan from that state (:mod:`hmrta.solvers.fromstate`) labe
 (:meth:`Imitation.solver_dagger`). With ``pretrain.samples`` > 0 (expert iteration) that many
 sampled rollouts of the policy (``pretrain.temperature``) compete with the teacher's trajectory on
 each teacher-driven instance (with ``pretrain.generated_teacher: policy``, on the generated
-missions, with the policy's own greedy decoding: self-improvement), and the best of them (by return, or by makespan with
-``pretrain.select: makespan``) is cloned: the targets are never
-worse than the teacher, and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
+missions, with the policy's own greedy decoding: self-improvement), and the best of them (by
+return, or by makespan with ``pretrain.select: makespan``) is cloned: the targets are never worse
+than the teacher, and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
 (greedy-coalition) the targets are soft: half on the teacher's choice, half spread by its
 coalition-start estimates.
 
@@ -91,7 +91,7 @@ class Imitation:
                     labels.add(on_policy[i], teacher, teacher, tau, scale)
                     mission.extend([len(jobs) + i] * (len(acts) - before))
             rollout(lr_.model, on_policy, sample=False, before_step=label)
-        if own:  # the policy's greedy decoding (in float32, as RL(g.) runs) is the trajectory to beat; it labels nothing
+        if own:  # the trajectory to beat: the greedy decoding in float32, as RL(g.) runs; it labels nothing
             rollout(lr_.model, own, sample=False)
             run.episodes += len(own)
             run.decisions += sum(st.decisions for st in own)
@@ -163,8 +163,8 @@ class Imitation:
     def pool(self, pool: list[tuple[MissionState, int, int]], obs: list, deciders: list, acts: list) -> dict:
         """Expert iteration (``pretrain.samples``): ``samples`` sampled rollouts of the policy compete
         with the teacher's trajectory on each pooled instance; where a sample has the better score
-        (``pretrain.select``: the return -T - W, or the makespan), its decisions replace the teacher's labels of that instance. The targets are then
-        never worse than the teacher and are, where the policy won, its own (learnable) choices.
+        (``pretrain.select``: the return -T - W, or the makespan), its decisions replace the
+        teacher's labels of that instance. The targets are then never worse than the teacher and are, where the policy won, its own (learnable) choices.
         ``pool``: (the teacher's finished state, [first, end) of its labels) per instance; the other
         labels (DAgger's) are kept."""
         run, lr_ = self.run, self.run.learner
