@@ -262,7 +262,8 @@ class PretrainConfig:
     # ones; without: all of them): ``teacher`` (labelled by it), or ``policy``: its own greedy
     # decoding competes with the samples (needs samples > 0) and a mission teaches only where a
     # sample beats it (self-improvement: the labels are the winning sample's decisions)
-    generated_teacher: str = _f("teacher", lambda v: None if v in ("teacher", "policy") else "expected teacher or policy")
+    generated_teacher: str = _f("teacher",
+                                lambda v: None if v in ("teacher", "policy") else "expected teacher or policy")
     # what one unit of the loss is: a label (every decision counts once, so a mission of hundreds
     # of decisions outweighs a small one) or a mission (its labels share one unit)
     label_weight: str = _f("label", lambda v: None if v in ("label", "mission") else "expected label or mission")
@@ -290,7 +291,8 @@ class PretrainConfig:
         if self.samples and self.tau > 0:
             raise ValueError("pretrain.samples needs hard targets (pretrain.tau: 0)")
         if self.generated_teacher == "policy" and not self.samples:
-            raise ValueError("pretrain.generated_teacher: policy needs policy samples to compete with (pretrain.samples > 0)")
+            raise ValueError("pretrain.generated_teacher: policy needs policy samples to compete with "
+                             "(pretrain.samples > 0)")
 
 
 @dataclass

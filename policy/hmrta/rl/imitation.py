@@ -164,7 +164,8 @@ class Imitation:
         """Expert iteration (``pretrain.samples``): ``samples`` sampled rollouts of the policy compete
         with the teacher's trajectory on each pooled instance; where a sample has the better score
         (``pretrain.select``: the return -T - W, or the makespan), its decisions replace the
-        teacher's labels of that instance. The targets are then never worse than the teacher and are, where the policy won, its own (learnable) choices.
+        teacher's labels of that instance. The targets are then never worse than the teacher and
+        are, where the policy won, its own (learnable) choices.
         ``pool``: (the teacher's finished state, [first, end) of its labels) per instance; the other
         labels (DAgger's) are kept."""
         run, lr_ = self.run, self.run.learner
