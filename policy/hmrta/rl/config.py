@@ -307,6 +307,10 @@ class ValidationConfig:
     # > 0: that many single-skill missions (SA-AT and SA-BT teams, rl/schedules.py's
     # SingleSkillTraining, 10-50 tasks) join the validation set
     single_skill: int = _f(0, _integer(0))
+    # > 0: that many missions of every mission-family row up to 50 tasks (hmrta.families: the
+    # generators of ``hmrta bench --suite families``, drawn at the validation seed, never the
+    # suite's test seed) join the validation set, so that checkpoints are chosen on every family axis
+    families: int = _f(0, _integer(0))
     # what best.pt keeps the lowest of: the mean makespan, or the mean ratio of the makespan to
     # greedy-coalition's on the same mission (comparable across missions of different time scales)
     metric: str = _f("makespan", lambda v: None if v in ("makespan", "ratio") else "expected makespan or ratio")

@@ -75,6 +75,11 @@ def validation_set(cfg: TrainConfig) -> list:
         from .schedules import SingleSkillTraining
 
         out += SingleSkillTraining(max_tasks=50).generate(v.single_skill, v.seed)
+    if v.families:
+        from ..families import family_suite
+
+        for row in family_suite(max_tasks=50):
+            out += row.generator().generate(v.families, v.seed)
     return out
 
 

@@ -269,6 +269,25 @@ def test_several_schedule_datasets_are_drawn_from_as_one(dataset, tmp_path):
     assert [i.to_dict() for i, _ in one[0]] == [i.to_dict() for i, _ in one[1]]
 
 
+def test_validation_set_can_hold_every_mission_family():
+    """validation.families: that many missions of every family row up to 50 tasks, drawn at the
+    validation seed (the same missions each time, none of the suite's test missions)."""
+    from hmrta.families import family_suite
+    from hmrta.rl.config import TrainConfig
+    from hmrta.rl.train import validation_set
+
+    cfg = TrainConfig.from_dict({"validation": {"seed": 7, "rows": [[6, 2, 8, 3, 1]], "families": 2}})
+    rows = family_suite(max_tasks=50)
+    got = validation_set(cfg)[1:]  # after the MA-AT row's mission
+    assert len(rows) == 12 and len(got) == 2 * len(rows)
+    assert [i.name for i in got] == [f"{r.key}_s7_{k:03d}" for r in rows for k in range(2)]
+    assert [i.to_dict() for i in got] == [i.to_dict() for i in validation_set(cfg)[1:]]
+    test = {i.name: i.to_dict() for r in rows for i in r.generator().generate(2, 1000)}
+    assert not any(i.to_dict() in test.values() for i in got)
+    with pytest.raises(ValueError, match="validation.families"):
+        TrainConfig.from_dict({"validation": {"families": -1}})
+
+
 def test_generated_missions_join_the_schedules_labelled_by_the_teacher(dataset, tmp_path):
     """pretrain.generated: each iteration also clones that many missions of train.distribution (here
     larger than the dataset's), labelled by the teacher; without schedules the key is an error."""
