@@ -31,7 +31,7 @@ from ..core import MissionState, Rules
 from ..solvers.fromstate import plan_from_state
 from .config import TEACHERS
 from .features import collate, observe
-from .rollout import returns, rollout
+from .rollout import makespans, returns, rollout
 from .schedules import RouteTeacher
 
 if TYPE_CHECKING:
@@ -176,7 +176,8 @@ class Imitation:
                        amp=lr_.amp, temperature=p.temperature)
         run.episodes += len(states)
         run.decisions += traj.decisions
-        score = returns if p.select == "return" else neg_makespans
+        def score(sts: list[MissionState], t_max: float) -> np.ndarray:  # [E] higher is better
+            return returns(sts, t_max) if p.select == "return" else -makespans(sts, t_max)
         R = score(states, t.t_max).reshape(len(pool), S)  # [I, S]
         Rt = score([st for st, _, _ in pool], t.t_max)  # [I] the teacher's
         win = R.max(1) > Rt + 1e-9  # [I] a sample beats the teacher
@@ -198,12 +199,6 @@ class Imitation:
         mk_best = np.array([s.makespan for s in states])[np.arange(len(pool)) * S + R.argmax(1)]  # [I]
         return {"teacher_makespan": float(mk_t.mean()), "pool_makespan": float(np.where(win, mk_best, mk_t).mean()),
                 "teacher_wins": float(1 - win.mean())}
-
-
-def neg_makespans(states: list[MissionState], t_max: float) -> np.ndarray:
-    """[E] minus each episode's makespan (``t_max`` for a failed one): the score of
-    ``pretrain.select: makespan``, higher is better like a return."""
-    return -np.array([s.makespan if s.success else t_max for s in states], dtype=np.float64)
 
 
 def mission_weights(mission: list[int]) -> np.ndarray:

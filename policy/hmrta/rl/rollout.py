@@ -94,14 +94,16 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
     return traj
 
 
+def makespans(states: list[MissionState], t_max: float) -> np.ndarray:
+    """[E] each episode's makespan T, ``t_max`` for a failed one (what returns and validation charge)."""
+    return np.array([s.makespan if s.success else t_max for s in states], dtype=np.float64)
+
+
 def returns(states: list[MissionState], t_max: float) -> np.ndarray:
     """Episode returns R = -T - W (T = T_max on failure)."""
-    out = np.empty(len(states))  # [E]
-    for i, s in enumerate(states):
-        T = s.makespan if s.success else t_max
-        W = redundancy(s.inst, s.members, [bool(x == DONE) for x in s.status])
-        out[i] = -T - W
-    return out
+    W = np.array([redundancy(s.inst, s.members, [bool(x == DONE) for x in s.status]) for s in states],
+                 dtype=np.float64)  # [E]
+    return -makespans(states, t_max) - W
 
 
 def action_costs(model: torch.nn.Module | Callable[[MissionState], int],

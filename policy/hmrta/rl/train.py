@@ -41,7 +41,7 @@ from .imitation import Imitation, soft_target
 from .learner import Learner
 from .model import ZERO_INIT_PARAMS, PolicyNet
 from .reinforce import Reinforce
-from .rollout import rollout
+from .rollout import makespans, rollout
 
 DEFAULTS = defaults()  # every key with its default (a config file names only what it changes)
 
@@ -50,7 +50,7 @@ def rollout_makespans(net: torch.nn.Module, insts: list, rules, t_max: float) ->
     """(makespan, success) of RL(g.) of ``net`` on each instance (``t_max`` for a failure)."""
     states = [MissionState(i, seed=0, rules=rules) for i in insts]
     rollout(net, states, sample=False)
-    return [(s.makespan if s.success else t_max, bool(s.success)) for s in states]
+    return [(float(m), bool(s.success)) for m, s in zip(makespans(states, t_max), states)]
 
 
 def validation_makespans(job: tuple) -> list[tuple[float, bool]]:
