@@ -340,16 +340,23 @@ def provenance(methods: list[str], solve_opts: dict[str, Any], command: str | No
     from . import __version__
 
     checkpoint = None
+    own: dict[str, dict] = {}
     if any(uses_checkpoint(m) for m in methods):
-        from .rl.checkpoint_info import DEFAULT_CHECKPOINT, checkpoint_path
+        from .rl.checkpoint_info import SHIPPED_DIR, checkpoint_path
 
-        path = checkpoint_path(solve_opts.get("checkpoint"))
-        checkpoint = {"name": path.name, "sha256": file_sha256(path) if path.is_file() else None,
-                      "shipped": path.resolve() == DEFAULT_CHECKPOINT.resolve()}
+        def describe(path: Path) -> dict:
+            return {"name": path.name, "sha256": file_sha256(path) if path.is_file() else None,
+                    "shipped": path.resolve().parent == SHIPPED_DIR.resolve()}
+
+        checkpoint = describe(checkpoint_path(solve_opts.get("checkpoint")))
+        for m in methods:
+            for spec, ck in own_checkpoints(m, solve_opts).items():
+                own[spec] = describe(checkpoint_path(ck))
     torch_threads = sys.modules["torch"].get_num_threads() if "torch" in sys.modules else None
     return {
         "code_version": code_version(),
         "checkpoint": checkpoint,
+        **({"own_checkpoints": own} if own else {}),  # METHOD@CHECKPOINT specs (methods or candidates)
         "versions": {"hmrta": __version__, "python": platform.python_version(), "numpy": _version("numpy"),
                      "torch": _version("torch"), "ortools": _version("ortools")},
         "cpu": {"model": cpu_model(), "cores": os.cpu_count()},
@@ -368,6 +375,17 @@ def uses_checkpoint(method: str) -> bool:
     from .methods import get, parse
 
     return get(parse(method)[0]).option("checkpoint") is not None
+
+
+def own_checkpoints(method: str, solve_opts: dict[str, Any]) -> dict[str, str]:
+    """{spec: checkpoint} of the specs that name a checkpoint of their own (``rl@broad``): the
+    method itself, or a portfolio's candidates."""
+    from .methods import get, parse
+    from .portfolio import candidate_methods
+
+    m = get(parse(method)[0])
+    specs = candidate_methods(solve_opts.get("candidates")) if m.choose else [method]
+    return {s: parse(s)[1]["checkpoint"] for s in specs if "checkpoint" in parse(s)[1]}
 
 
 def fixed_rules(method: str, solve_opts: dict[str, Any]) -> dict[str, dict]:
@@ -404,8 +422,14 @@ def method_variant(method: str, solve_opts: dict[str, Any]) -> str:
     if uses_checkpoint(method):
         from .rl.checkpoint_info import checkpoint_path
 
-        path = checkpoint_path(solve_opts.get("checkpoint"))
-        parts["checkpoint"] = hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.exists() else None
+        def content(ck: str | None) -> str | None:
+            path = checkpoint_path(ck)
+            return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.is_file() else None
+
+        parts["checkpoint"] = content(solve_opts.get("checkpoint"))
+        own = own_checkpoints(method, solve_opts)
+        if own:  # rl@broad, or a portfolio's candidates with checkpoints of their own
+            parts["own_checkpoints"] = {spec: content(ck) for spec, ck in sorted(own.items())}
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -618,6 +642,9 @@ def provenance_markdown(prov: dict | None) -> list[str]:
     if ck:
         lines.append(f"- checkpoint: {ck['name']}{' (shipped)' if ck.get('shipped') else ''}, "
                      f"sha256 {ck.get('sha256') or 'missing'}")
+    for spec, c in (prov.get("own_checkpoints") or {}).items():
+        lines.append(f"- checkpoint of {spec}: {c['name']}{' (shipped)' if c.get('shipped') else ''}, "
+                     f"sha256 {c.get('sha256') or 'missing'}")
     lines.append(f"- software: {libs}")
     threads = prov.get("torch_threads")
     load = prov.get("load_average")

@@ -87,7 +87,8 @@ class Method:
         return out
 
 
-CHECKPOINT = Option("checkpoint", str, None, "policy checkpoint file (default: the shipped one, or $HMRTA_CHECKPOINT)")
+CHECKPOINT = Option("checkpoint", str, None, "policy checkpoint: a file or a shipped name (default, broad, "
+                    "coalition-open); default: $HMRTA_CHECKPOINT, else default")
 _RL = dict(rules="hmrta.rl.checkpoint_info:checkpoint_rules", needs=("torch",))
 # rl-sample's default temperature, chosen on the dev missions (docs/training.md, "Sampling
 # temperature"): the shipped policies are cloned (from greedy-coalition, from the solver's
@@ -126,10 +127,12 @@ METHODS: dict[str, Method] = {m.name: m for m in (
                            "seconds of list scheduling and annealing before CP-SAT (default: a quarter of the limit)",
                            minimum=0.0)),
            needs=("ortools",)),
-    Method("portfolio", "per mission, the best of several methods by simulation (greedy, greedy-coalition, rl); "
-           "live missions run the chosen one",
+    Method("portfolio", "per mission, the best of several methods by simulation (greedy, greedy-coalition, "
+           "rl with the default checkpoint and with broad); live missions run the chosen one",
            "hmrta.portfolio:solve_portfolio", None, rules=None, choose="hmrta.portfolio:select",
-           options=(Option("candidates", str, "greedy,greedy-coalition,rl", "comma list of methods to choose from"),
+           options=(Option("candidates", str, "greedy,greedy-coalition,rl,rl@broad",
+                           "comma list of methods to choose from (METHOD@CHECKPOINT: an rl method with a checkpoint "
+                           "of its own, a shipped name or a path; the checkpoint option applies to the others)"),
                     CHECKPOINT)),
 )}
 
@@ -150,18 +153,32 @@ def get(name: str) -> Method:
 
 
 def parse(spec: str) -> tuple[str, dict[str, Any]]:
-    """A method spec -> (name, options it implies): 'rl-s10' -> ('rl-sample', {'samples': 10})."""
-    m = re.fullmatch(r"rl-s(\d+)", spec)
-    name, implied = ("rl-sample", {"samples": int(m.group(1))}) if m else (spec, {})
-    get(name)
+    """A method spec -> (name, options it implies): 'rl-s10' -> ('rl-sample', {'samples': 10});
+    ``METHOD@CHECKPOINT`` gives a method that takes a checkpoint its own one (a shipped name such
+    as ``broad``, or a path): 'rl@broad' -> ('rl', {'checkpoint': 'broad'})."""
+    base, at, checkpoint = spec.partition("@")
+    m = re.fullmatch(r"rl-s(\d+)", base)
+    name, implied = ("rl-sample", {"samples": int(m.group(1))}) if m else (base, {})
+    method = get(name)
+    if at:
+        if method.option("checkpoint") is None:
+            raise MethodError(f"{spec}: method {name} takes no checkpoint (METHOD@CHECKPOINT is for "
+                              f"{', '.join(k for k, v in METHODS.items() if v.option('checkpoint'))})")
+        if not checkpoint.strip():
+            raise MethodError(f"{spec}: expected a checkpoint after '@' (a shipped name such as broad, or a path)")
+        implied["checkpoint"] = checkpoint
     return name, implied
 
 
-def label(name: str, options: dict[str, Any] | None = None) -> str:
-    """How results name a method: 'rl-sample' with samples=N -> 'rl-sN' (the paper's RL(s.N))."""
+def label(name: str, options: dict[str, Any] | None = None, implied: dict[str, Any] | None = None) -> str:
+    """How results name a method: 'rl-sample' with samples=N -> 'rl-sN' (the paper's RL(s.N));
+    with a checkpoint of its own (``implied`` by the spec) '@CHECKPOINT' is appended."""
+    out = name
     if name == "rl-sample":
-        return f"rl-s{(options or {}).get('samples') or get(name).option('samples').default}"
-    return name
+        out = f"rl-s{(options or {}).get('samples') or get(name).option('samples').default}"
+    if implied and implied.get("checkpoint"):
+        out += f"@{implied['checkpoint']}"
+    return out
 
 
 def options_for(spec: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -177,7 +194,7 @@ def _merge(m: Method, implied: dict[str, Any], options: dict[str, Any], live: bo
     given = {k: v for k, v in options.items() if v is not None}
     for k, v in implied.items():
         if k in given and given[k] != v:
-            raise MethodError(f"{label(m.name, implied)} means {k}={v}, but {k}={given[k]} was given too")
+            raise MethodError(f"{label(m.name, implied, implied)} means {k}={v}, but {k}={given[k]} was given too")
     if live:
         implied = {k: v for k, v in implied.items() if m.option(k) is not None and m.option(k).live}
     return {**implied, **given}
@@ -202,7 +219,7 @@ def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **
     if progress is not None and "progress" in inspect.signature(fn).parameters:
         opts["progress"] = progress
     sol = fn(inst, seed=seed, **opts)
-    sol.method = label(name, opts)
+    sol.method = label(name, opts, implied)
     return sol
 
 
@@ -255,8 +272,19 @@ def resolve(inst, method: str, seed: int = 0, **options: Any) -> tuple[str, dict
     opts = m.check(_merge(m, implied, options))
     _needs(m)
     chosen, scores = _resolve(m.choose)(inst, seed=seed, **opts)
-    name2, _ = parse(chosen)  # live, rl-sN decodes by sampling (no rollouts to keep the best of)
-    return name2, get(name2).check(options_for(chosen, opts), live=True), scores
+    return (*live_spec(chosen, opts), scores)
+
+
+def live_spec(spec: str, shared: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """The live (name, options) of a candidate ``spec`` given the chooser's ``shared`` options:
+    its own checkpoint (``rl@broad``) wins over a shared one; live, ``rl-sN`` decodes by sampling
+    (there are no rollouts to keep the best of)."""
+    name, implied = parse(spec)
+    m = get(name)
+    given = options_for(spec, shared)
+    if "checkpoint" in implied:
+        given.pop("checkpoint", None)
+    return name, m.check(_merge(m, implied, given, live=True), live=True)
 
 
 def live_options() -> dict[str, Option]:

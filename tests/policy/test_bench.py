@@ -50,6 +50,11 @@ def test_rl_variant_follows_the_checkpoint_content(tmp_path):
     a.write_bytes(a.read_bytes() + b"\0")  # retrained / replaced weights
     assert method_variant("rl", {"checkpoint": str(a)}) != v1
     assert method_variant("cpsat", {"time_limit": 2.0}) != method_variant("cpsat", {"time_limit": 1.0})
+    # a checkpoint named by the spec (rl@FILE, or a portfolio candidate) counts by its content too
+    own, portfolio = method_variant(f"rl@{a}", {}), method_variant("portfolio", {"candidates": f"greedy,rl@{a}"})
+    a.write_bytes(a.read_bytes() + b"\0")
+    assert method_variant(f"rl@{a}", {}) != own
+    assert method_variant("portfolio", {"candidates": f"greedy,rl@{a}"}) != portfolio
 
 
 def test_a_changed_option_default_changes_the_variant(monkeypatch):
@@ -127,6 +132,10 @@ def test_provenance_keys_and_checkpoint_hash():
     assert p["cpu"]["model"] and p["cpu"]["cores"] >= 1 and len(p["load_average"]) == 3
     assert "torch_threads" in p and p["date"].endswith("Z")
     assert provenance(["greedy"], {})["checkpoint"] is None  # no rl method: no checkpoint
+    own = provenance(["portfolio"], {"candidates": "rl,rl@broad"})["own_checkpoints"]
+    broad = DEFAULT_CHECKPOINT.parent / "broad.pt"
+    assert own == {"rl@broad": {"name": "broad.pt", "sha256": hashlib.sha256(broad.read_bytes()).hexdigest(),
+                                "shipped": True}}
 
 
 def test_results_files_csv_agrees_with_json_and_markdown_shows_provenance(tmp_path):

@@ -216,15 +216,20 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
     pytest.importorskip("torch")
     from hmrta.generators import ScenarioGenerator
 
-    for inst in ScenarioGenerator("MA-AT", 9, 3, 20, 3).generate(3, 77):
+    chosen_ever = set()
+    for inst in ScenarioGenerator("MA-AT", 9, 3, 20, 3).generate(8, 77)[3:]:  # picks rl@broad, rl, greedy-coalition
         sol = methods.solve(inst, "portfolio", seed=1)
-        each = {c: methods.solve(inst, c, seed=1).makespan for c in ("greedy", "greedy-coalition", "rl")}
+        each = {c: methods.solve(inst, c, seed=1).makespan for c in ("greedy", "greedy-coalition", "rl", "rl@broad")}
         assert sol.makespan == min(each.values())
         assert sol.extra["portfolio"]["candidates"] == each
         chosen = sol.extra["portfolio"]["chosen"]
+        chosen_ever.add(chosen)
         assert each[chosen] == min(each.values())
         live, opts, scores = methods.resolve(inst, "portfolio", 1)
-        assert (live, scores) == (chosen, each) and opts == {}
+        assert scores == each
+        # the agents run the chosen candidate: rl@broad is rl with the shipped broad checkpoint
+        assert (live, opts) == (("rl", {"checkpoint": "broad"}) if chosen == "rl@broad" else (chosen, {}))
+    assert chosen_ever == {"rl@broad", "rl", "greedy-coalition"}  # both kinds of choice are exercised
     inst = load_instance(EXAMPLE)
     assert methods.resolve(inst, "greedy", 0) == ("greedy", {}, None)
     only = methods.solve(inst, "portfolio", candidates="greedy,greedy-coalition")
@@ -282,3 +287,40 @@ def test_bench_keys_portfolio_results_on_the_checkpoint():
     from hmrta.bench import uses_checkpoint
 
     assert uses_checkpoint("portfolio") and uses_checkpoint("rl-s10") and not uses_checkpoint("greedy")
+
+
+def test_a_method_spec_can_name_its_own_checkpoint(tmp_path, monkeypatch):
+    pytest.importorskip("torch")
+    from hmrta.rl.checkpoint_info import SHIPPED_DIR, CheckpointError, checkpoint_path, shipped_checkpoints
+
+    assert {"default", "broad"} <= set(shipped_checkpoints())
+    assert methods.parse("rl@broad") == ("rl", {"checkpoint": "broad"})
+    assert methods.parse("rl-s10@my/run.pt") == ("rl-sample", {"samples": 10, "checkpoint": "my/run.pt"})
+    with pytest.raises(MethodError, match="greedy@broad: method greedy takes no checkpoint"):
+        methods.parse("greedy@broad")
+    with pytest.raises(MethodError, match="expected a checkpoint after '@'"):
+        methods.parse("rl@")
+    # a bare shipped name is the shipped file, unless a file of that name is here; a path stays a path
+    assert checkpoint_path("broad") == SHIPPED_DIR / "broad.pt"
+    with pytest.raises(CheckpointError, match="no such checkpoint .shipped: .*broad.*default"):
+        methods.solve(load_instance(EXAMPLE), "rl", checkpoint="nope")
+
+    inst = ScenarioGenerator("MA-AT", 9, 3, 20, 3).instance(77, 0)
+    own = methods.solve(inst, "rl@broad", seed=1)
+    assert own.method == "rl@broad"
+    assert own.makespan == methods.solve(inst, "rl", seed=1, checkpoint=str(SHIPPED_DIR / "broad.pt")).makespan
+    assert own.makespan != methods.solve(inst, "rl", seed=1).makespan  # another policy than default.pt here
+    assert methods.rules("rl", checkpoint="broad") == methods.rules("rl", checkpoint=str(SHIPPED_DIR / "broad.pt"))
+    with pytest.raises(MethodError, match="rl@broad means checkpoint=broad, but checkpoint=x.pt was given too"):
+        methods.solve(inst, "rl@broad", checkpoint="x.pt")
+    # in a portfolio the shared checkpoint goes to the candidates without one of their own
+    coalition = str(SHIPPED_DIR / "coalition-open.pt")
+    sol = methods.solve(inst, "portfolio", seed=1, candidates="rl,rl@broad", checkpoint=coalition)
+    assert sol.extra["portfolio"]["candidates"] == {
+        "rl": methods.solve(inst, "rl", seed=1, checkpoint=coalition).makespan, "rl@broad": own.makespan}
+    assert methods.live_spec("rl@broad", {"checkpoint": coalition}) == ("rl", {"checkpoint": "broad"})
+    assert methods.live_spec("rl-s10", {"checkpoint": coalition}) == ("rl-sample", {"checkpoint": coalition})
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "broad").write_bytes(b"mine")
+    assert checkpoint_path("broad") == Path("broad")
+    assert checkpoint_path("elsewhere/broad") == Path("elsewhere/broad")

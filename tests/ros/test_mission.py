@@ -112,6 +112,22 @@ class BoardWatch:
         return self.board is not None and time.monotonic() - self.changed_at > seconds
 
 
+def run_mission(tmp_path, domain: int, inst, seed: int, method: str, *extra: str) -> tuple[subprocess.CompletedProcess, dict]:
+    """``hmrta-mission`` on ``inst`` (6 agents per process): the finished process and its result."""
+    path = save_instance(inst, tmp_path / "inst.yaml")
+    out = tmp_path / "mission.json"
+    proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", str(seed), "--out", str(out), "--quiet",
+                           "--no-plot", "--method", method, *extra, "--domain-id", str(domain),
+                           "--agents-per-process", "6", "--timeout", "150"], capture_output=True, text=True, timeout=200)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return proc, json.loads(out.read_text())
+
+
+def assert_routes_equal(result: dict, ref: dict) -> None:
+    for k in ("success", "routes", "tasks", "makespan"):
+        assert result[k] == ref[k], f"{k}: ROS mission differs from the offline rollout"
+
+
 def wait_board_exit(graph, procs, timeout: float) -> None:
     graph.spin_until(lambda: procs.board.proc.poll() is not None, timeout, "the task board to finish the mission")
     assert procs.board.proc.returncode == 0, (procs.board.log.read_text()[-3000:])
@@ -372,30 +388,28 @@ def test_rl_policy_mission_equals_offline(tmp_path, domain, policy):
                     "model": PolicyNet(cfg).state_dict()}, ck)
         checkpoint = ["--checkpoint", str(ck)]
     inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
-    path = save_instance(inst, tmp_path / "inst.yaml")
-    out = tmp_path / "mission.json"
-    proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", "1", "--out", str(out), "--quiet",
-                           "--no-plot", "--method", policy, *checkpoint, "--domain-id", str(domain),
-                           "--agents-per-process", "6", "--timeout", "150"], capture_output=True, text=True, timeout=200)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    _, result = run_mission(tmp_path, domain, inst, 1, policy, *checkpoint)
     ref = json.loads(json.dumps(solve(inst, policy, 1, **({"checkpoint": checkpoint[1]} if checkpoint else {})).to_dict()))
-    result = json.loads(out.read_text())
-    for k in ("success", "routes", "tasks", "makespan"):
-        assert result[k] == ref[k], f"{k}: ROS mission differs from the offline rollout"
+    assert_routes_equal(result, ref)
+
+
+def test_portfolio_mission_runs_the_chosen_candidate_with_its_own_checkpoint(tmp_path, domain):
+    """--method portfolio choosing rl@broad: the board and every agent run rl with the shipped
+    broad.pt (its rules and its weights), and the mission equals that candidate's offline rollout."""
+    pytest.importorskip("torch")
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 5)
+    chosen = solve(inst, "portfolio", 1).extra["portfolio"]
+    assert chosen["chosen"] == "rl@broad" and chosen["candidates"]["rl@broad"] < chosen["candidates"]["rl"]
+    proc, result = run_mission(tmp_path, domain, inst, 1, "portfolio")
+    assert "method chosen by simulation: rl with checkpoint broad" in proc.stdout
+    assert_routes_equal(result, json.loads(json.dumps(solve(inst, "rl@broad", 1).to_dict())))
 
 
 def test_coalition_greedy_mission_equals_offline(tmp_path, domain):
     """--method greedy-coalition: every agent runs the coalition-aware greedy through
     hmrta.methods.decider on the board's state; the live mission equals the offline simulation."""
     inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 1)
-    path = save_instance(inst, tmp_path / "inst.yaml")
-    out = tmp_path / "mission.json"
-    proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--seed", "2", "--out", str(out), "--quiet",
-                           "--no-plot", "--method", "greedy-coalition", "--domain-id", str(domain),
-                           "--agents-per-process", "6", "--timeout", "150"], capture_output=True, text=True, timeout=200)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    _, result = run_mission(tmp_path, domain, inst, 2, "greedy-coalition")
     ref = json.loads(json.dumps(solve(inst, "greedy-coalition", 2).to_dict()))
-    result = json.loads(out.read_text())
     assert ref["routes"] != json.loads(json.dumps(solve(inst, "greedy", 2).to_dict()))["routes"]  # a different policy
-    for k in ("success", "routes", "tasks", "makespan"):
-        assert result[k] == ref[k], f"{k}: ROS mission differs from the offline rollout"
+    assert_routes_equal(result, ref)

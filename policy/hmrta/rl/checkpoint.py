@@ -35,17 +35,18 @@ from typing import Any
 import torch
 
 from ..reading import short
-from .checkpoint_info import CheckpointError
+from .checkpoint_info import CheckpointError, checkpoint_path, shipped_checkpoints
 
 FORMAT_VERSION = 1
 
 
 def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
     """The checkpoint's top-level dict, unpickled weights-only (no code runs), of a format this
-    version reads (``checkpoint_format`` 0 or 1)."""
-    p = Path(path)
+    version reads (``checkpoint_format`` 0 or 1). A bare shipped name (``broad``) is read too."""
+    p = checkpoint_path(path)
     if not p.exists():
-        raise CheckpointError(f"{p}: no such checkpoint (train one with `hmrta train`)")
+        raise CheckpointError(f"{p}: no such checkpoint (shipped: "
+                              f"{', '.join(shipped_checkpoints())}; or train one with `hmrta train`)")
     if p.is_dir():
         raise CheckpointError(f"{p}: is a folder, expected a checkpoint file")
     if not p.is_file():  # a FIFO or device would block or never end

@@ -33,9 +33,26 @@ class CheckpointError(MethodError):
     """Missing, unreadable or incompatible checkpoint (a user error)."""
 
 
+SHIPPED_DIR = DEFAULT_CHECKPOINT.parent
+
+
+def shipped_checkpoints() -> list[str]:
+    """The names of the checkpoints shipped with the package (``default``, ``broad``, ...)."""
+    return sorted(p.stem for p in SHIPPED_DIR.glob("*.pt"))
+
+
 def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
-    """The checkpoint file an rl method uses: the given one, $HMRTA_CHECKPOINT, or the shipped one."""
-    return Path(checkpoint or os.environ.get("HMRTA_CHECKPOINT") or DEFAULT_CHECKPOINT)
+    """The checkpoint file an rl method uses: the given one, $HMRTA_CHECKPOINT, or the shipped
+    ``default.pt``. A bare name with no such file here (``broad``) is a shipped checkpoint:
+    :func:`shipped_checkpoints`."""
+    given = checkpoint or os.environ.get("HMRTA_CHECKPOINT")
+    if not given:
+        return DEFAULT_CHECKPOINT
+    path = Path(given)
+    if (isinstance(given, str) and not path.exists() and path.suffix == "" and "/" not in given
+            and (SHIPPED_DIR / f"{given}.pt").is_file()):
+        return SHIPPED_DIR / f"{given}.pt"
+    return path
 
 
 class _Unpickler(pickle.Unpickler):
@@ -82,7 +99,8 @@ def read_config(checkpoint: str | Path | None = None) -> dict:
     """The resolved training config stored in a checkpoint (no torch needed)."""
     path = checkpoint_path(checkpoint)
     if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint (train one with `hmrta train`)")
+        raise CheckpointError(f"{path}: no such checkpoint (shipped: "
+                              f"{', '.join(shipped_checkpoints())}; or train one with `hmrta train`)")
     return _read(str(path.resolve()), path.stat().st_mtime_ns)["config"]
 
 

@@ -520,7 +520,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hmrta-mission: {e}", file=sys.stderr)
         return 2
     if scores is not None:
-        print("method chosen by simulation: " + args.method + " ("
+        own = f" with checkpoint {method_options['checkpoint']}" if method_options.get("checkpoint") else ""
+        print("method chosen by simulation: " + args.method + own + " ("
               + ", ".join(f"{c} {v:.2f}" for c, v in scores.items()) + ")", flush=True)
     if args.agents_per_process < 1:
         print("hmrta-mission: --agents-per-process must be >= 1", file=sys.stderr)
