@@ -154,7 +154,7 @@ def get(name: str) -> Method:
 
 def parse(spec: str) -> tuple[str, dict[str, Any]]:
     """A method spec -> (name, options it implies): 'rl-s10' -> ('rl-sample', {'samples': 10});
-    ``METHOD@CHECKPOINT`` gives a method that takes a checkpoint its own one (a shipped name such
+    ``METHOD@CHECKPOINT`` runs a method that takes a checkpoint with that one (a shipped name such
     as ``broad``, or a path): 'rl@broad' -> ('rl', {'checkpoint': 'broad'})."""
     base, at, checkpoint = spec.partition("@")
     m = re.fullmatch(r"rl-s(\d+)", base)

@@ -35,7 +35,7 @@ from typing import Any
 import torch
 
 from ..reading import short
-from .checkpoint_info import CheckpointError, checkpoint_path, shipped_checkpoints
+from .checkpoint_info import CheckpointError, checkpoint_path, missing
 
 FORMAT_VERSION = 1
 
@@ -45,8 +45,7 @@ def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
     version reads (``checkpoint_format`` 0 or 1). A bare shipped name (``broad``) is read too."""
     p = checkpoint_path(path)
     if not p.exists():
-        raise CheckpointError(f"{p}: no such checkpoint (shipped: "
-                              f"{', '.join(shipped_checkpoints())}; or train one with `hmrta train`)")
+        raise missing(p)
     if p.is_dir():
         raise CheckpointError(f"{p}: is a folder, expected a checkpoint file")
     if not p.is_file():  # a FIFO or device would block or never end

@@ -41,6 +41,12 @@ def shipped_checkpoints() -> list[str]:
     return sorted(p.stem for p in SHIPPED_DIR.glob("*.pt"))
 
 
+def missing(path: Path) -> CheckpointError:
+    """The error for a checkpoint file that is not there (names the shipped ones)."""
+    return CheckpointError(f"{path}: no such checkpoint (shipped: {', '.join(shipped_checkpoints())}; "
+                           "or train one with `hmrta train`)")
+
+
 def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
     """The checkpoint file an rl method uses: the given one, $HMRTA_CHECKPOINT, or the shipped
     ``default.pt``. A bare name with no such file here (``broad``) is a shipped checkpoint:
@@ -99,8 +105,7 @@ def read_config(checkpoint: str | Path | None = None) -> dict:
     """The resolved training config stored in a checkpoint (no torch needed)."""
     path = checkpoint_path(checkpoint)
     if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint (shipped: "
-                              f"{', '.join(shipped_checkpoints())}; or train one with `hmrta train`)")
+        raise missing(path)
     return _read(str(path.resolve()), path.stat().st_mtime_ns)["config"]
 
 
