@@ -67,11 +67,11 @@ class CoalitionGreedy:
         key = np.lexsort((mine, start))  # earliest start, then nearest, then lowest id
         return 1 + int(cand[key[0]])
 
-    def estimates(self, state: MissionState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def estimates(self, state: MissionState, tasks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(admissible tasks [C], estimated coalition start if the decider joins [C], the decider's
-        own arrival [C]) for the current decider."""
+        own arrival [C]) for the current decider; ``tasks`` (ids): only the admissible ones among them."""
         mask = state.mask()[1:]  # [M]
-        cand = np.flatnonzero(mask)  # [C]
+        cand = np.flatnonzero(mask) if tasks is None else tasks[mask[tasks]]  # [C]
         if len(cand) == 0:
             return cand, np.zeros(0), np.zeros(0)
         s, a, t = state, state.agent, state.clock

@@ -108,6 +108,18 @@ def check_shapes(model: torch.nn.Module, sd: dict[str, torch.Tensor], path: str 
         raise CheckpointError(f"{path}: {key}: weights do not match the network (missing {missing[0]!r})")
 
 
+def widen_task_inputs(model: torch.nn.Module, sd: dict[str, torch.Tensor]) -> bool:
+    """A checkpoint observed without the coalition-start column (scale ``mission``) loading into a
+    network that takes it (``mission+coalition``): its task input weights get a zero column for it,
+    so the network starts from the same function. Returns whether ``sd`` was widened (in place)."""
+    name = "task_embed.weight"
+    want, have = model.state_dict().get(name), sd.get(name)
+    if want is None or have is None or have.dim() != 2 or tuple(want.shape) != (have.shape[0], have.shape[1] + 1):
+        return False
+    sd[name] = torch.cat([have, have.new_zeros(have.shape[0], 1)], 1)  # [d, F + 1]
+    return True
+
+
 def counter(ck: dict, key: str, path: str | Path, default: Any = 0) -> Any:
     """A non-negative integer counter of a training checkpoint."""
     v = ck.get(key, default)

@@ -17,6 +17,12 @@ Normalisation (project choice), by the network's ``scale`` option (``ModelConfig
   duration 2.5, mean distance to the centroid of the unit square 0.383, speed 0.2), so a network
   trained with ``fixed`` scales observes paper missions almost unchanged under ``mission``.
 
+* ``mission+coalition``: the ``mission`` observation plus one task column, greedy-coalition's
+  estimate of when the task's coalition can start if the decider joins now
+  (:meth:`hmrta.baselines.CoalitionGreedy.estimates`), from now, in the observation's time unit,
+  clipped at ``COALITION_CAP`` (also when the coalition cannot be completed); 0 for the depot row and
+  the tasks the decider cannot take. The network then has ``task_features`` 2K + 6.
+
 Skills are zero-padded to ``K_MAX = 5``.
 
 task rows  [1 + M, 2K + 5]: remaining req (K), req (K), rel. position (2), duration, travel time
@@ -48,7 +54,8 @@ TIME_SCALE = 0.1
 
 MAX_TASKS = 50
 MAX_AGENTS = 25
-SCALES = ("fixed", "mission")
+SCALES = ("fixed", "mission", "mission+coalition")
+COALITION_CAP = 4.0  # the coalition-start column, in observation time units, is clipped here
 PAPER_TIME = 2.5 + 0.3826 / 0.2  # mean duration + mean centroid distance / speed of paper missions
 TIME_UNIT = 10.0 / PAPER_TIME  # the 2.266 of the module docstring
 
@@ -120,6 +127,8 @@ def observe(state: MissionState, a: int | None = None, max_tasks: int = MAX_TASK
         tasks = np.arange(M)
     nodes = np.concatenate([[0], tasks + 1])  # [1+W]
     tf = _task_rows(state, a, here, tasks, sc, cap_unit)  # [1+W, Ft]
+    if scale == "mission+coalition":
+        tf = np.concatenate([tf, _coalition_column(state, tasks, sc)[:, None]], axis=1)  # [1+W, Ft + 1]
     if A > max_agents:
         agents = _nearest(pos - here, max_agents, me=a)  # [N] ascending: the decider itself always
         row = int(np.flatnonzero(agents == a)[0])
@@ -173,7 +182,7 @@ def _units(state: MissionState, scale: str) -> tuple[Scales, np.ndarray | None]:
         raise ValueError(f"the policy handles at most {K_MAX} skills, instance has {state.K}")
     if scale == "fixed":
         return FIXED, None
-    if scale == "mission":
+    if scale in ("mission", "mission+coalition"):
         sc = mission_scales(state)
         return sc, sc.cap  # [K]
     raise ValueError(f"scale: expected one of {', '.join(SCALES)}, got {scale!r}")
@@ -201,6 +210,20 @@ def _task_rows(state: MissionState, a: int, me: np.ndarray, tasks: np.ndarray, s
     tf[0, 2 * K_MAX:2 * K_MAX + 2] = drel * inv_l
     tf[0, 2 * K_MAX + 3] = np.hypot(drel[0], drel[1]) * (inv_t / v)
     return tf
+
+
+def _coalition_column(state: MissionState, tasks: np.ndarray, sc: Scales) -> np.ndarray:
+    """[1+W] greedy-coalition's estimate of when each task's coalition can start if the decider
+    joins now, from now, in observation time units, clipped at COALITION_CAP (also a coalition that
+    cannot be completed); 0 for the depot row and the tasks it cannot take."""
+    from ..baselines import CoalitionGreedy
+
+    col = np.zeros(len(tasks) + 1, dtype=np.float32)
+    cand, start, _ = CoalitionGreedy().estimates(state, tasks)  # [C]
+    if len(cand):
+        row = np.searchsorted(tasks, cand)  # tasks is ascending
+        col[1 + row] = np.minimum((start - state.clock) / sc.time, COALITION_CAP)
+    return col
 
 
 def _agent_rows(state: MissionState, agents: np.ndarray, pos: np.ndarray, me: np.ndarray, sc: Scales,
@@ -252,7 +275,7 @@ def collate(obs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], deciders: list
     B = len(obs)
     T = max(o[0].shape[0] for o in obs)
     N = max(o[1].shape[0] for o in obs)
-    tasks = np.zeros((B, T, TASK_FEATURES), dtype=np.float32)  # [B, T, Ft]
+    tasks = np.zeros((B, T, obs[0][0].shape[1]), dtype=np.float32)  # [B, T, Ft]
     agents = np.zeros((B, N, AGENT_FEATURES), dtype=np.float32)  # [B, N, Fa]
     tvalid = np.zeros((B, T), dtype=bool)  # [B, T]
     avalid = np.zeros((B, N), dtype=bool)  # [B, N]

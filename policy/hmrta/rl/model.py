@@ -62,7 +62,8 @@ class ModelConfig:
         if c.d_model % c.heads:
             raise ValueError(f"{where}.heads: expected a divisor of d_model ({c.d_model}), got {c.heads}")
         whole("ff_hidden", 1, 16384)
-        for k, want in (("task_features", TASK_FEATURES), ("agent_features", AGENT_FEATURES)):
+        for k, want in (("task_features", TASK_FEATURES + (c.scale == "mission+coalition")),
+                        ("agent_features", AGENT_FEATURES)):
             if type(getattr(c, k)) is not int or getattr(c, k) != want:
                 raise ValueError(f"{where}.{k}: expected {want} (the observation of this hmrta version), "
                                  f"got {short(getattr(c, k))}")

@@ -32,7 +32,7 @@ from ..generators import ScenarioGenerator
 from ..instance import atomic_write_text
 from ..reading import short
 from . import checkpoint
-from .checkpoint import check_optimizer, check_shapes, code_version, counter, weights
+from .checkpoint import check_optimizer, check_shapes, code_version, counter, weights, widen_task_inputs
 from .checkpoint_info import CheckpointError
 from .config import (CONFIG_VERSION, TEACHERS, TrainConfig, check_config, deep_update, defaults,  # noqa: F401
                      load_config, rules_from)
@@ -188,8 +188,9 @@ class Trainer:
         trainer is changed."""
         ck = checkpoint.load(path, map_location=self.device)
         sd = weights(ck, "model", path)
+        widened = widen_task_inputs(self.model, sd)  # e.g. a "mission" checkpoint into "mission+coalition"
         check_shapes(self.model, sd, path, "model", optional=ZERO_INIT_PARAMS)
-        added = any(n not in sd for n in ZERO_INIT_PARAMS & set(self.model.state_dict()))  # e.g. travel_bias
+        added = widened or any(n not in sd for n in ZERO_INIT_PARAMS & set(self.model.state_dict()))  # e.g. travel_bias
         ema = weights(ck, "ema", path, required=False)
         if ema is not None and not added:
             check_shapes(self.model, ema, path, "ema")

@@ -96,6 +96,29 @@ def test_travel_bias_option(tmp_path):
     assert not torch.equal(tr.model.travel_slope, torch.zeros(2, 4))
 
 
+def test_a_checkpoint_without_the_coalition_column_resumes_into_a_network_with_it(tmp_path):
+    """A trainer observing "mission+coalition" starts from a "mission" checkpoint: the extra task
+    input gets zero weights, so the logits are those of the checkpoint (the column is ignored) until
+    it trains; the checkpoint's optimiser state and averaged weights are not taken."""
+    FixedTrainer.fixed = _insts()[0]
+    src = FixedTrainer(_tiny_cfg(model={"scale": "mission"}), tmp_path / "a", device="cpu", log=lambda s: None)
+    src.train_step()
+    src.save(tmp_path / "a.pt")
+    tr = FixedTrainer(_tiny_cfg(model={"scale": "mission+coalition", "task_features": 16}), tmp_path / "b",
+                      device="cpu", log=lambda s: None)
+    tr.load(tmp_path / "a.pt")
+    assert torch.equal(tr.model.task_embed.weight[:, -1], torch.zeros(tr.model.task_embed.weight.shape[0]))
+    assert tr.ema is None and not tr.opt.state
+    states = [MissionState(i, seed=5, rules=RULES) for i in _insts()]
+    with torch.inference_mode():
+        src.model.eval(), tr.model.eval()
+        plain = src.model(**batch_observations(states, scale="mission")[0])
+        widened = tr.model(**batch_observations(states, scale="mission+coalition")[0])
+    torch.testing.assert_close(widened, plain, rtol=1e-5, atol=1e-5)
+    tr.train_step()  # and trains, the new column too
+    assert tr.model.task_embed.weight[:, -1].abs().sum() > 0
+
+
 def test_batched_rollout_equals_core_simulator(model):
     insts = _insts()
     batched = [MissionState(i, seed=7, rules=RULES) for i in insts]
@@ -897,9 +920,11 @@ def _rescaled(inst, time=1.0, length=1.0, skill=None):
 @pytest.mark.parametrize("change", [dict(time=2.0), dict(time=0.37), dict(length=0.5),
                                     dict(skill=[2.0, 3.0, 1.0, 0.5, 4.0]),
                                     dict(time=3.0, length=0.6, skill=[2.0, 2.0, 2.0, 2.0, 2.0])])
-def test_mission_scale_observation_is_scale_free(change):
-    """Under scale "mission", a mission and the same mission with times, map or capabilities and
-    requirements rescaled are observed alike at every decision; under "fixed" they are not."""
+@pytest.mark.parametrize("scale", ["mission", "mission+coalition"])
+def test_mission_scale_observation_is_scale_free(change, scale):
+    """Under scale "mission" (and with the coalition-start column), a mission and the same mission
+    with times, map or capabilities and requirements rescaled are observed alike at every decision;
+    under "fixed" they are not."""
     from hmrta.baselines import BASELINES
     from hmrta.rl.features import observe
     base = ScenarioGenerator("MA-AT", 9, 3, 12, 5).instance(11, 1)
@@ -908,7 +933,7 @@ def test_mission_scale_observation_is_scale_free(change):
     a, b = MissionState(base, seed=3, rules=RULES), MissionState(other, seed=3, rules=RULES)
     differs = 0
     while not a.done:
-        for i, (x, y) in enumerate(zip(observe(a, scale="mission"), observe(b, scale="mission"))):
+        for i, (x, y) in enumerate(zip(observe(a, scale=scale), observe(b, scale=scale))):
             np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5, err_msg=f"output {i} at t={a.clock}")
         fx, fy = observe(a)[:2], observe(b)[:2]
         differs += not all(np.allclose(x, y, rtol=1e-4, atol=1e-5) for x, y in zip(fx, fy))
@@ -917,6 +942,42 @@ def test_mission_scale_observation_is_scale_free(change):
         b.step(n)
     assert b.done and math.isclose(b.makespan, a.makespan * change.get("time", 1.0), rel_tol=1e-9)
     assert differs > 0  # the fixed scales do see the change
+
+
+def test_coalition_column_is_greedy_coalitions_start_estimate():
+    """scale "mission+coalition": the "mission" observation plus one task column, greedy-coalition's
+    estimate of when the task's coalition can start if the decider joins (from now, in the
+    observation's time unit, clipped), 0 for the depot and the tasks the decider cannot take; also
+    through the observation window. The network then takes one more task feature."""
+    from hmrta.baselines import CoalitionGreedy
+    from hmrta.rl.features import COALITION_CAP, TASK_FEATURES, mission_scales, observe
+    gc = CoalitionGreedy()
+    for inst, tasks in ((ScenarioGenerator("SA-AT", 15, 5, 20, 5).instance(3, 0), None),
+                        (ScenarioGenerator("MA-AT", 30, 5, 80, 5).instance(5, 0), 20)):
+        st = MissionState(inst, seed=1, rules=RULES)
+        checked = 0
+        while not st.done:
+            kw = {} if tasks is None else {"max_tasks": tasks}
+            base, ext = observe(st, scale="mission", **kw), observe(st, scale="mission+coalition", **kw)
+            assert ext[0].shape == (base[0].shape[0], TASK_FEATURES + 1)
+            np.testing.assert_array_equal(ext[0][:, :-1], base[0])
+            for x, y in zip(base[1:], ext[1:]):
+                np.testing.assert_array_equal(x, y)
+            col, mask, nodes = ext[0][:, -1], ext[2], ext[3]
+            assert col[0] == 0 and np.all(col[~mask] == 0) and np.all(col[mask] >= 0) and col.max() <= COALITION_CAP
+            cand, start, mine = gc.estimates(st)
+            if len(cand):
+                want = np.minimum((start - st.clock) / mission_scales(st).time, COALITION_CAP)
+                rows = {int(n): r for r, n in enumerate(nodes)}
+                seen = [(rows[1 + int(j)], w) for j, w in zip(cand, want) if 1 + int(j) in rows]
+                np.testing.assert_allclose([col[r] for r, _ in seen], [w for _, w in seen], rtol=1e-6)
+                checked += len(seen)
+            st.step(gc(st))
+        assert checked > 50
+    from hmrta.rl.model import ModelConfig
+    assert ModelConfig.from_dict({"scale": "mission+coalition", "task_features": TASK_FEATURES + 1}).task_features == 16
+    with pytest.raises(ValueError, match="model.task_features: expected 16"):
+        ModelConfig.from_dict({"scale": "mission+coalition"})
 
 
 def test_mission_scale_is_the_fixed_scale_on_paper_missions():
