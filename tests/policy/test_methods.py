@@ -217,9 +217,10 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
     from hmrta.generators import ScenarioGenerator
 
     chosen_ever = set()
-    for inst in ScenarioGenerator("MA-AT", 9, 3, 20, 3).generate(8, 77)[3:]:  # picks rl@broad, rl, greedy-coalition
+    candidates = ("greedy", "greedy-coalition", "rl", "rl@broad", "rl@broad-start")
+    for inst in ScenarioGenerator("MA-AT", 9, 3, 20, 3).generate(8, 77)[2:]:  # picks three different policies
         sol = methods.solve(inst, "portfolio", seed=1)
-        each = {c: methods.solve(inst, c, seed=1).makespan for c in ("greedy", "greedy-coalition", "rl", "rl@broad")}
+        each = {c: methods.solve(inst, c, seed=1).makespan for c in candidates}
         assert sol.makespan == min(each.values())
         assert sol.extra["portfolio"]["candidates"] == each
         chosen = sol.extra["portfolio"]["chosen"]
@@ -228,8 +229,9 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
         live, opts, scores = methods.resolve(inst, "portfolio", 1)
         assert scores == each
         # the agents run the chosen candidate: rl@broad is rl with the shipped broad checkpoint
-        assert (live, opts) == (("rl", {"checkpoint": "broad"}) if chosen == "rl@broad" else (chosen, {}))
-    assert chosen_ever == {"rl@broad", "rl", "greedy-coalition"}  # both kinds of choice are exercised
+        name, _, own = chosen.partition("@")
+        assert (live, opts) == ((name, {"checkpoint": own}) if own else (chosen, {}))
+    assert chosen_ever == {"rl@broad", "rl@broad-start", "rl"}  # both kinds of choice are exercised
     inst = load_instance(EXAMPLE)
     assert methods.resolve(inst, "greedy", 0) == ("greedy", {}, None)
     only = methods.solve(inst, "portfolio", candidates="greedy,greedy-coalition")
