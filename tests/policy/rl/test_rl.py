@@ -132,7 +132,7 @@ def test_batched_rollout_equals_core_simulator(model):
         np.testing.assert_array_equal(single.start, b.start)
 
 
-@pytest.mark.parametrize("which", ["default", "broad"])
+@pytest.mark.parametrize("which", ["default", "broad", "broad-start"])
 def test_traced_inference_network_gives_the_networks_logits_bit_for_bit(which):
     """The traced, frozen network that inference runs (TracedPolicy) against the network itself:
     one graph for every window and batch size, every logit equal."""
@@ -140,7 +140,7 @@ def test_traced_inference_network_gives_the_networks_logits_bit_for_bit(which):
     from hmrta.rl.features import concat_batches
     from hmrta.rl.model import TracedPolicy
 
-    pol = load_policy(None if which == "default" else DEFAULT_CHECKPOINT.with_name("broad.pt"))
+    pol = load_policy(None if which == "default" else DEFAULT_CHECKPOINT.with_name(f"{which}.pt"))
     net, rules, scale = pol.net, pol.rules, pol.net.cfg.scale
     assert isinstance(pol.model, TracedPolicy) and pol.model.net is net  # what inference runs
     traced = TracedPolicy(net)
@@ -620,7 +620,7 @@ def test_rl_sample_temperature_option():
         solve(inst, "rl-s2", temperature=0)
 
 
-CHECKPOINTS = [("default.pt", "team"), ("coalition-open.pt", None), ("broad.pt", None)]
+CHECKPOINTS = [("default.pt", "team"), ("coalition-open.pt", None), ("broad.pt", None), ("broad-start.pt", None)]
 
 
 @pytest.mark.parametrize("name,max_open", CHECKPOINTS)
