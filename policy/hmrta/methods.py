@@ -88,7 +88,7 @@ class Method:
 
 
 CHECKPOINT = Option("checkpoint", str, None, "policy checkpoint: a file or a shipped name (default, broad, "
-                    "coalition-open); default: $HMRTA_CHECKPOINT, else default")
+                    "broad-start, coalition-open); default: $HMRTA_CHECKPOINT, else default")
 _RL = dict(rules="hmrta.rl.checkpoint_info:checkpoint_rules", needs=("torch",))
 # rl-sample's default temperature, chosen on the dev missions (docs/training.md, "Sampling
 # temperature"): the shipped policies are cloned (from greedy-coalition, from the solver's
