@@ -182,9 +182,12 @@ def label(name: str, options: dict[str, Any] | None = None, implied: dict[str, A
 
 
 def options_for(spec: str, options: dict[str, Any]) -> dict[str, Any]:
-    """Of shared options (e.g. a bench over several methods), those method ``spec`` takes."""
-    m = get(parse(spec)[0])
-    return {k: v for k, v in options.items() if m.option(k) is not None}
+    """Of shared options (e.g. a bench over several methods, a portfolio's options), those method
+    ``spec`` takes; a spec that names its own checkpoint (``rl@broad``) keeps it over a shared one."""
+    name, implied = parse(spec)
+    m = get(name)
+    return {k: v for k, v in options.items()
+            if m.option(k) is not None and not (k == "checkpoint" and "checkpoint" in implied)}
 
 
 def _merge(m: Method, implied: dict[str, Any], options: dict[str, Any], live: bool = False) -> dict[str, Any]:
@@ -281,10 +284,7 @@ def live_spec(spec: str, shared: dict[str, Any]) -> tuple[str, dict[str, Any]]:
     (there are no rollouts to keep the best of)."""
     name, implied = parse(spec)
     m = get(name)
-    given = options_for(spec, shared)
-    if "checkpoint" in implied:
-        given.pop("checkpoint", None)
-    return name, m.check(_merge(m, implied, given, live=True), live=True)
+    return name, m.check(_merge(m, implied, options_for(spec, shared), live=True), live=True)
 
 
 def live_options() -> dict[str, Option]:

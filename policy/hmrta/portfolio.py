@@ -50,16 +50,6 @@ def candidate_methods(candidates: str | None) -> list[str]:
     return names
 
 
-def candidate_options(candidate: str, checkpoint: str | None) -> dict:
-    """The options a candidate runs with: the portfolio's ``checkpoint`` for an rl candidate
-    without a checkpoint of its own (``rl``); ``rl@broad`` keeps its own."""
-    from . import methods
-
-    if "checkpoint" in methods.parse(candidate)[1]:
-        return {}
-    return methods.options_for(candidate, {"checkpoint": checkpoint})
-
-
 def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
              candidates: str | None = None) -> dict[str, Solution]:
     """Each candidate's solution on the initial view of ``inst`` (candidates whose optional
@@ -72,7 +62,7 @@ def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
     missing = []
     for c in candidate_methods(candidates):
         try:
-            out[c] = methods.solve(view, c, seed=seed, **candidate_options(c, checkpoint))
+            out[c] = methods.solve(view, c, seed=seed, **methods.options_for(c, {"checkpoint": checkpoint}))
         except MissingDependency as e:
             missing.append(str(e))
     if not out:
@@ -109,7 +99,7 @@ def solve_portfolio(inst: Instance, seed: int = 0, checkpoint: str | None = None
         chosen = choose(results)
     sol = results.get(chosen)
     if inst.dynamic or sol is None:  # the choice saw only the initial mission: now run the real one, events and all
-        sol = methods.solve(inst, chosen, seed=seed, **candidate_options(chosen, checkpoint))
+        sol = methods.solve(inst, chosen, seed=seed, **methods.options_for(chosen, {"checkpoint": checkpoint}))
     sol.compute_seconds = time.perf_counter() - t0
     sol.extra["portfolio"] = {"chosen": chosen, "candidates": {c: s.makespan for c, s in results.items()}}
     return sol
