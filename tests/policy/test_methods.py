@@ -320,6 +320,8 @@ def test_a_method_spec_can_name_its_own_checkpoint(tmp_path, monkeypatch):
     sol = methods.solve(inst, "portfolio", seed=1, candidates="rl,rl@broad", checkpoint=coalition)
     assert sol.extra["portfolio"]["candidates"] == {
         "rl": methods.solve(inst, "rl", seed=1, checkpoint=coalition).makespan, "rl@broad": own.makespan}
+    assert methods.options_for("rl@broad", {"checkpoint": coalition, "samples": 3}) == {}  # a bench's shared options
+    assert methods.options_for("rl-s10@broad", {"checkpoint": coalition, "samples": 3}) == {"samples": 3}
     assert methods.live_spec("rl@broad", {"checkpoint": coalition}) == ("rl", {"checkpoint": "broad"})
     assert methods.live_spec("rl-s10", {"checkpoint": coalition}) == ("rl-sample", {"checkpoint": coalition})
     monkeypatch.chdir(tmp_path)
