@@ -377,27 +377,30 @@ def uses_checkpoint(method: str) -> bool:
     return get(parse(method)[0]).option("checkpoint") is not None
 
 
-def own_checkpoints(method: str, solve_opts: dict[str, Any]) -> dict[str, str]:
-    """{spec: checkpoint} of the specs that name a checkpoint of their own (``rl@broad``): the
-    method itself, or a portfolio's candidates."""
+def run_specs(method: str, solve_opts: dict[str, Any]) -> list[str]:
+    """The method specs a run of ``method`` solves with: the method itself, or a portfolio's candidates."""
     from .methods import get, parse
     from .portfolio import candidate_methods
 
-    m = get(parse(method)[0])
-    specs = candidate_methods(solve_opts.get("candidates")) if m.choose else [method]
-    return {s: parse(s)[1]["checkpoint"] for s in specs if "checkpoint" in parse(s)[1]}
+    return candidate_methods(solve_opts.get("candidates")) if get(parse(method)[0]).choose else [method]
+
+
+def own_checkpoints(method: str, solve_opts: dict[str, Any]) -> dict[str, str]:
+    """{spec: checkpoint} of the specs of a run (:func:`run_specs`) that name a checkpoint of
+    their own (``rl@broad``)."""
+    from .methods import parse
+
+    implied = {s: parse(s)[1] for s in run_specs(method, solve_opts)}
+    return {s: o["checkpoint"] for s, o in implied.items() if "checkpoint" in o}
 
 
 def fixed_rules(method: str, solve_opts: dict[str, Any]) -> dict[str, dict]:
     """The rules of ``method`` (a portfolio: of each of its candidates) that are fixed in code,
     by method name: the baselines'. The learned policy's rules are its checkpoint's."""
     from .methods import get, parse, rules
-    from .portfolio import candidate_methods
 
-    m = get(parse(method)[0])
-    names = candidate_methods(solve_opts.get("candidates")) if m.choose else [m.name]
     out = {}
-    for n in names:
+    for n in run_specs(method, solve_opts):
         name = parse(n)[0]
         if get(name).rules is not None and not uses_checkpoint(name):
             out[name] = rules(name).to_dict()

@@ -96,6 +96,11 @@ def mission_scales(state: MissionState) -> Scales:
     return sc
 
 
+def task_features(scale: str) -> int:
+    """The width of a task row under ``scale``: 2K + 5, one more with the coalition-start column."""
+    return TASK_FEATURES + (scale == "mission+coalition")
+
+
 FIXED = Scales(1.0 / TIME_SCALE, 1.0, np.ones(K_MAX))
 
 

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..reading import short
-from .features import AGENT_FEATURES, K_MAX, SCALES, TASK_FEATURES
+from .features import AGENT_FEATURES, K_MAX, SCALES, TASK_FEATURES, task_features
 
 TASK_POS = slice(2 * K_MAX, 2 * K_MAX + 2)  # task rows: position relative to the decider
 AGENT_POS = slice(K_MAX + 3, K_MAX + 5)  # agent rows: position relative to the decider
@@ -62,8 +62,7 @@ class ModelConfig:
         if c.d_model % c.heads:
             raise ValueError(f"{where}.heads: expected a divisor of d_model ({c.d_model}), got {c.heads}")
         whole("ff_hidden", 1, 16384)
-        for k, want in (("task_features", TASK_FEATURES + (c.scale == "mission+coalition")),
-                        ("agent_features", AGENT_FEATURES)):
+        for k, want in (("task_features", task_features(c.scale)), ("agent_features", AGENT_FEATURES)):
             if type(getattr(c, k)) is not int or getattr(c, k) != want:
                 raise ValueError(f"{where}.{k}: expected {want} (the observation of this hmrta version), "
                                  f"got {short(getattr(c, k))}")
