@@ -44,7 +44,7 @@ def main() -> None:
 
         ss = ScheduleSet(Path(__file__).resolve().parents[1] / "policy/datasets/schedules-broad-10-30-s1.jsonl")
         rules = Rules(max_open=None)
-        insts = [LabelJob(*ss.item(i)[:2], i, rules, "greedy-coalition", 0.0, "mission")
+        insts = [LabelJob(*ss.item(i)[:2], i, rules, "greedy-coalition", 0.0, {"scale": "mission"})
                  for i in ss.indices()[:a.count]]
         solve, what = teacher_labels, "labelled missions (schedules dataset, routes + greedy-coalition)"
         count = lambda results: sum(len(r.labels.acts) for r in results)  # noqa: E731

@@ -114,7 +114,7 @@ def network_floor(pol) -> dict:
     from hmrta.rl.features import batch_observations
 
     inst = ScenarioGenerator("MA-AT", 150, 10, 500, 5).instance(1, 0)
-    obs, _ = batch_observations([MissionState(inst, seed=0, rules=pol.rules)], scale=pol.model.cfg.scale)
+    obs, _ = batch_observations([MissionState(inst, seed=0, rules=pol.rules)], **pol.model.cfg.view())
     with torch.inference_mode():
         counter = FlopCounterMode(display=False)
         with counter:

@@ -531,7 +531,7 @@ def cmd_checkpoint(args) -> int:
         raise UserError(f"--out {out}: is a folder, expected a checkpoint file name")
     if not out.parent.is_dir():
         raise UserError(f"--out {out}: no such folder {out.parent}")
-    entry = average(args.checkpoints, out)
+    entry = average(args.checkpoints, out, window=args.window)
     print(json.dumps({"out": str(out), **entry}))
     print(f"averaged {len(entry['sources'])} checkpoint(s) into {out}", file=sys.stderr)
     return 0
@@ -837,6 +837,10 @@ def build_parser() -> argparse.ArgumentParser:
                                           "(sources with sha256)", formatter_class=F)
     ca.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT", help="checkpoint files (.pt)")
     ca.add_argument("--out", required=True, help="checkpoint to write (atomically)")
+    ca.add_argument("--window", nargs=2, type=int, metavar=("TASKS", "ROBOTS"),
+                    help="observation window of the written checkpoint: a mission with more tasks or robots "
+                         "is observed through the decider's nearest TASKS tasks and ROBOTS robots (default: "
+                         "the sources', 50 and 25 unless set; docs/training.md, 'The observation window')")
     ca.set_defaults(fn=cmd_checkpoint)
 
     sc = sub.add_parser("schedules", help="solve seeded training missions with the anytime solver and store "

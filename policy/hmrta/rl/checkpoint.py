@@ -272,16 +272,23 @@ def _network(ck: dict, path: str | Path) -> tuple[dict, dict]:
     return model, rules
 
 
-def average(paths: list[str | Path], out: str | Path) -> dict:
+def average(paths: list[str | Path], out: str | Path, window: tuple[int, int] | None = None) -> dict:
     """Average the weights (each file's moving average when it has one) of checkpoints of the same
     network and rules, and write them to ``out`` (atomically) with the first file's resolved
     config and a lineage entry naming every source with its sha256. Checkpoints whose model
-    config or rules differ are refused (CheckpointError naming the file and the key). Returns
-    the lineage entry."""
+    config or rules differ are refused (CheckpointError naming the file and the key). ``window``
+    (tasks, robots) sets the observation window of the written config (``model.window_tasks``,
+    ``model.window_agents``; it changes what the network is shown, not its weights) and is
+    recorded in the lineage entry. Returns the lineage entry."""
     from .model import PolicyNet, ModelConfig
 
     if not paths:
         raise CheckpointError("average: expected at least one checkpoint")
+    if window is not None:
+        try:
+            ModelConfig.from_dict({"window_tasks": window[0], "window_agents": window[1]}, "window")
+        except ValueError as e:
+            raise CheckpointError(f"average: {e}") from None
     first = Path(paths[0])
     sums: dict[str, torch.Tensor] = {}
     ref: tuple[dict, dict] | None = None
@@ -317,5 +324,8 @@ def average(paths: list[str | Path], out: str | Path) -> dict:
     n = len(sources)
     avg = {k: (v / n).to(dtypes[k]) if dtypes[k].is_floating_point else v for k, v in sums.items()}
     entry = {"op": "average", "sources": sources}
+    if window is not None:
+        config = {**config, "model": {**ref[0], "window_tasks": int(window[0]), "window_agents": int(window[1])}}
+        entry["window"] = [int(window[0]), int(window[1])]
     save(out, {"config": config, "code_version": code_version(), "model": avg, "lineage": [entry]})
     return entry

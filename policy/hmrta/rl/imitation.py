@@ -56,7 +56,7 @@ class Imitation:
         own = []  # generated_teacher: policy: the missions its greedy decoding drives
         labels = Labels()
         teacher = TEACHERS[p.teacher]()
-        tau, scale = p.tau, lr_.model.cfg.scale
+        tau, view = p.tau, lr_.model.cfg.view()
         on_policy, jobs = [], []  # DAgger states; the teacher-driven missions (LabelJob)
         estimates = []  # [len(on_policy)] decisions expected in each DAgger mission
         for inst, routes in items:
@@ -68,7 +68,7 @@ class Imitation:
                 on_policy.append(MissionState(inst, seed=seed, rules=run.train_rules))  # the policy drives
                 estimates.append(sum(map(len, routes)) if routes is not None else 2 * inst.n_tasks)
                 continue
-            jobs.append(LabelJob(inst, routes, seed, run.train_rules, p.teacher, tau, scale))
+            jobs.append(LabelJob(inst, routes, seed, run.train_rules, p.teacher, tau, view))
         followed = [0, 0]  # decisions labelled by a schedule's routes, by the fallback teacher
         pool = []  # (the teacher's finished state, its label range) per teacher-driven mission
         mission: list[int] = []  # [n] the mission of each label (label_weight: mission)
@@ -88,7 +88,7 @@ class Imitation:
             def label(idx, o, nodes, act) -> None:
                 for i in idx:
                     before = len(acts)
-                    labels.add(on_policy[i], teacher, teacher, tau, scale)
+                    labels.add(on_policy[i], teacher, teacher, tau, view)
                     mission.extend([len(jobs) + i] * (len(acts) - before))
             rollout(lr_.model, on_policy, sample=False, before_step=label)
         if own:  # the trajectory to beat: the greedy decoding in float32, as RL(g.) runs; it labels nothing
@@ -151,7 +151,7 @@ class Imitation:
         rollout(lr_.model, on_policy, sample=False, before_step=cut)
         order = sorted(reached)
         jobs = [PlanJob(reached[i], p.dagger_evals, int(lr_.np_rng.integers(2**31)), p.teacher, p.tau,
-                        lr_.model.cfg.scale) for i in order]
+                        lr_.model.cfg.view()) for i in order]
         ratios = []
         for i, done in zip(order, run.fan_out(plan_labels, jobs)):
             before = len(labels.acts)
@@ -222,9 +222,11 @@ class Labels:
     soft: list = field(default_factory=list)
 
     def add(self, st: MissionState, decide: Callable[[MissionState], int], teacher, tau: float,
-            scale: str) -> int:
-        """Record ``decide``'s choice at ``st`` (``teacher``'s estimates for the soft target); returns it."""
-        tf, af, mask, nodes, row = observe(st, scale=scale)
+            view: dict) -> int:
+        """Record ``decide``'s choice at ``st`` as the network observes it (``view``: the model
+        config's :meth:`~hmrta.rl.model.ModelConfig.view`; ``teacher``'s estimates for the soft
+        target); returns it."""
+        tf, af, mask, nodes, row = observe(st, **view)
         n = decide(st)
         hit = np.flatnonzero(nodes == n)
         if len(hit):  # (outside the observation window only on missions beyond the training scale)
@@ -252,7 +254,7 @@ class LabelJob:
     rules: Rules
     teacher: str
     tau: float
-    scale: str
+    view: dict  # ModelConfig.view(): units and window of the observation
 
 
 @dataclass
@@ -273,7 +275,7 @@ def teacher_labels(job: LabelJob) -> LabelResult:
     st = MissionState(job.inst, seed=job.seed, rules=job.rules)
     labels = Labels()
     while not st.done:
-        st.step(labels.add(st, decide, teacher, job.tau, job.scale))
+        st.step(labels.add(st, decide, teacher, job.tau, job.view))
     hits, misses = (decide.hits, decide.misses) if job.routes is not None else (0, 0)
     return LabelResult(labels, st, hits, misses)
 
@@ -287,7 +289,7 @@ class PlanJob:
     seed: int
     teacher: str
     tau: float
-    scale: str
+    view: dict  # ModelConfig.view(): units and window of the observation
 
 
 def plan_labels(job: PlanJob) -> LabelResult:
@@ -300,7 +302,7 @@ def plan_labels(job: PlanJob) -> LabelResult:
     st = job.state.clone()
     labels = Labels()
     while not st.done:
-        st.step(labels.add(st, decide, teacher, job.tau, job.scale))
+        st.step(labels.add(st, decide, teacher, job.tau, job.view))
     hits, misses = (decide.hits, decide.misses) if plan.routes is not None else (0, 0)
     ratio = plan.makespan / plan.greedy_coalition if plan.greedy_coalition > 0 else 1.0
     return LabelResult(labels, st, hits, misses, ratio)

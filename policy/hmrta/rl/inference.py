@@ -130,7 +130,7 @@ def lookahead_choices(model: torch.nn.Module, states: list[MissionState], t_max:
     of all states as one batch), and the action with the lowest final cost T + W is chosen; ties go
     to the policy's own choice. Never worse than the policy alone (Bertsekas' cost improvement).
     The states themselves are not changed."""
-    obs, nodes = batch_observations(states, scale=model.cfg.scale)
+    obs, nodes = batch_observations(states, **model.cfg.view())
     with torch.inference_mode(), forward_threads(len(states)):  # threaded as a rollout of these states
         own = model(**obs).argmax(-1).tolist()  # [b] the policy's choice (action rows)
     mask = obs["action_mask"].numpy()  # [b, T]
@@ -177,7 +177,7 @@ class RLDecider:
 
     def __call__(self, state: MissionState) -> int:
         with torch.inference_mode(), forward_threads(1):  # the same bits as a rollout of one mission
-            obs, nodes = batch_observations([state], scale=self.pol.model.cfg.scale)
+            obs, nodes = batch_observations([state], **self.pol.model.cfg.view())
             logits = self.pol.model(**obs)[0]  # [T]
             if self.sample:
                 probs = torch.softmax(logits / self.temperature, -1)  # [T] as in a sampled rollout

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..reading import short
-from .features import AGENT_FEATURES, K_MAX, SCALES, TASK_FEATURES, task_features
+from .features import AGENT_FEATURES, K_MAX, MAX_AGENTS, MAX_TASKS, SCALES, TASK_FEATURES, task_features
 
 TASK_POS = slice(2 * K_MAX, 2 * K_MAX + 2)  # task rows: position relative to the decider
 AGENT_POS = slice(K_MAX + 3, K_MAX + 5)  # agent rows: position relative to the decider
@@ -36,9 +36,20 @@ class ModelConfig:
     # units of the observation (rl/features.py): "fixed" (the paper generators' scales) or
     # "mission" (scale-free: times, lengths and capabilities in units of the mission itself)
     scale: str = "fixed"
+    # the observation window (rl/features.py): a mission with more tasks or robots is observed
+    # through its decider's nearest ``window_tasks`` tasks and ``window_agents`` robots. The
+    # network attends over any number of rows, so the window is a choice made at inference as
+    # much as in training (docs/training.md, "The observation window")
+    window_tasks: int = MAX_TASKS
+    window_agents: int = MAX_AGENTS
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def view(self) -> dict:
+        """The keyword arguments of ``features.observe`` / ``batch_observations`` that this network
+        was built to read: units and window."""
+        return {"scale": self.scale, "max_tasks": self.window_tasks, "max_agents": self.window_agents}
 
     @classmethod
     def from_dict(cls, d: object, where: str = "model") -> "ModelConfig":
@@ -62,6 +73,8 @@ class ModelConfig:
         if c.d_model % c.heads:
             raise ValueError(f"{where}.heads: expected a divisor of d_model ({c.d_model}), got {c.heads}")
         whole("ff_hidden", 1, 16384)
+        whole("window_tasks", 1, 100_000)
+        whole("window_agents", 1, 100_000)
         for k, want in (("task_features", task_features(c.scale)), ("agent_features", AGENT_FEATURES)):
             if type(getattr(c, k)) is not int or getattr(c, k) != want:
                 raise ValueError(f"{where}.{k}: expected {want} (the observation of this hmrta version), "

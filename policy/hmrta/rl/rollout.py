@@ -74,7 +74,7 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
         while active:
             for lo in range(0, len(active), max_batch):
                 idx = active[lo:lo + max_batch]
-                obs, nodes = batch_observations([states[i] for i in idx], scale=model.cfg.scale)
+                obs, nodes = batch_observations([states[i] for i in idx], **model.cfg.view())
                 with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
                     logits = model(**obs).float()  # [b, T]
                 if sample:

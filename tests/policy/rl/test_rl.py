@@ -1009,3 +1009,52 @@ def test_a_resumed_run_keeps_the_columns_of_its_log(tmp_path):
     tr.run(progress=False)
     after = list(csv.reader(open(log)))
     assert len(after) > len(rows) and {len(r) for r in after} == {len(rows[0]) - 1}
+
+
+def test_the_observation_window_is_the_checkpoints_and_every_inference_path_uses_it(tmp_path, capsys):
+    """``checkpoint average --window`` writes the window into the config; the rollout, the live
+    decider and the labeller then observe the mission through it (here: 8 tasks, 3 robots, on a
+    mission of 12 tasks and 6 robots), and the weights are unchanged."""
+    from hmrta.cli import main
+    from hmrta.rl.checkpoint import load
+    from hmrta.rl.features import observe
+    from hmrta.rl.imitation import Labels
+
+    a, wa = _exported(tmp_path, "a", seed=1)
+    out = tmp_path / "w.pt"
+    assert main(["checkpoint", "average", str(a), "--out", str(out), "--window", "8", "3"]) == 0
+    capsys.readouterr()
+    ck = load(out)
+    assert (ck["config"]["model"]["window_tasks"], ck["config"]["model"]["window_agents"]) == (8, 3)
+    assert ck["lineage"][0]["window"] == [8, 3] and all(torch.equal(ck["model"][k], wa[k]) for k in wa)
+    pol, base = load_policy(out), load_policy(a)
+    assert pol.model.cfg.view() == {"scale": base.model.cfg.scale, "max_tasks": 8, "max_agents": 3}
+    inst = ScenarioGenerator("MA-AT", 6, 2, 12, 2).instance(5, 3)
+    seen = []
+
+    class Spy:  # the traced network, recording the widths it is shown
+        cfg = pol.model.cfg
+
+        def __call__(self, **obs):
+            seen.append((obs["tasks"].shape[1], obs["agents"].shape[1]))
+            return pol.model(**obs)
+
+    st = MissionState(inst, seed=0, rules=pol.rules)
+    rollout(Spy(), [st], sample=False)
+    assert st.success and seen and set(seen) == {(9, 3)}  # depot + 8 tasks, 3 robots: every decision windowed
+    live = MissionState(inst, seed=0, rules=pol.rules)  # the live decider sees the same: the same mission
+    decide = RLDecider(pol, sample=False, seed=0)
+    while not live.done:
+        live.step(decide(live))
+    assert live.makespan == st.makespan and live.decisions == st.decisions
+    labels = Labels()
+    st = MissionState(inst, seed=0, rules=pol.rules)
+    labels.add(st, lambda s: int(np.flatnonzero(s.mask())[-1]), None, 0.0, pol.model.cfg.view())
+    assert labels.obs[0][0].shape[0] == 1 + 8 and labels.obs[0][1].shape[0] == 3
+    assert observe(st, **base.model.cfg.view())[0].shape[0] == 1 + 12  # the default window shows it whole
+    with pytest.raises(SystemExit):
+        main(["checkpoint", "average", str(a), "--out", str(out), "--window", "8"])
+    capsys.readouterr()
+    assert main(["checkpoint", "average", str(a), "--out", str(tmp_path / "bad.pt"), "--window", "0", "3"]) == 2
+    assert "window.window_tasks: expected an integer" in capsys.readouterr().err
+    assert not (tmp_path / "bad.pt").exists()

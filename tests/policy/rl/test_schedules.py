@@ -359,7 +359,7 @@ def test_solver_dagger_labels_the_rest_of_a_mission_by_a_plan_from_the_state_the
     for _ in range(6):
         st.step(gc(st))
     before = st.decisions
-    done = plan_labels(PlanJob(st, 300, 0, "greedy-coalition", 0.0, "mission"))
+    done = plan_labels(PlanJob(st, 300, 0, "greedy-coalition", 0.0, {"scale": "mission"}))
     assert st.decisions == before  # the job's state is left as it was
     assert len(done.labels.acts) == done.state.decisions - before > 0  # every decision from there, labelled
     assert done.misses == 0 and done.plan_ratio < 1.0
