@@ -23,6 +23,7 @@ from typing import Any, Callable
 
 from .deps import require
 from .errors import MethodError
+from .rl.checkpoint_info import shipped_checkpoints
 
 __all__ = ["METHODS", "Method", "MethodError", "Option", "decider", "label", "parse", "rules", "solve"]
 
@@ -87,8 +88,8 @@ class Method:
         return out
 
 
-CHECKPOINT = Option("checkpoint", str, None, "policy checkpoint: a file or a shipped name (default, broad, "
-                    "broad-start, coalition-open); default: $HMRTA_CHECKPOINT, else default")
+CHECKPOINT = Option("checkpoint", str, None, "policy checkpoint: a file or a shipped name "
+                    f"({', '.join(shipped_checkpoints())}); default: $HMRTA_CHECKPOINT, else default")
 _RL = dict(rules="hmrta.rl.checkpoint_info:checkpoint_rules", needs=("torch",))
 # rl-sample's default temperature, chosen on the dev missions (docs/training.md, "Sampling
 # temperature"): the shipped policies are cloned (from greedy-coalition, from the solver's
