@@ -98,15 +98,53 @@ class CoalitionGreedy:
         if need.any() and len(others) == 0:
             start = np.where(need, np.inf, start)  # nobody left to complete those coalitions
         elif need.any():
-            arr = free_at[others, None] + np.hypot(pos[others, None, 0] - loc[None, :, 0],
-                                                   pos[others, None, 1] - loc[None, :, 1]) / v  # [B, C]
-            order = np.argsort(arr, axis=0, kind="stable")  # [B, C]
-            cum = np.cumsum(s.cap[others][order], axis=0)  # [B, C, K] capability of the first n arrivals
-            covered = (cum >= rem[None] - 1e-9).all(2)  # [B, C]
-            first = np.argmax(covered, axis=0)  # [C] the arrival that completes the coalition
-            last = np.take_along_axis(arr, order, 0)[first, np.arange(len(cand))]  # [C] its arrival time
-            start = np.where(need, np.where(covered.any(0), np.maximum(start, last), np.inf), start)
+            col = np.flatnonzero(need)  # [N] the tasks a still needs others for
+            arr = free_at[others, None] + np.hypot(pos[others, None, 0] - loc[None, col, 0],
+                                                   pos[others, None, 1] - loc[None, col, 1]) / v  # [B, N]
+            last = self._completing_arrival(arr, s.cap[others], rem[col])  # [N]
+            start[col] = np.maximum(start[col], last)
         return cand, start, mine
+
+    # the earliest arrivals looked at first (a coalition rarely needs more robots than this)
+    PARTIAL = 32
+
+    @classmethod
+    def _completing_arrival(cls, arr: np.ndarray, cap: np.ndarray, rem: np.ndarray) -> np.ndarray:
+        """[N] for each task (column of ``arr`` [B, N], arrival times of robots with capabilities
+        ``cap`` [B, K]), the arrival time at which the robots taken in order of arrival (ties: lowest
+        row first) first cover ``rem`` [N, K]; inf where all of them do not.
+
+        With more than PARTIAL robots only the PARTIAL earliest arrivals are sorted. Where they cover
+        the requirement before the latest of them, the answer is the full sort's, bit for bit: every
+        robot arriving earlier is among them, in the same order, with the same running sums. The other
+        tasks (a coalition of many robots, or one that cannot be completed) take the full sort."""
+        B, N = arr.shape
+        last = np.full(N, np.inf)  # [N]
+        redo = np.arange(N)  # [R] the tasks the full sort decides
+        if B > cls.PARTIAL:
+            part = np.argpartition(arr, cls.PARTIAL - 1, axis=0)[:cls.PARTIAL]  # [P, N] unordered
+            part.sort(axis=0)  # by row, so that the stable sort below breaks ties as the full one does
+            sub = np.take_along_axis(arr, part, 0)  # [P, N]
+            o = np.argsort(sub, axis=0, kind="stable")  # [P, N]
+            t, ok = cls._first_cover(np.take_along_axis(sub, o, 0), cap[np.take_along_axis(part, o, 0)], rem)
+            ok &= t < sub.max(0)  # covered strictly before the latest of the P: exact
+            last[ok] = t[ok]
+            redo = np.flatnonzero(~ok)
+        if len(redo):
+            a = arr[:, redo]  # [B, R]
+            o = np.argsort(a, axis=0, kind="stable")  # [B, R]
+            t, ok = cls._first_cover(np.take_along_axis(a, o, 0), cap[o], rem[redo])
+            last[redo] = np.where(ok, t, np.inf)
+        return last
+
+    @staticmethod
+    def _first_cover(arr_sorted: np.ndarray, cap_sorted: np.ndarray, rem: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(arrival time of the robot that first covers ``rem``, whether any prefix does) [N] each, for
+        arrivals sorted per column ([n, N]) with their capabilities ([n, N, K])."""
+        cum = np.cumsum(cap_sorted, axis=0)  # [n, N, K] capability of the first i arrivals
+        covered = (cum >= rem[None] - 1e-9).all(2)  # [n, N]
+        first = np.argmax(covered, axis=0)  # [N]
+        return arr_sorted[first, np.arange(arr_sorted.shape[1])], covered.any(0)
 
 
 # the deterministic baselines by method name (solvers, live deciders and training teachers); as
