@@ -129,9 +129,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
                            minimum=0.0)),
            needs=("ortools",)),
     Method("portfolio", "per mission, the best of several methods by simulation (greedy, greedy-coalition, "
-           "rl with the default, broad and broad-start checkpoints); live missions run the chosen one",
+           "rl with the default, broad and coalition-team checkpoints); live missions run the chosen one",
            "hmrta.portfolio:solve_portfolio", None, rules=None, choose="hmrta.portfolio:select",
-           options=(Option("candidates", str, "greedy,greedy-coalition,rl,rl@broad,rl@broad-start",
+           options=(Option("candidates", str, "greedy,greedy-coalition,rl,rl@broad,rl@coalition-team",
                            "comma list of methods to choose from (METHOD@CHECKPOINT: an rl method with a checkpoint "
                            "of its own, a shipped name or a path; the checkpoint option applies to the others)"),
                     CHECKPOINT)),

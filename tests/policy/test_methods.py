@@ -217,7 +217,7 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
     from hmrta.generators import ScenarioGenerator
 
     chosen_ever = set()
-    candidates = ("greedy", "greedy-coalition", "rl", "rl@broad", "rl@broad-start")
+    candidates = ("greedy", "greedy-coalition", "rl", "rl@broad", "rl@coalition-team")
     for inst in ScenarioGenerator("MA-AT", 9, 3, 20, 3).generate(3, 81):  # picks three different policies
         sol = methods.solve(inst, "portfolio", seed=1)
         each = {c: methods.solve(inst, c, seed=1).makespan for c in candidates}
@@ -231,7 +231,7 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
         # the agents run the chosen candidate: rl@broad is rl with the shipped broad checkpoint
         name, _, own = chosen.partition("@")
         assert (live, opts) == ((name, {"checkpoint": own}) if own else (chosen, {}))
-    assert chosen_ever == {"rl@broad", "rl@broad-start", "rl"}  # both kinds of choice are exercised
+    assert chosen_ever == {"rl@broad", "rl@coalition-team", "rl"}  # both kinds of choice are exercised
     inst = load_instance(EXAMPLE)
     assert methods.resolve(inst, "greedy", 0) == ("greedy", {}, None)
     only = methods.solve(inst, "portfolio", candidates="greedy,greedy-coalition")

@@ -366,12 +366,13 @@ def test_drop_in_robot_on_remapped_topics(tmp_path, graph, mission_procs):
     assert goals[-1] == depot
 
 
-@pytest.mark.parametrize("policy", ["rl", "rl-lookahead", "rl@broad-start"])
+@pytest.mark.parametrize("policy", ["rl", "rl-lookahead", "rl@coalition-team"])
 def test_rl_policy_mission_equals_offline(tmp_path, domain, policy):
     """--method rl goes through hmrta.methods.decider in every agent (one shared copy of the
     weights per process); greedy decoding is deterministic, so the mission equals the offline
-    rollout. Uses the shipped checkpoint, or an untrained one when none is shipped yet;
-    rl@broad-start observes greedy-coalition's start estimates too (scale mission+coalition)."""
+    rollout. Uses the shipped checkpoint, or an untrained one when none is shipped yet: the
+    default observes greedy-coalition's start estimates too (scale mission+coalition);
+    rl@coalition-team runs under its own team-scaled open-task cap, which the board applies."""
     torch = pytest.importorskip("torch")
     try:
         from hmrta.rl import inference

@@ -132,7 +132,7 @@ def test_batched_rollout_equals_core_simulator(model):
         np.testing.assert_array_equal(single.start, b.start)
 
 
-@pytest.mark.parametrize("which", ["default", "broad", "broad-start"])
+@pytest.mark.parametrize("which", ["default", "broad", "coalition-team"])
 def test_traced_inference_network_gives_the_networks_logits_bit_for_bit(which):
     """The traced, frozen network that inference runs (TracedPolicy) against the network itself:
     one graph for every window and batch size, every logit equal."""
@@ -620,7 +620,7 @@ def test_rl_sample_temperature_option():
         solve(inst, "rl-s2", temperature=0)
 
 
-CHECKPOINTS = [("default.pt", "team"), ("coalition-open.pt", None), ("broad.pt", None), ("broad-start.pt", None)]
+CHECKPOINTS = [("default.pt", None), ("coalition-open.pt", None), ("broad.pt", None), ("coalition-team.pt", "team")]
 
 
 @pytest.mark.parametrize("name,max_open", CHECKPOINTS)
@@ -864,7 +864,7 @@ def test_checkpoint_format_versions(tmp_path):
     now carry format 1; a newer format is refused with a clear error."""
     from hmrta.rl.checkpoint import FORMAT_VERSION, load, save
 
-    for name in ("default.pt", "coalition-open.pt"):
+    for name in ("coalition-team.pt", "coalition-open.pt"):  # shipped in format 0
         p = DEFAULT_CHECKPOINT.with_name(name)
         if p.exists():
             assert "checkpoint_format" not in torch.load(p, weights_only=True)
