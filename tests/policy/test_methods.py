@@ -231,7 +231,7 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
         # the agents run the chosen candidate: rl@broad is rl with the shipped broad checkpoint
         name, _, own = chosen.partition("@")
         assert (live, opts) == ((name, {"checkpoint": own}) if own else (chosen, {}))
-    assert chosen_ever == {"rl@broad", "rl@coalition-team", "rl"}  # both kinds of choice are exercised
+    assert chosen_ever == {"greedy-coalition", "rl@coalition-team", "rl"}  # both kinds of choice are exercised
     inst = load_instance(EXAMPLE)
     assert methods.resolve(inst, "greedy", 0) == ("greedy", {}, None)
     only = methods.solve(inst, "portfolio", candidates="greedy,greedy-coalition")
