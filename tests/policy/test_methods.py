@@ -228,10 +228,10 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
         assert each[chosen] == min(each.values())
         live, opts, scores = methods.resolve(inst, "portfolio", 1)
         assert scores == each
-        # the agents run the chosen candidate: rl@broad is rl with the shipped broad checkpoint
+        # the agents run the chosen candidate: rl@coalition-team is rl with that shipped checkpoint
         name, _, own = chosen.partition("@")
         assert (live, opts) == ((name, {"checkpoint": own}) if own else (chosen, {}))
-    assert chosen_ever == {"greedy-coalition", "rl@coalition-team", "rl"}  # both kinds of choice are exercised
+    assert chosen_ever == {"greedy-coalition", "rl@coalition-team", "rl"}  # a rule, rl, and rl@ checkpoint
     inst = load_instance(EXAMPLE)
     assert methods.resolve(inst, "greedy", 0) == ("greedy", {}, None)
     only = methods.solve(inst, "portfolio", candidates="greedy,greedy-coalition")
