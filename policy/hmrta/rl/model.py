@@ -105,16 +105,38 @@ class Block(nn.Module):
                 bias: torch.Tensor | None = None) -> torch.Tensor:
         # q [B, Lq, d], kv [B, Lk, d], kv_ignore [B, Lk] (True = padding / masked),
         # bias [B * heads, Lq, Lk] added to the attention scores (optional)
-        if bias is None:
-            att = self.mha(q, kv, kv, key_padding_mask=kv_ignore, need_weights=False)[0]
-        else:
-            bias = bias.masked_fill(kv_ignore.repeat_interleave(self.mha.num_heads, 0)[:, None, :], float("-inf"))
-            att = self.mha(q, kv, kv, attn_mask=bias, need_weights=False)[0]
+        att = self.attend(q, kv, kv_ignore, bias)  # [B, Lq, d]
         h = self.ln1(q + att)  # [B, Lq, d]
         if not self.ff:
             return h
         x, g = self.ff_in(h).chunk(2, dim=-1)  # [B, Lq, ff] x2
         return self.ln2(h + self.ff_out(x * F.gelu(g)))  # [B, Lq, d]
+
+    def attend(self, q: torch.Tensor, kv: torch.Tensor, kv_ignore: torch.Tensor,
+               bias: torch.Tensor | None) -> torch.Tensor:
+        """Multi-head attention of ``q`` over ``kv`` with the parameters of ``self.mha``: what
+        ``nn.MultiheadAttention`` computes, written out so that training, evaluation and the traced
+        inference graph run one path. (In evaluation without gradients the module would switch
+        self-attention to its fused kernel, whose masked softmax costs a fifth of a forward at 100
+        tasks; docs/results.md#scale-offline.)"""
+        mha = self.mha
+        B, Lq, d = q.shape
+        Lk, h = kv.shape[1], mha.num_heads
+        w, b = mha.in_proj_weight, mha.in_proj_bias  # [3d, d], [3d]
+        if q is kv:  # self-attention: one packed projection
+            qp, kp, vp = F.linear(q, w, b).chunk(3, dim=-1)  # [B, Lq, d] x3
+        else:
+            qp = F.linear(q, w[:d], b[:d])  # [B, Lq, d]
+            kp, vp = F.linear(kv, w[d:], b[d:]).chunk(2, dim=-1)  # [B, Lk, d] x2
+        qp = qp.view(B, Lq, h, d // h).transpose(1, 2)  # [B, h, Lq, d/h]
+        kp = kp.view(B, Lk, h, d // h).transpose(1, 2)  # [B, h, Lk, d/h]
+        vp = vp.view(B, Lk, h, d // h).transpose(1, 2)  # [B, h, Lk, d/h]
+        if bias is None:
+            mask = ~kv_ignore[:, None, None, :]  # [B, 1, 1, Lk] True = attend
+        else:
+            mask = bias.view(B, h, Lq, Lk).masked_fill(kv_ignore[:, None, None, :], float("-inf"))
+        out = F.scaled_dot_product_attention(qp, kp, vp, attn_mask=mask)  # [B, h, Lq, d/h]
+        return mha.out_proj(out.transpose(1, 2).reshape(B, Lq, d))  # [B, Lq, d]
 
 
 class PolicyNet(nn.Module):

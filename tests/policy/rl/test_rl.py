@@ -65,6 +65,41 @@ def test_padding_invariance(model):
             assert torch.isneginf(together[b, n:]).all()
 
 
+@pytest.mark.parametrize("self_attention", [True, False])
+@pytest.mark.parametrize("with_bias", [False, True])
+def test_block_attention_is_torchs_multihead_attention(self_attention, with_bias):
+    """Block.attend (the attention the network runs in training and inference alike) computes what
+    nn.MultiheadAttention computes with the same parameters, padding and score bias; one query
+    mission alone gives the same bits."""
+    from hmrta.rl.model import Block
+
+    torch.manual_seed(0)
+    block = Block(32, 4, 16)
+    B, Lq, Lk = 3, 7, (7 if self_attention else 5)
+    q = torch.randn(B, Lq, 32)
+    kv = q if self_attention else torch.randn(B, Lk, 32)
+    ignore = torch.zeros(B, Lk, dtype=torch.bool)
+    ignore[1, -2:] = True  # padding rows
+    ignore[2, 0] = True
+    bias = torch.randn(B * 4, Lq, Lk) if with_bias else None
+    with torch.no_grad():
+        got = block.attend(q, kv, ignore, bias)
+        if bias is None:
+            want = block.mha(q, kv, kv, key_padding_mask=ignore, need_weights=False)[0]
+        else:
+            masked = bias.masked_fill(ignore.repeat_interleave(4, 0)[:, None, :], float("-inf"))
+            want = block.mha(q, kv, kv, attn_mask=masked, need_weights=False)[0]
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+        alone = block.attend(q[:1], q[:1] if self_attention else kv[:1], ignore[:1],
+                             None if bias is None else bias[:4])
+        block.train()  # the module's own (unfused) path
+        ref = block.mha(q[:1], q[:1] if self_attention else kv[:1], q[:1] if self_attention else kv[:1],
+                        key_padding_mask=None if bias is not None else ignore[:1],
+                        attn_mask=None if bias is None else bias[:4].masked_fill(ignore[:1, None, :], float("-inf")),
+                        need_weights=False)[0]
+    assert torch.equal(alone, ref)
+
+
 def test_travel_bias_option(tmp_path):
     """model.travel_bias: with zero slopes the network computes exactly what it computed without
     the option (so older checkpoints resume into it); with slopes set it differs, keeps padding
