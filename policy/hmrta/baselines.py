@@ -99,52 +99,62 @@ class CoalitionGreedy:
             start = np.where(need, np.inf, start)  # nobody left to complete those coalitions
         elif need.any():
             col = np.flatnonzero(need)  # [N] the tasks a still needs others for
-            arr = free_at[others, None] + np.hypot(pos[others, None, 0] - loc[None, col, 0],
-                                                   pos[others, None, 1] - loc[None, col, 1]) / v  # [B, N]
+            arr = free_at[None, others] + np.hypot(pos[None, others, 0] - loc[col, None, 0],
+                                                   pos[None, others, 1] - loc[col, None, 1]) / v  # [N, B]
             last = self._completing_arrival(arr, s.cap[others], rem[col])  # [N]
             start[col] = np.maximum(start[col], last)
         return cand, start, mine
 
-    # the earliest arrivals looked at first (a coalition rarely needs more robots than this)
-    PARTIAL = 32
+    # the earliest arrivals looked at first (a coalition rarely needs more robots than this), then
+    # four times as many, and so on
+    PARTIAL = 16
 
     @classmethod
     def _completing_arrival(cls, arr: np.ndarray, cap: np.ndarray, rem: np.ndarray) -> np.ndarray:
-        """[N] for each task (column of ``arr`` [B, N], arrival times of robots with capabilities
+        """[N] for each task (row of ``arr`` [N, B], arrival times of robots with capabilities
         ``cap`` [B, K]), the arrival time at which the robots taken in order of arrival (ties: lowest
-        row first) first cover ``rem`` [N, K]; inf where all of them do not.
+        column first) first cover ``rem`` [N, K]; inf where all of them do not.
 
-        With more than PARTIAL robots only the PARTIAL earliest arrivals are sorted. Where they cover
-        the requirement before the latest of them, the answer is the full sort's, bit for bit: every
-        robot arriving earlier is among them, in the same order, with the same running sums. The other
-        tasks (a coalition of many robots, or one that cannot be completed) take the full sort."""
-        B, N = arr.shape
+        A robot with none of the skills a task still needs is left out of that task (its arrival
+        set to inf): at its turn the running sums of those skills do not change (adding 0.0 is
+        exact), so it never completes the cover. Of the others only the PARTIAL earliest arrivals
+        are sorted. Where they cover the requirement, the answer is the full sort's, bit for bit:
+        every robot arriving before the latest of them (L) is among them, in the same order, with
+        the same running sums, so a cover before L is the full sort's; a cover at L is too, since
+        the full sort, taking every robot arriving at L, has running sums at least as large by the
+        end of them (capabilities are non-negative and rounding is monotone) and none that covered
+        earlier. Where the PARTIAL include a left-out robot, they hold every robot that counts, and
+        an uncovered requirement stays uncovered. The other tasks (a coalition of many robots)
+        look at four times as many, and so on up to the full sort."""
+        N, B = arr.shape
+        useful = (cap > 0).astype(np.float64) @ (rem > 1e-9).T.astype(np.float64) > 0  # [B, N]
+        arr = np.where(useful.T, arr, np.inf)  # [N, B]
         last = np.full(N, np.inf)  # [N]
-        redo = np.arange(N)  # [R] the tasks the full sort decides
-        if B > cls.PARTIAL:
-            part = np.argpartition(arr, cls.PARTIAL - 1, axis=0)[:cls.PARTIAL]  # [P, N] unordered
-            part.sort(axis=0)  # by row, so that the stable sort below breaks ties as the full one does
-            sub = np.take_along_axis(arr, part, 0)  # [P, N]
-            o = np.argsort(sub, axis=0, kind="stable")  # [P, N]
-            t, ok = cls._first_cover(np.take_along_axis(sub, o, 0), cap[np.take_along_axis(part, o, 0)], rem)
-            ok &= t < sub.max(0)  # covered strictly before the latest of the P: exact
-            last[ok] = t[ok]
-            redo = np.flatnonzero(~ok)
-        if len(redo):
-            a = arr[:, redo]  # [B, R]
-            o = np.argsort(a, axis=0, kind="stable")  # [B, R]
-            t, ok = cls._first_cover(np.take_along_axis(a, o, 0), cap[o], rem[redo])
-            last[redo] = np.where(ok, t, np.inf)
+        rows, p = np.arange(N), cls.PARTIAL  # [R] the tasks still undecided, robots looked at
+        while len(rows):
+            a = arr[rows]  # [R, B]
+            if p < B:
+                part = np.argpartition(a, p - 1, axis=1)[:, :p]  # [R, p] unordered
+                part.sort(axis=1)  # by column, so that the stable sort below breaks ties as the full one does
+                a = np.take_along_axis(a, part, 1)  # [R, p]
+            o = np.argsort(a, axis=1, kind="stable")  # [R, p]
+            t, ok = cls._first_cover(np.take_along_axis(a, o, 1),
+                                     cap[o if p >= B else np.take_along_axis(part, o, 1)], rem[rows])
+            last[rows[ok]] = t[ok]
+            if p >= B:
+                break
+            rows = rows[~ok & np.isfinite(a.max(1))]  # uncovered, more robots to look at
+            p *= 4
         return last
 
     @staticmethod
     def _first_cover(arr_sorted: np.ndarray, cap_sorted: np.ndarray, rem: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(arrival time of the robot that first covers ``rem``, whether any prefix does) [N] each, for
-        arrivals sorted per column ([n, N]) with their capabilities ([n, N, K])."""
-        cum = np.cumsum(cap_sorted, axis=0)  # [n, N, K] capability of the first i arrivals
-        covered = (cum >= rem[None] - 1e-9).all(2)  # [n, N]
-        first = np.argmax(covered, axis=0)  # [N]
-        return arr_sorted[first, np.arange(arr_sorted.shape[1])], covered.any(0)
+        arrivals sorted per row ([N, n]) with their capabilities ([N, n, K])."""
+        cum = np.cumsum(cap_sorted, axis=1)  # [N, n, K] capability of the first i arrivals
+        covered = (cum >= rem[:, None] - 1e-9).all(2)  # [N, n]
+        first = np.argmax(covered, axis=1)  # [N]
+        return arr_sorted[np.arange(arr_sorted.shape[0]), first], covered.any(1)
 
 
 # the deterministic baselines by method name (solvers, live deciders and training teachers); as
