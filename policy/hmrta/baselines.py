@@ -60,12 +60,35 @@ class CoalitionGreedy:
 
     name = "greedy-coalition"
 
+    # admissible tasks estimated at once; with more, the nearest first (below)
+    CHUNK = 64
+
     def __call__(self, state: MissionState) -> int:
-        cand, start, mine = self.estimates(state)
-        if len(cand) == 0:
-            return 0
-        key = np.lexsort((mine, start))  # earliest start, then nearest, then lowest id
-        return 1 + int(cand[key[0]])
+        """The admissible task of the earliest estimated start, ties to the nearest, then to the
+        lowest id; 0 (the depot) when none is admissible.
+
+        A start is never before the decider's own arrival, so with many admissible tasks they are
+        estimated nearest first, in chunks (CHUNK, then twice as many, ...), until the best start
+        found is earlier than the arrival at every task not yet estimated: the same choice as
+        estimating them all (each task's estimate does not depend on the others)."""
+        cand = np.flatnonzero(state.mask()[1:])  # [C]
+        if len(cand) <= self.CHUNK:
+            cand, start, mine = self.estimates(state, cand)
+            if len(cand) == 0:
+                return 0
+            return 1 + int(cand[np.lexsort((mine, start))[0]])  # earliest start, then nearest, then lowest id
+        s = state
+        here = s.positions()[s.agent]  # [2]
+        own = s.clock + np.hypot(*(s.inst.task_locations[cand] - here).T) / s.inst.velocity  # [C] as estimates
+        order = np.argsort(own, kind="stable")  # [C] nearest first
+        best, lo, size = None, 0, self.CHUNK
+        while lo < len(order) and (best is None or best[0] >= own[order[lo]]):
+            part, start, mine = self.estimates(s, np.sort(cand[order[lo:lo + size]]))  # ascending ids
+            k = np.lexsort((part, mine, start))[0]
+            if best is None or (start[k], mine[k], part[k]) < best:
+                best = (start[k], mine[k], part[k])
+            lo, size = lo + size, 2 * size
+        return 1 + int(best[2])
 
     def estimates(self, state: MissionState, tasks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(admissible tasks [C], estimated coalition start if the decider joins [C], the decider's

@@ -247,6 +247,26 @@ def test_coalition_estimates_equal_their_definition(partial, monkeypatch):
         s.step(gc(s))
 
 
+@pytest.mark.parametrize("chunk", [1, 3, CoalitionGreedy.CHUNK])
+def test_coalition_choice_is_the_best_of_all_estimates(chunk, monkeypatch):
+    """greedy-coalition estimates many admissible tasks nearest first, in chunks, and stops when
+    no task left can start earlier: the choice is the earliest start of all (then nearest, then
+    lowest id), whatever the chunk size."""
+    monkeypatch.setattr(CoalitionGreedy, "CHUNK", chunk)
+    gc = CoalitionGreedy()
+
+    def same(s):
+        cand, start, mine = gc.estimates(s)
+        assert gc(s) == (1 + int(cand[np.lexsort((mine, start))[0]]) if len(cand) else 0), (s.decisions, s.agent)
+
+    for s, rng in missions(8, 30):
+        drive(s, rng, same, policy=gc if rng.random() < 0.5 else None)
+    s = MissionState(ScenarioGenerator("MA-AT", 60, 6, 120, 4).instance(3, 0), seed=0, rules=COALITION_RULES)
+    while not s.done:
+        same(s)
+        s.step(gc(s))
+
+
 # ---- the rl observation -------------------------------------------------------------------------
 def _observe_reference(state, a, max_tasks, max_agents, scale):
     """Features of every task and agent, then the window (admissible tasks first, then nearest;
