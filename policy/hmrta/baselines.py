@@ -77,13 +77,11 @@ class CoalitionGreedy:
             if len(cand) == 0:
                 return 0
             return 1 + int(cand[np.lexsort((mine, start))[0]])  # earliest start, then nearest, then lowest id
-        s = state
-        here = s.positions()[s.agent]  # [2]
-        own = s.clock + np.hypot(*(s.inst.task_locations[cand] - here).T) / s.inst.velocity  # [C] as estimates
+        own = self._arrival(state, state.positions()[state.agent], cand)  # [C] the estimates' own arrival
         order = np.argsort(own, kind="stable")  # [C] nearest first
         best, lo, size = None, 0, self.CHUNK
         while lo < len(order) and (best is None or best[0] >= own[order[lo]]):
-            part, start, mine = self.estimates(s, np.sort(cand[order[lo:lo + size]]))  # ascending ids
+            part, start, mine = self.estimates(state, np.sort(cand[order[lo:lo + size]]))  # ascending ids
             k = np.lexsort((part, mine, start))[0]
             if best is None or (start[k], mine[k], part[k]) < best:
                 best = (start[k], mine[k], part[k])
@@ -110,7 +108,7 @@ class CoalitionGreedy:
         free_at[running] = s.finish[tgt[running]]
         pos[running] = s.inst.task_locations[tgt[running]]
         usable &= ~(on_task & (s.status[tgt] == OPEN))
-        mine = t + np.hypot(*(loc - pos[a]).T) / v  # [C] a's arrival (a is free now)
+        mine = self._arrival(s, pos[a], cand)  # [C] a's arrival (a is free now)
         start = mine.copy()  # [C]
         for c, j in enumerate(cand):
             if s.members[j]:
@@ -127,6 +125,11 @@ class CoalitionGreedy:
             last = self._completing_arrival(arr, s.cap[others], rem[col])  # [N]
             start[col] = np.maximum(start[col], last)
         return cand, start, mine
+
+    @staticmethod
+    def _arrival(state: MissionState, here: np.ndarray, tasks: np.ndarray) -> np.ndarray:
+        """[C] when a robot free now at ``here`` [2] arrives at ``tasks`` [C] (ids)."""
+        return state.clock + np.hypot(*(state.inst.task_locations[tasks] - here).T) / state.inst.velocity
 
     # the earliest arrivals looked at first (a coalition rarely needs more robots than this), then
     # four times as many, and so on
@@ -161,8 +164,8 @@ class CoalitionGreedy:
                 part.sort(axis=1)  # by column, so that the stable sort below breaks ties as the full one does
                 a = np.take_along_axis(a, part, 1)  # [R, p]
             o = np.argsort(a, axis=1, kind="stable")  # [R, p]
-            t, ok = cls._first_cover(np.take_along_axis(a, o, 1),
-                                     cap[o if p >= B else np.take_along_axis(part, o, 1)], rem[rows])
+            robots = o if p >= B else np.take_along_axis(part, o, 1)  # [R, p] in order of arrival
+            t, ok = cls._first_cover(np.take_along_axis(a, o, 1), cap[robots], rem[rows])
             last[rows[ok]] = t[ok]
             if p >= B:
                 break
