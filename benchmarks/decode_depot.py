@@ -1,11 +1,12 @@
 #!/usr/bin/env python3
 """Greedy decoding with the depot decided on its total probability (prints figures; not a test).
 
-RL(g.) takes the argmax of the policy's distribution over [depot, tasks]. With many admissible
-tasks of similar value the tasks share the probability and the depot, one row, can be the argmax
-while the tasks together are more likely (docs/training.md, "Deciding the depot on its total
-probability"). This benchmark compares, mission by mission, the argmax with a two-level decoding:
-go home only when the depot's probability is at least 1/2, otherwise take the most likely task.
+RL(g.) decodes by the checkpoint's ``model.greedy_depot``. "argmax" takes the most likely row of
+[depot, tasks]; with many admissible tasks of similar value the tasks share the probability and
+the depot, one row, can be the argmax while the tasks together are more likely (docs/training.md,
+"Deciding the depot on its total probability"). This benchmark compares, mission by mission and
+whatever the checkpoint's own setting, the argmax with the two-level rule "majority": go home
+only when the depot's probability is at least 1/2, otherwise take the most likely task.
 It prints per row the mean makespan of each, the missions whose plan changed, the decisions that
 changed, and the number of decisions per mission. Dev seeds only (never the test seed 1000).
 
@@ -25,23 +26,22 @@ DEFAULTS = {"families": (10, 2000), "paper": (20, 4242), "large": (10, 5000)}  #
 
 
 def rollout(pol, inst, two_level: bool) -> tuple[float, int, int]:
-    """(makespan, decisions, decisions where the two-level rule overrode the argmax)."""
+    """(makespan, decisions, decisions where the two-level rule overrode the argmax), whatever the
+    checkpoint's own ``greedy_depot``."""
     import torch
 
     from hmrta.core import MissionState
     from hmrta.rl.features import batch_observations
+    from hmrta.rl.rollout import greedy_rows
 
     st = MissionState(inst, seed=0, rules=pol.rules)
     overridden = 0
     with torch.inference_mode():
         while not st.done:
             obs, nodes = batch_observations([st], **pol.model.cfg.view())
-            logits = pol.model(**obs)[0]  # [T] row 0 = depot
-            row = int(logits.argmax())
-            if two_level and row == 0 and bool(obs["action_mask"][0, 1:].any()) \
-                    and float(torch.softmax(logits, -1)[0]) < 0.5:
-                row = 1 + int(logits[1:].argmax())
-                overridden += 1
+            logits = pol.model(**obs)  # [1, T] row 0 = depot
+            row = int(greedy_rows(logits, "majority" if two_level else "argmax")[0])
+            overridden += row != int(logits[0].argmax())
             st.step(int(nodes[0][row]))
     if not st.success:
         raise RuntimeError(f"mission {inst.name} failed: {st.failure}")

@@ -531,7 +531,7 @@ def cmd_checkpoint(args) -> int:
         raise UserError(f"--out {out}: is a folder, expected a checkpoint file name")
     if not out.parent.is_dir():
         raise UserError(f"--out {out}: no such folder {out.parent}")
-    entry = average(args.checkpoints, out, window=args.window)
+    entry = average(args.checkpoints, out, window=args.window, greedy_depot=args.greedy_depot)
     print(json.dumps({"out": str(out), **entry}))
     print(f"averaged {len(entry['sources'])} checkpoint(s) into {out}", file=sys.stderr)
     return 0
@@ -841,6 +841,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="observation window of the written checkpoint: a mission with more tasks or robots "
                          "is observed through the decider's nearest TASKS tasks and ROBOTS robots (default: "
                          "the sources', 50 and 25 unless set; docs/training.md, 'The observation window')")
+    ca.add_argument("--greedy-depot", choices=("argmax", "majority"), default=None,
+                    help="greedy decoding of the written checkpoint (RL(g.), live agents, lookahead): argmax "
+                         "takes the most likely of [depot, tasks]; majority goes to the depot only when its "
+                         "probability is at least 1/2, else takes the most likely task (default: the "
+                         "sources', argmax unless set; docs/training.md, 'Deciding the depot on its total "
+                         "probability')")
     ca.set_defaults(fn=cmd_checkpoint)
 
     sc = sub.add_parser("schedules", help="solve seeded training missions with the anytime solver and store "

@@ -272,14 +272,16 @@ def _network(ck: dict, path: str | Path) -> tuple[dict, dict]:
     return model, rules
 
 
-def average(paths: list[str | Path], out: str | Path, window: tuple[int, int] | None = None) -> dict:
+def average(paths: list[str | Path], out: str | Path, window: tuple[int, int] | None = None,
+            greedy_depot: str | None = None) -> dict:
     """Average the weights (each file's moving average when it has one) of checkpoints of the same
     network and rules, and write them to ``out`` (atomically) with the first file's resolved
     config and a lineage entry naming every source with its sha256. Checkpoints whose model
     config or rules differ are refused (CheckpointError naming the file and the key). ``window``
     (tasks, robots) sets the observation window of the written config (``model.window_tasks``,
     ``model.window_agents``; it changes what the network is shown, not its weights) and is
-    recorded in the lineage entry. Returns the lineage entry."""
+    recorded in the lineage entry; so is ``greedy_depot`` (``model.greedy_depot``: how greedy
+    decoding picks the depot). Returns the lineage entry."""
     from .model import PolicyNet, ModelConfig
 
     if not paths:
@@ -287,6 +289,11 @@ def average(paths: list[str | Path], out: str | Path, window: tuple[int, int] | 
     if window is not None:
         try:
             ModelConfig.from_dict({"window_tasks": window[0], "window_agents": window[1]}, "window")
+        except ValueError as e:
+            raise CheckpointError(f"average: {e}") from None
+    if greedy_depot is not None:
+        try:
+            ModelConfig.from_dict({"greedy_depot": greedy_depot}, "greedy_depot")
         except ValueError as e:
             raise CheckpointError(f"average: {e}") from None
     first = Path(paths[0])
@@ -324,8 +331,14 @@ def average(paths: list[str | Path], out: str | Path, window: tuple[int, int] | 
     n = len(sources)
     avg = {k: (v / n).to(dtypes[k]) if dtypes[k].is_floating_point else v for k, v in sums.items()}
     entry = {"op": "average", "sources": sources}
+    model = dict(ref[0])
     if window is not None:
-        config = {**config, "model": {**ref[0], "window_tasks": int(window[0]), "window_agents": int(window[1])}}
+        model.update(window_tasks=int(window[0]), window_agents=int(window[1]))
         entry["window"] = [int(window[0]), int(window[1])]
+    if greedy_depot is not None:
+        model["greedy_depot"] = greedy_depot
+        entry["greedy_depot"] = greedy_depot
+    if window is not None or greedy_depot is not None:
+        config = {**config, "model": model}
     save(out, {"config": config, "code_version": code_version(), "model": avg, "lineage": [entry]})
     return entry

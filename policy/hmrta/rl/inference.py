@@ -1,4 +1,4 @@
-"""Inference with a trained policy: RL(g.) (argmax, one rollout) and RL(s.N) (N sampled rollouts
+"""Inference with a trained policy: RL(g.) (greedy decoding, one rollout) and RL(s.N) (N sampled rollouts
 run as one batch, best makespan kept) and RL-lookahead (one-step lookahead over the policy's own
 greedy continuations at every decision: slower, better): the entry points of the methods ``rl``,
 ``rl-sample`` and ``rl-lookahead`` in :data:`hmrta.methods.METHODS`.
@@ -24,7 +24,7 @@ from ..solution import Solution, solution_from_state
 from .features import batch_observations
 from .checkpoint_info import DEFAULT_CHECKPOINT, CheckpointError, checkpoint_path  # noqa: F401 (re-exported)
 from .model import ModelConfig, PolicyNet, TracedPolicy
-from .rollout import action_costs, best_action, forward_threads, rollout
+from .rollout import action_costs, best_action, forward_threads, greedy_rows, rollout
 
 _CACHE: dict[str, "LoadedPolicy"] = {}
 _LOCK = threading.Lock()
@@ -132,7 +132,7 @@ def lookahead_choices(model: torch.nn.Module, states: list[MissionState], t_max:
     The states themselves are not changed."""
     obs, nodes = batch_observations(states, **model.cfg.view())
     with torch.inference_mode(), forward_threads(len(states)):  # threaded as a rollout of these states
-        own = model(**obs).argmax(-1).tolist()  # [b] the policy's choice (action rows)
+        own = greedy_rows(model(**obs), model.cfg.greedy_depot).tolist()  # [b] the policy's choice (action rows)
     mask = obs["action_mask"].numpy()  # [b, T]
     multi = [j for j in range(len(states)) if mask[j].sum() > 1]  # nothing to compare elsewhere
     costs, _ = action_costs(model, [(states[j], nodes[j], mask[j]) for j in multi], t_max)
@@ -183,7 +183,7 @@ class RLDecider:
                 probs = torch.softmax(logits / self.temperature, -1)  # [T] as in a sampled rollout
                 row = int(torch.multinomial(probs, 1, generator=self.gen)[0])
             else:
-                row = int(logits.argmax())
+                row = int(greedy_rows(logits[None], self.pol.model.cfg.greedy_depot)[0])
             return int(nodes[0][row])
 
 

@@ -19,6 +19,7 @@ TRAVEL_SLOPE_SCALE = 50.0  # travel_bias slopes per unit of distance (positions 
 # parameters of options that start at zero (the same function as without them): a checkpoint that
 # lacks them may be loaded into a network that has them
 ZERO_INIT_PARAMS = frozenset({"travel_slope"})
+GREEDY_DEPOT = ("argmax", "majority")  # the values of ModelConfig.greedy_depot
 
 
 @dataclass
@@ -42,6 +43,12 @@ class ModelConfig:
     # much as in training (docs/training.md, "The observation window")
     window_tasks: int = MAX_TASKS
     window_agents: int = MAX_AGENTS
+    # greedy decoding (RL(g.), lookahead's own choice, live agents, validation): "argmax" takes
+    # the most likely row of [depot, tasks]; "majority" goes to the depot only when its
+    # probability is at least 1/2 and otherwise takes the most likely task, so that many
+    # similar tasks sharing the probability do not lose to the one depot row
+    # (rl/rollout.py:greedy_rows; docs/training.md, "Deciding the depot on its total probability")
+    greedy_depot: str = "argmax"
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -85,6 +92,9 @@ class ModelConfig:
             raise ValueError(f"{where}.travel_bias: expected true or false, got {short(c.travel_bias)}")
         if c.scale not in SCALES:
             raise ValueError(f"{where}.scale: expected one of {', '.join(SCALES)}, got {short(c.scale)}")
+        if c.greedy_depot not in GREEDY_DEPOT:
+            raise ValueError(f"{where}.greedy_depot: expected one of {', '.join(GREEDY_DEPOT)}, "
+                             f"got {short(c.greedy_depot)}")
         return c
 
 

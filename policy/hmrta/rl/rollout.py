@@ -44,6 +44,24 @@ def forward_threads(n_states: int):
     return intra_op_threads(1 if n_states <= SINGLE_THREAD_STATES else torch.get_num_threads())
 
 
+def greedy_rows(logits: torch.Tensor, depot: str = "argmax") -> torch.Tensor:
+    """[b] the greedy action rows of ``logits`` [b, T] (row 0 the depot, inadmissible rows -inf),
+    by the rule ``depot`` (``ModelConfig.greedy_depot``): "argmax" the most likely row; "majority"
+    the depot only when its probability is at least 1/2, otherwise the most likely task. Every
+    greedy decision (rollouts, lookahead's own choice, live agents) goes through here."""
+    act = logits.argmax(dim=-1)  # [b]
+    if depot == "majority" and logits.shape[1] > 1:
+        home = act == 0  # [b]
+        if bool(home.any()):
+            tasks = logits[:, 1:]  # [b, T-1]
+            p_depot = torch.softmax(logits, dim=-1)[:, 0]  # [b]
+            overrule = home & (p_depot < 0.5) & torch.isfinite(tasks).any(dim=-1)  # [b]
+            act = torch.where(overrule, 1 + tasks.argmax(dim=-1), act)  # [b]
+    elif depot not in ("argmax", "majority"):
+        raise ValueError(f"greedy_depot: expected argmax or majority, got {depot!r}")
+    return act
+
+
 @dataclass
 class Trajectories:
     """Recorded decisions of a batch of episodes (for the re-scoring forward of REINFORCE)."""
@@ -61,7 +79,8 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
             generator: torch.Generator | None = None, record: bool = False,
             max_batch: int = 4096, amp: bool = False, temperature: float = 1.0,
             before_step: Callable[[list[int], dict, list, torch.Tensor], None] | None = None) -> Trajectories | None:
-    """Advance every state to the end. Greedy (argmax) or sampled decoding.
+    """Advance every state to the end. Greedy decoding (:func:`greedy_rows` by the model's
+    ``cfg.greedy_depot``) or sampled.
 
     ``temperature``: sampling from softmax(logits / temperature) (training exploration).
     ``amp``: bfloat16 autocast on CPU (training collection only; inference stays float32 so that
@@ -81,7 +100,7 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
                     probs = torch.softmax(logits / temperature, dim=-1)  # [b, T]
                     act = torch.multinomial(probs, 1, generator=generator)[:, 0]  # [b]
                 else:
-                    act = logits.argmax(dim=-1)  # [b]
+                    act = greedy_rows(logits, model.cfg.greedy_depot)  # [b]
                 if traj is not None:
                     traj.obs.append(obs)
                     traj.actions.append(act.clone())

@@ -1093,3 +1093,60 @@ def test_the_observation_window_is_the_checkpoints_and_every_inference_path_uses
     assert main(["checkpoint", "average", str(a), "--out", str(tmp_path / "bad.pt"), "--window", "0", "3"]) == 2
     assert "window.window_tasks: expected an integer" in capsys.readouterr().err
     assert not (tmp_path / "bad.pt").exists()
+
+
+def test_greedy_rows_decide_the_depot_by_the_checkpoints_rule():
+    """"argmax" takes the most likely row; "majority" goes home only on at least half the
+    probability, else takes the most likely task (never an inadmissible one)."""
+    from hmrta.rl.rollout import greedy_rows
+
+    p = torch.tensor([[0.4, 0.3, 0.3],  # depot most likely, tasks together more likely
+                      [0.6, 0.2, 0.2],  # depot on its own majority
+                      [0.3, 0.7, 0.0],  # a task most likely
+                      [0.2, 0.0, 0.0]])  # no admissible task: the depot (probabilities need not sum to 1 here)
+    logits = torch.log(p)  # [4, 3]; log 0 = -inf, the network's inadmissible rows
+    assert greedy_rows(logits).tolist() == [0, 0, 1, 0]
+    assert greedy_rows(logits, "argmax").tolist() == [0, 0, 1, 0]
+    assert greedy_rows(logits, "majority").tolist() == [1, 0, 1, 0]
+    assert greedy_rows(logits[:, :1], "majority").tolist() == [0, 0, 0, 0]  # the depot alone
+    with pytest.raises(ValueError, match="greedy_depot"):
+        greedy_rows(logits, "total")
+    with pytest.raises(ValueError, match=r"model.greedy_depot: expected one of argmax, majority"):
+        ModelConfig.from_dict({"greedy_depot": "first"})
+    assert ModelConfig.from_dict({}).greedy_depot == "argmax"  # checkpoints without the key: argmax
+
+
+def test_greedy_depot_is_the_checkpoints_and_live_decides_as_the_rollout(tmp_path, capsys):
+    """``checkpoint average --greedy-depot`` writes the rule into the config and lineage with the
+    weights unchanged; the rollout (RL(g.)) and the live decider follow it decision for decision.
+    The mission is one where the two rules part (the argmax parks a robot at the depot while the
+    tasks together are more likely)."""
+    from hmrta.cli import main
+    from hmrta.rl.checkpoint import load
+
+    src = load(DEFAULT_CHECKPOINT)
+    inst = ScenarioGenerator("MA-AT", 6, 2, 10, 2).instance(7, 1)
+    runs = {}
+    for rule in ("argmax", "majority"):
+        out = tmp_path / f"{rule}.pt"
+        assert main(["checkpoint", "average", str(DEFAULT_CHECKPOINT), "--out", str(out), "--greedy-depot", rule]) == 0
+        capsys.readouterr()
+        ck = load(out)
+        assert ck["config"]["model"]["greedy_depot"] == rule and ck["lineage"][0]["greedy_depot"] == rule
+        assert all(torch.equal(ck["model"][k], src["model"][k]) for k in src["model"])
+        pol = load_policy(out)
+        assert pol.model.cfg.greedy_depot == rule
+        st = MissionState(inst, seed=0, rules=pol.rules)
+        rollout(pol.model, [st], sample=False)
+        live = MissionState(inst, seed=0, rules=pol.rules)
+        decide = RLDecider(pol, sample=False, seed=0)
+        while not live.done:
+            live.step(decide(live))
+        assert st.success and live.routes == st.routes and live.makespan == st.makespan
+        assert live.decisions == st.decisions
+        runs[rule] = st
+    assert runs["majority"].decisions < runs["argmax"].decisions  # 17 against 39 decisions
+    assert runs["majority"].makespan < runs["argmax"].makespan
+    with pytest.raises(SystemExit):
+        main(["checkpoint", "average", str(DEFAULT_CHECKPOINT), "--out", str(tmp_path / "x.pt"), "--greedy-depot", "first"])
+    assert "invalid choice" in capsys.readouterr().err and not (tmp_path / "x.pt").exists()
