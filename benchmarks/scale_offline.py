@@ -9,7 +9,8 @@ runs it), and prints per size the milliseconds per decision and the total time, 
 * greedy: the policy's choice and the state machine's step (commit, then events and masks up to
   the next decision);
 * rl: the observation (window selection, features, batch tensors), the network call (its traced
-  form, as inference runs it), and the rest (the state machine's step, argmax and bookkeeping).
+  form, as inference runs it), and the rest (the state machine's step, the greedy choice and
+  bookkeeping).
 
 Each cost's growth is fitted as a power of the mission size (the slope of log cost against log
 number of tasks): ~0 is flat, 1 linear. The network call is also set against its arithmetic

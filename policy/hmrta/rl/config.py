@@ -218,7 +218,7 @@ class DistillConfig:
     lr: float = _f(1.0e-4, _number(0, lo_open=True))
     tau: float = _f(0.0, _number(0))  # 0: hard target (best action); > 0: soft target softmax(-(cost - best) / tau)
     tasks: list | None = _f(None, _optional(_range(1)))  # task range (None: the training distribution)
-    teacher: str = "policy"  # branches finished by: policy (own argmax) | greedy | greedy-coalition
+    teacher: str = "policy"  # branches finished by: policy (own greedy decoding) | greedy | greedy-coalition
 
     def __post_init__(self) -> None:
         _validate(self, "distill.")
@@ -236,7 +236,7 @@ class PretrainConfig:
     epochs: int = _f(2, _integer(0))
     batch: int = _f(512, _integer(1))
     teacher: str = "greedy"  # greedy | greedy-coalition (the baseline whose choices are cloned)
-    # share of instances whose visited states come from the policy's argmax rollout
+    # share of instances whose visited states come from the policy's greedy rollout
     dagger: float = _f(0.0, _number(0, 1, hi_open=False, text="expected a share in [0, 1]"))
     # who labels them: ``teacher`` at every state the policy visits, or ``solver``: the policy
     # drives to a random decision, the solver plans the rest from there (hmrta.solvers.fromstate,

@@ -1,6 +1,6 @@
 """Lookahead distillation (``distill``, project choice): policy improvement by one-step lookahead.
 
-From random decisions of the current policy's argmax rollouts, every admissible action is tried
+From random decisions of the current policy's greedy rollouts, every admissible action is tried
 and the mission completed by the same policy; the action with the lowest cost T + W (ties: the
 policy's own choice) becomes a cross-entropy target (``tau`` > 0: a soft target
 softmax(-(cost - best) / tau)), replayed from a buffer of recent rounds. Each round imitates the

@@ -2,11 +2,11 @@
 
 Cross-entropy on a baseline's choices (``pretrain.teacher``: ``greedy`` or the coalition-aware
 ``greedy-coalition``), so that later phases start from a baseline-level policy. With
-``pretrain.dagger`` > 0 that share of the instances is driven by the policy's own argmax and
-labelled by the teacher (DAgger, Ross et al. 2011), so the policy also learns to recover from its
-own mistakes; with ``pretrain.dagger_teacher: solver`` the policy drives each such mission to a
-random decision and a plan from that state (:mod:`hmrta.solvers.fromstate`) labels the rest of it
-(:meth:`Imitation.solver_dagger`). With ``pretrain.samples`` > 0 (expert iteration) that many
+``pretrain.dagger`` > 0 that share of the instances is driven by the policy's own greedy
+decoding and labelled by the teacher (DAgger, Ross et al. 2011), so the policy also learns to
+recover from its own mistakes; with ``pretrain.dagger_teacher: solver`` the policy drives each
+such mission to a random decision and a plan from that state (:mod:`hmrta.solvers.fromstate`)
+labels the rest of it (:meth:`Imitation.solver_dagger`). With ``pretrain.samples`` > 0 (expert iteration) that many
 sampled rollouts of the policy (``pretrain.temperature``) compete with the teacher's trajectory on
 each teacher-driven instance (with ``pretrain.generated_teacher: policy``, on the generated
 missions, with the policy's own greedy decoding: self-improvement), and the best of them (by
