@@ -520,6 +520,33 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_checkpoint_info(args) -> int:
+    from .rl.checkpoint_info import describe, lineage_lines
+
+    d = describe(args.checkpoint)
+    if args.json:
+        print(json.dumps(d, indent=1, default=str))
+        return 0
+    cfg = d["config"]
+    model = cfg.get("model") if isinstance(cfg.get("model"), dict) else {}
+    rules = cfg.get("rules") if isinstance(cfg.get("rules"), dict) else {}
+    print(d["path"])
+    rows = [("sha256", d["sha256"]), ("format", d["format"]), ("code", d["code_version"] or "not recorded"),
+            ("config", f"{cfg.get('name', '?')} (version {cfg.get('version', '?')}, seed {cfg.get('seed', '?')})"),
+            ("weights", ", ".join(d["weights"]) or "none"),
+            ("network", ", ".join(f"{k} {v}" for k, v in model.items() if k not in ("greedy_depot",))),
+            ("greedy depot", model.get("greedy_depot", "argmax (default)")),
+            ("rules", ", ".join(f"{k} {v}" for k, v in rules.items()) or "defaults")]
+    rows += [(k, d[k]) for k in ("iteration", "episodes", "best_val") if k in d]
+    for k, v in rows:
+        print(f"  {k:<13} {v}")
+    if d["lineage"]:
+        print("  lineage")
+        for line in lineage_lines(d["lineage"]):
+            print("    " + line)
+    return 0
+
+
 def cmd_checkpoint(args) -> int:
     from .deps import require
 
@@ -848,6 +875,15 @@ def build_parser() -> argparse.ArgumentParser:
                          "sources', argmax unless set; docs/training.md, 'Deciding the depot on its total "
                          "probability')")
     ca.set_defaults(fn=cmd_checkpoint)
+    ci = cksub.add_parser("info", help="what a checkpoint says about itself (no torch needed): sha256, format, "
+                                       "code version, network, greedy decoding, rules, training counters, lineage",
+                          formatter_class=F)
+    ci.add_argument("checkpoint", nargs="?", default=None, metavar="CHECKPOINT",
+                    help="checkpoint file, or the name of a shipped one (default, broad, coalition-team, "
+                         "coalition-open; default: the shipped default.pt or $HMRTA_CHECKPOINT)")
+    ci.add_argument("--json", action="store_true", help="print everything as JSON (the whole resolved config "
+                                                        "and lineage)")
+    ci.set_defaults(fn=cmd_checkpoint_info)
 
     sc = sub.add_parser("schedules", help="solve seeded training missions with the anytime solver and store "
                                           "their routes (a teacher dataset for pretrain.schedules)",

@@ -10,6 +10,7 @@ crafted to run code would need) is refused with a :class:`CheckpointError`.
 from __future__ import annotations
 
 import functools
+import hashlib
 import io
 import os
 import pickle
@@ -107,6 +108,53 @@ def read_config(checkpoint: str | Path | None = None) -> dict:
     if not path.is_file():
         raise missing(path)
     return _read(str(path.resolve()), path.stat().st_mtime_ns)["config"]
+
+
+def describe(checkpoint: str | Path | None = None) -> dict:
+    """What a checkpoint says about itself, without torch: its path and sha256, checkpoint format
+    (0 before formats were numbered), the code version that wrote it, its resolved config (model,
+    rules, training), which weights it holds, its training counters and its lineage."""
+    path = checkpoint_path(checkpoint)
+    if not path.is_file():
+        raise missing(path)
+    data = _read(str(path.resolve()), path.stat().st_mtime_ns)
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    out: dict[str, Any] = {"path": str(path), "sha256": h.hexdigest(),
+                           "format": data.get("checkpoint_format", 0),
+                           "code_version": data.get("code_version"),
+                           "weights": [k for k in ("model", "ema") if isinstance(data.get(k), dict)]}
+    for k in ("iteration", "episodes", "best_val"):
+        if isinstance(data.get(k), (int, float)) and not isinstance(data.get(k), bool):
+            out[k] = data[k]
+    out["config"] = data["config"]
+    out["lineage"] = data["lineage"] if isinstance(data.get("lineage"), list) else []
+    return out
+
+
+def lineage_lines(lineage: list, depth: int = 0) -> list[str]:
+    """A lineage as indented lines, newest step first: each step's operation, its settings and
+    its sources (path, sha256 prefix, weights, code version), their own lineage below them.
+    Entries that are not what ``checkpoint average`` writes are shown as unreadable."""
+    lines = []
+    for e in lineage:
+        if not isinstance(e, dict) or not isinstance(e.get("sources"), list):
+            lines.append("  " * depth + "(unreadable lineage entry)")
+            continue
+        sets = [f"{k} {e[k]}" for k in ("window", "greedy_depot") if k in e]
+        lines.append("  " * depth + f"{e.get('op', '?')}" + (f" ({', '.join(map(str, sets))})" if sets else "") + " of")
+        for s in e["sources"]:
+            if not isinstance(s, dict):
+                lines.append("  " * (depth + 1) + "(unreadable source)")
+                continue
+            sha = s.get("sha256") if isinstance(s.get("sha256"), str) else "?"
+            code = f", code {s['code_version']}" if isinstance(s.get("code_version"), str) else ""
+            lines.append("  " * (depth + 1) + f"{s.get('path', '?')} (sha256 {sha[:12]}…, {s.get('weights', '?')}{code})")
+            if isinstance(s.get("lineage"), list) and depth < 32:
+                lines += lineage_lines(s["lineage"], depth + 2)
+    return lines
 
 
 def checkpoint_rules(checkpoint: str | Path | None = None):

@@ -1150,3 +1150,34 @@ def test_greedy_depot_is_the_checkpoints_and_live_decides_as_the_rollout(tmp_pat
     with pytest.raises(SystemExit):
         main(["checkpoint", "average", str(DEFAULT_CHECKPOINT), "--out", str(tmp_path / "x.pt"), "--greedy-depot", "first"])
     assert "invalid choice" in capsys.readouterr().err and not (tmp_path / "x.pt").exists()
+
+
+def test_checkpoint_info_reads_a_checkpoint_without_building_it(tmp_path, capsys):
+    """``hmrta checkpoint info`` prints what the file says about itself (sha256, network, greedy
+    decoding, rules, lineage), as JSON with ``--json``; a missing or foreign file exits 2 with
+    one line."""
+    import hashlib
+    import json
+
+    from hmrta.cli import main
+    from hmrta.rl.checkpoint_info import describe, lineage_lines
+
+    d = describe("default")
+    assert d["sha256"] == hashlib.sha256(DEFAULT_CHECKPOINT.read_bytes()).hexdigest()
+    assert d["config"]["model"]["greedy_depot"] == "majority" and d["weights"] == ["model"]
+    lines = lineage_lines(d["lineage"])
+    assert lines[0] == "average (greedy_depot majority) of" and "window [100, 25]" in "\n".join(lines)
+    assert main(["checkpoint", "info"]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0] == str(DEFAULT_CHECKPOINT) and "greedy depot  majority" in out
+    assert main(["checkpoint", "info", "broad", "--json"]) == 0
+    broad = json.loads(capsys.readouterr().out)
+    assert broad["sha256"] == describe("broad")["sha256"] and "greedy_depot" not in broad["config"]["model"]
+    a, _ = _exported(tmp_path, "a", seed=1)  # a file of this version: format, code version, no lineage
+    info = describe(a)
+    assert info["format"] >= 1 and info["lineage"] == [] and info["config"]["model"]["greedy_depot"] == "argmax"
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    for bad in (str(tmp_path / "none.pt"), str(tmp_path / "junk.pt")):
+        assert main(["checkpoint", "info", bad]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and bad in err
