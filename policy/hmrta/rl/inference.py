@@ -1,7 +1,7 @@
-"""Inference with a trained policy: RL(g.) (greedy decoding, one rollout) and RL(s.N) (N sampled rollouts
-run as one batch, best makespan kept) and RL-lookahead (one-step lookahead over the policy's own
-greedy continuations at every decision: slower, better): the entry points of the methods ``rl``,
-``rl-sample`` and ``rl-lookahead`` in :data:`hmrta.methods.METHODS`.
+"""Inference with a trained policy: RL(g.) (greedy decoding, one rollout) and RL(s.N) (N sampled
+rollouts run as one batch, best makespan kept) and RL-lookahead (one-step lookahead over the
+policy's own greedy continuations at every decision: slower, better): the entry points of the
+methods ``rl``, ``rl-sample`` and ``rl-lookahead`` in :data:`hmrta.methods.METHODS`.
 
 The shipped checkpoint (``hmrta/checkpoints/default.pt``) loads by default; ``HMRTA_CHECKPOINT``
 or the ``checkpoint`` option selects another. Loaded models are cached and shared read-only (many

@@ -19,6 +19,7 @@ import torch
 from ..core import DONE, MissionState
 from ..solution import redundancy
 from .features import batch_observations
+from .model import GREEDY_DEPOT
 
 
 SINGLE_THREAD_STATES = 64  # a rollout of at most this many states runs its forwards on one thread
@@ -57,8 +58,8 @@ def greedy_rows(logits: torch.Tensor, depot: str = "argmax") -> torch.Tensor:
             p_depot = torch.softmax(logits, dim=-1)[:, 0]  # [b]
             overrule = home & (p_depot < 0.5) & torch.isfinite(tasks).any(dim=-1)  # [b]
             act = torch.where(overrule, 1 + tasks.argmax(dim=-1), act)  # [b]
-    elif depot not in ("argmax", "majority"):
-        raise ValueError(f"greedy_depot: expected argmax or majority, got {depot!r}")
+    elif depot not in GREEDY_DEPOT:
+        raise ValueError(f"greedy_depot: expected one of {', '.join(GREEDY_DEPOT)}, got {depot!r}")
     return act
 
 
