@@ -1181,3 +1181,25 @@ def test_checkpoint_info_reads_a_checkpoint_without_building_it(tmp_path, capsys
         assert main(["checkpoint", "info", bad]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and bad in err
+
+
+def test_lookahead_breaks_ties_with_the_checkpoints_greedy_choice(monkeypatch):
+    """Where every action costs the same, lookahead keeps the policy's own choice: the greedy row
+    by the checkpoint's rule (here a state where "majority" and the argmax part)."""
+    import hmrta.rl.inference as inf
+    from hmrta.rl.rollout import greedy_rows
+
+    pol = load_policy()  # default.pt: greedy_depot majority
+    assert pol.model.cfg.greedy_depot == "majority"
+    st = MissionState(ScenarioGenerator("MA-AT", 6, 2, 10, 2).instance(7, 1), seed=0, rules=pol.rules)
+    while not st.done:  # the first decision where the two rules part
+        obs, nodes = batch_observations([st], **pol.model.cfg.view())
+        with torch.inference_mode():
+            logits = pol.model(**obs)
+        if int(logits.argmax()) != int(greedy_rows(logits, "majority")[0]):
+            break
+        st.step(int(nodes[0][int(logits.argmax())]))
+    assert not st.done
+    monkeypatch.setattr(inf, "action_costs", lambda model, decisions, t_max: (
+        [np.where(mask, 1.0, np.inf) for _, _, mask in decisions], []))  # all admissible actions tie
+    assert inf.lookahead_choices(pol.model, [st]) == [int(nodes[0][int(greedy_rows(logits, "majority")[0])])]
