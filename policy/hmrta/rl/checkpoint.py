@@ -272,16 +272,22 @@ def _network(ck: dict, path: str | Path) -> tuple[dict, dict]:
     return model, rules
 
 
+# model settings chosen at inference, not by the weights: sources may differ in them (the written
+# file takes the first source's unless ``average`` sets them)
+INFERENCE_SETTINGS = frozenset({"window_tasks", "window_agents", "greedy_depot"})
+
+
 def average(paths: list[str | Path], out: str | Path, window: tuple[int, int] | None = None,
             greedy_depot: str | None = None) -> dict:
     """Average the weights (each file's moving average when it has one) of checkpoints of the same
     network and rules, and write them to ``out`` (atomically) with the first file's resolved
     config and a lineage entry naming every source with its sha256. Checkpoints whose model
-    config or rules differ are refused (CheckpointError naming the file and the key). ``window``
-    (tasks, robots) sets the observation window of the written config (``model.window_tasks``,
-    ``model.window_agents``; it changes what the network is shown, not its weights) and is
-    recorded in the lineage entry; so is ``greedy_depot`` (``model.greedy_depot``: how greedy
-    decoding picks the depot). Returns the lineage entry."""
+    config (but for its :data:`INFERENCE_SETTINGS`, taken from the first file) or rules differ
+    are refused (CheckpointError naming the file and the key). ``window`` (tasks, robots) sets the
+    observation window of the written config (``model.window_tasks``, ``model.window_agents``; it
+    changes what the network is shown, not its weights) and is recorded in the lineage entry; so
+    is ``greedy_depot`` (``model.greedy_depot``: how greedy decoding picks the depot). Returns
+    the lineage entry."""
     from .model import PolicyNet, ModelConfig
 
     if not paths:
@@ -309,7 +315,7 @@ def average(paths: list[str | Path], out: str | Path, window: tuple[int, int] | 
                 net = PolicyNet(ModelConfig(**model_cfg))
         else:
             for what, mine, theirs in (("config.model", model_cfg, ref[0]), ("config.rules", rules, ref[1])):
-                diff = [k for k in theirs if mine.get(k) != theirs.get(k)]
+                diff = [k for k in theirs if mine.get(k) != theirs.get(k) and k not in INFERENCE_SETTINGS]
                 if diff:
                     k = diff[0]
                     raise CheckpointError(f"{p}: {what}.{k} is {short(mine.get(k))} but {short(theirs.get(k))} in "

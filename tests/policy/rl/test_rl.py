@@ -1203,3 +1203,24 @@ def test_lookahead_breaks_ties_with_the_checkpoints_greedy_choice(monkeypatch):
     monkeypatch.setattr(inf, "action_costs", lambda model, decisions, t_max: (
         [np.where(mask, 1.0, np.inf) for _, _, mask in decisions], []))  # all admissible actions tie
     assert inf.lookahead_choices(pol.model, [st]) == [int(nodes[0][int(greedy_rows(logits, "majority")[0])])]
+
+
+def test_checkpoint_average_takes_inference_settings_from_the_first_file(tmp_path, capsys):
+    """Sources that differ only in inference settings (window, greedy decoding) are averaged; the
+    written file has the first one's unless --window / --greedy-depot set them."""
+    from hmrta.cli import main
+    from hmrta.rl.checkpoint import load
+
+    a, _ = _exported(tmp_path, "a", seed=1)
+    b, _ = _exported(tmp_path, "b", seed=2)
+    bm = tmp_path / "bm.pt"
+    assert main(["checkpoint", "average", str(b), "--out", str(bm), "--greedy-depot", "majority",
+                 "--window", "8", "3"]) == 0
+    for first, second, want in ((a, bm, ("argmax", 50)), (bm, a, ("majority", 8))):
+        out = tmp_path / "ab.pt"
+        assert main(["checkpoint", "average", str(first), str(second), "--out", str(out)]) == 0
+        m = load(out)["config"]["model"]
+        assert (m["greedy_depot"], m["window_tasks"]) == want
+    assert main(["checkpoint", "average", str(a), str(bm), "--out", str(out), "--greedy-depot", "majority"]) == 0
+    assert load(out)["config"]["model"]["greedy_depot"] == "majority"
+    capsys.readouterr()
