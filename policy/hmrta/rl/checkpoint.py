@@ -23,7 +23,6 @@ The torch-free reader of a checkpoint's config and rules is :mod:`hmrta.rl.check
 """
 from __future__ import annotations
 
-import hashlib
 import math
 import pickle
 import re
@@ -35,7 +34,7 @@ from typing import Any
 import torch
 
 from ..reading import short
-from .checkpoint_info import CheckpointError, checkpoint_path, missing
+from .checkpoint_info import CheckpointError, checkpoint_path, missing, sha256
 
 FORMAT_VERSION = 1
 
@@ -243,14 +242,6 @@ def policy_weights(ck: dict, path: str | Path) -> tuple[str, dict[str, torch.Ten
     when the checkpoint has one (validation scored those)."""
     which = "ema" if ck.get("ema") is not None else "model"
     return which, weights(ck, which, path)  # type: ignore[return-value]
-
-
-def sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _network(ck: dict, path: str | Path) -> tuple[dict, dict]:

@@ -110,6 +110,15 @@ def read_config(checkpoint: str | Path | None = None) -> dict:
     return _read(str(path.resolve()), path.stat().st_mtime_ns)["config"]
 
 
+def sha256(path: str | Path) -> str:
+    """The hex sha256 of a file (read in 1 MiB blocks)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def describe(checkpoint: str | Path | None = None) -> dict:
     """What a checkpoint says about itself, without torch: its path and sha256, checkpoint format
     (0 before formats were numbered), the code version that wrote it, its resolved config (model,
@@ -118,11 +127,7 @@ def describe(checkpoint: str | Path | None = None) -> dict:
     if not path.is_file():
         raise missing(path)
     data = _read(str(path.resolve()), path.stat().st_mtime_ns)
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    out: dict[str, Any] = {"path": str(path), "sha256": h.hexdigest(),
+    out: dict[str, Any] = {"path": str(path), "sha256": sha256(path),
                            "format": data.get("checkpoint_format", 0),
                            "code_version": data.get("code_version"),
                            "weights": [k for k in ("model", "ema") if isinstance(data.get(k), dict)]}
@@ -144,7 +149,7 @@ def lineage_lines(lineage: list, depth: int = 0) -> list[str]:
             lines.append("  " * depth + "(unreadable lineage entry)")
             continue
         sets = [f"{k} {e[k]}" for k in ("window", "greedy_depot") if k in e]
-        lines.append("  " * depth + f"{e.get('op', '?')}" + (f" ({', '.join(map(str, sets))})" if sets else "") + " of")
+        lines.append("  " * depth + f"{e.get('op', '?')}" + (f" ({', '.join(sets)})" if sets else "") + " of")
         for s in e["sources"]:
             if not isinstance(s, dict):
                 lines.append("  " * (depth + 1) + "(unreadable source)")

@@ -1224,3 +1224,14 @@ def test_checkpoint_average_takes_inference_settings_from_the_first_file(tmp_pat
     assert main(["checkpoint", "average", str(a), str(bm), "--out", str(out), "--greedy-depot", "majority"]) == 0
     assert load(out)["config"]["model"]["greedy_depot"] == "majority"
     capsys.readouterr()
+
+
+def test_the_cli_offers_every_greedy_decoding():
+    """``--greedy-depot`` takes every value of ModelConfig.greedy_depot (the parser is built
+    without importing torch, so it spells them out)."""
+    from hmrta.cli import build_parser
+    from hmrta.rl.model import GREEDY_DEPOT
+
+    for rule in GREEDY_DEPOT:
+        args = build_parser().parse_args(["checkpoint", "average", "a.pt", "--out", "b.pt", "--greedy-depot", rule])
+        assert args.greedy_depot == rule
