@@ -18,47 +18,48 @@ from __future__ import annotations
 import argparse
 import statistics
 
-PAPER_ROWS = {"SA-BT": [(9, 3, 20, 3), (25, 5, 20, 5), (25, 5, 50, 5), (50, 5, 50, 5)],
-              "SA-AT": [(9, 3, 20, 3), (15, 5, 20, 5), (25, 5, 20, 5), (50, 5, 50, 5)],
-              "MA-AT": [(9, 3, 20, 3), (15, 5, 20, 5), (25, 5, 20, 5), (25, 5, 50, 5), (50, 5, 50, 5)]}
-LARGE_ROWS = [(50, 5, 200, 5), (150, 10, 500, 5), (150, 5, 500, 5)]
 DEFAULTS = {"families": (10, 2000), "paper": (20, 4242), "large": (10, 5000)}  # (count, seed)
 
 
-def rollout(pol, inst, two_level: bool) -> tuple[float, int, int]:
-    """(makespan, decisions, decisions where the two-level rule overrode the argmax), whatever the
-    checkpoint's own ``greedy_depot``."""
-    import torch
+class Decoded:
+    """The policy's traced network with its greedy decoding set to ``rule`` (whatever the
+    checkpoint's own), counting the decisions where that rule departs from the argmax; driven by
+    ``hmrta.rl.rollout.rollout``, the path RL(g.) itself takes."""
 
+    def __init__(self, model, rule: str):
+        import dataclasses
+
+        self.model, self.cfg, self.overridden = model, dataclasses.replace(model.cfg, greedy_depot=rule), 0
+
+    def __call__(self, **obs):
+        from hmrta.rl.rollout import greedy_rows
+
+        logits = self.model(**obs)  # [b, T] row 0 = depot
+        self.overridden += int((greedy_rows(logits, self.cfg.greedy_depot) != logits.argmax(-1)).sum())
+        return logits
+
+
+def solve(pol, inst, rule: str) -> tuple[float, int, int]:
+    """(makespan, decisions, decisions where ``rule`` overrode the argmax) of one greedy rollout."""
     from hmrta.core import MissionState
-    from hmrta.rl.features import batch_observations
-    from hmrta.rl.rollout import greedy_rows
+    from hmrta.rl.rollout import rollout
 
-    st = MissionState(inst, seed=0, rules=pol.rules)
-    overridden = 0
-    with torch.inference_mode():
-        while not st.done:
-            obs, nodes = batch_observations([st], **pol.model.cfg.view())
-            logits = pol.model(**obs)  # [1, T] row 0 = depot
-            row = int(greedy_rows(logits, "majority" if two_level else "argmax")[0])
-            overridden += row != int(logits[0].argmax())
-            st.step(int(nodes[0][row]))
+    st, model = MissionState(inst, seed=0, rules=pol.rules), Decoded(pol.model, rule)
+    rollout(model, [st], sample=False)
     if not st.success:
         raise RuntimeError(f"mission {inst.name} failed: {st.failure}")
-    return st.makespan, st.decisions, overridden
+    return st.makespan, st.decisions, model.overridden
 
 
 def rows(suite: str, count: int, seed: int):
+    from hmrta.bench import paper_suite
     from hmrta.families import family_suite
-    from hmrta.generators import ScenarioGenerator
 
     if suite == "families":
         return [(r.key, r.generator().generate(count, seed)) for r in family_suite(max_tasks=50)]
-    if suite == "paper":
-        return [(f"{t} {','.join(map(str, r))}", ScenarioGenerator(t, *r).generate(count, seed))
-                for t, rs in PAPER_ROWS.items() for r in rs]
-    return [(f"MA-AT {','.join(map(str, r))}", ScenarioGenerator("MA-AT", *r).generate(count, seed))
-            for r in LARGE_ROWS]
+    tables = ["MA-AT-large"] if suite == "large" else ["SA-BT", "SA-AT", "MA-AT"]
+    return [(f"{r.scenario} {r.agents},{r.species},{r.tasks},{r.skills}", r.generator().generate(count, seed))
+            for r in paper_suite(tables)]
 
 
 def main() -> int:
@@ -89,8 +90,8 @@ def main() -> int:
     print("|---|---:|---:|---:|---:|---:|---|")
     ratios = []
     for name, insts in rows(args.suite, count, seed):
-        a = [rollout(pol, i, False) for i in insts]
-        b = [rollout(pol, i, True) for i in insts]
+        a = [solve(pol, i, "argmax") for i in insts]
+        b = [solve(pol, i, "majority") for i in insts]
         ma, mb = statistics.mean(x[0] for x in a), statistics.mean(x[0] for x in b)
         ratios.append(mb / ma)
         changed = sum(x[0] != y[0] for x, y in zip(a, b))
