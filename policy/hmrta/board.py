@@ -418,8 +418,15 @@ class BoardCore:
 
     def _external(self, rec: dict[str, Any]) -> Any:
         """Apply an operator event (add_task, cancel_task, add_agent) at its time ``t``: the held
-        state moves to ``t`` first. EventRejected leaves the state as it was."""
+        state moves to ``t`` first. EventRejected leaves the state as it was: the event is tried
+        on a copy first, since moving to ``t`` alone changes the state (its clock, the decisions
+        due by then), and a refused event is neither journaled nor published, so the replicas
+        would never hear of that move."""
         st = self.state
+        trial = st.clone()
+        trial.until = st.until
+        trial.advance_to(float(rec["t"]), idle=True)
+        apply_event(trial, rec)  # EventRejected: nothing changed
 
         def change() -> Any:
             st.advance_to(float(rec["t"]), idle=True)

@@ -422,6 +422,33 @@ def test_operator_tasks_are_added_cancelled_answered_and_journaled(tmp_path):
     assert sol.extra["undone_tasks"] == [INST.n_tasks] and len(sol.tasks) == INST.n_tasks + 2
 
 
+def test_a_refused_request_changes_nothing_even_while_the_clock_runs_ahead_of_the_state(tmp_path):
+    """An operator add the team cannot do, or a join of an unknown species, between two events
+    (the mission clock ahead of the held state): the state, its revision and its journal stay as
+    they were, so the replicas (which never hear of a refusal) stay equal to the board."""
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    n = drive(b, steps=4)
+    while b.phase == "decide" and n < 40:  # to a moment with every robot on its way
+        n += drive(b, steps=1)
+    while b.poll() is not None:
+        pass
+    assert b.phase != "decide"
+    b.set_clock(b.clock + 0.25 * (b._key[3] - b.clock))  # part way to the next event
+    b.poll()
+    assert b.state.clock < b.clock  # the state is held at its last event
+    before = (state_digest(b.state), b.rev, float(b.state.clock), j.read_text())
+    bad = {"location": [0.2, 0.8], "requirements": [99, 0, 0], "duration": 2.0}
+    assert b.task_request("add", "too-big", bad)["event"] == "rejected"
+    assert b.task_request("add", "nan", {**bad, "requirements": [1, 0, 0], "duration": math.nan})["event"] == "rejected"
+    assert "cannot join" in b.join("stranger", species=INST.n_species + 3)
+    assert b.poll() is None
+    assert (state_digest(b.state), b.rev, float(b.state.clock), j.read_text()) == before
+    drive(b)
+    b2 = started_board(journal=j)  # the journal replays to the same state
+    assert b2.state.snapshot() == b.state.snapshot()
+
+
 def test_the_board_state_never_runs_ahead_of_the_mission_clock():
     """A task whose work outlasts every decision is still running (and cancellable) on the board
     while the clock has not reached its finish; the held state ends like the offline rollout."""

@@ -85,6 +85,7 @@ class Mission:
         self.rng, self.drop, self.check = rng, set(drop), check
         self.checked = self.dropped = 0
         self.ops: list[str] = []
+        self.refused = 0  # refused requests (an add, a join) sent
         self.kinds: set[str] = set()  # the kinds of event the board published
         self.last_keyframe = None  # what a latched keyframe topic holds
 
@@ -125,7 +126,15 @@ class Mission:
         elif r < 0.10:
             b.join(f"new_{b.state.A}", rng.randrange(b.state.inst.n_species),
                    position=(rng.random(), rng.random()) if rng.random() < 0.5 else None)
-        elif r < 0.115:
+        elif r < 0.105:  # requests the board refuses: nothing changes, so the replica stays equal
+            bad = rng.choice(({"location": [0.5, 0.5], "requirements": [99.0] * K, "duration": 1.0},
+                              {"location": [0.5, 0.5], "requirements": [1.0] * K, "duration": math.nan}))
+            before = (state_digest(b.state), b.rev, b.state.clock)
+            assert b.task_request("add", "bad", bad)["event"] == "rejected"
+            assert (state_digest(b.state), b.rev, b.state.clock) == before
+            self.refused += 1
+            assert "cannot join" in b.join(f"odd_{self.refused}", b.state.inst.n_species + 2)
+        elif r < 0.12:
             alive = [a for a in range(b.state.A) if a not in b.lost]
             if len(alive) > b.inst.n_agents // 2:
                 b.lose(rng.choice(alive), "test: lost")
