@@ -84,6 +84,7 @@ KEYFRAME_REPEAT = 1.0  # seconds: the latest keyframe's version is published aga
 HEADER_REPEAT = 0.25  # seconds: an idle board streams its latest header again (a replica that missed it sees the gap)
 CHECK_GATE = False  # tests: every incremental arrival gate is compared with the full scan
 GATE_RESCAN = 0.5  # seconds: while the arrival gate holds the mission clock, every robot is rescanned this often
+STALL_GAP = 1.0  # seconds: a watchdog tick (every 0.1 s on the node) later than this after the previous one: the board stalled
 HEADER_BYTES = 330  # about the bytes of a stream header without its events (for the automatic keyframe period)
 
 
@@ -503,6 +504,11 @@ class MissionBoard(BoardCore):
         self.lost: dict[int, str] = {}
         self.accepted: set[tuple[int, int]] = set()
         self.released_at = 0.0  # wall time when the current decision was released
+        # the board's own stalls (a watchdog tick more than STALL_GAP after the previous one: its
+        # process stopped or starved): the wall time of the latest, from which every robot's
+        # timeout counts afresh (see _stalled)
+        self._ticked: float | None = None
+        self._resumed = -math.inf
         self.latency_ms: list[float] = []
         self.agent_ms: list[float] = []
         self.rejected: Counter[str] = Counter()
@@ -790,10 +796,13 @@ class MissionBoard(BoardCore):
         if self.finished:
             return
         now = self.now()
+        if self._ticked is not None and now - self._ticked > STALL_GAP:
+            self._stalled(now, now - self._ticked)
+        self._ticked = now
         if self.t_start is None and self.started:  # replayed from a journal: everyone gets a fresh timeout
             self.t_start = now
         if not self.started:
-            if self.startup_timeout > 0 and now - self.t_created > self.startup_timeout:
+            if self.startup_timeout > 0 and now - max(self.t_created, self._resumed) > self.startup_timeout:
                 for a in range(self.state.A):
                     if self.seen_status[a] is None or self.seen_pose[a] is None:
                         self.lose(a, "never reported")
@@ -806,11 +815,26 @@ class MissionBoard(BoardCore):
                     continue
                 # liveness is the agent's heartbeat: a silent pose (a robot standing still whose
                 # driver reports only on updates, as amcl does) drops nobody
-                if now - max(self.seen_status[a] or 0.0, self.t_start) > T:
+                if now - max(self.seen_status[a] or 0.0, self.t_start, self._resumed) > T:
                     self.lose(a, f"no agent heartbeat for {T:g} s")
-        if self.decision_timeout > 0 and self.phase == "decide" and now - self.released_at > self.decision_timeout:
+        if (self.decision_timeout > 0 and self.phase == "decide"
+                and now - max(self.released_at, self._resumed) > self.decision_timeout):
             self.lose(self.state.agent, f"no decision within {self.decision_timeout:g} s")
         self._check_legs(now)
+
+    def _stalled(self, now: float, gap: float) -> None:
+        """The board itself did not run for ``gap`` seconds (more than STALL_GAP): what the robots
+        sent meanwhile is still unread in its queues, or lost on the way and being repaired by the
+        middleware (a reliable reader delivers nothing newer until then), so every robot's
+        heartbeat, decision and start-up timeout counts afresh from ``now``, as on a board restarted
+        on its journal, and leg timeouts leave the gap out. Without this, a board resumed after a
+        pause longer than the heartbeat timeout drops every robot at its first tick."""
+        self._resumed = now
+        for tm in self.leg_timers.values():
+            if tm.reached is not None:
+                tm.reached += gap
+        self.log("warning", f"the board did not run for {gap:.1f} s (its process stopped or starved): "
+                            f"every robot's timeout counts afresh")
 
     # ------------------------------------------------------------------------------------------
     # stuck robots: leg timeouts

@@ -271,11 +271,12 @@ def test_silent_robot_is_lost_and_the_others_finish():
         b.heartbeat(b.session, [b.names[a]])
         b.pose(a, *INST.depots[a])
     drive(b, steps=4)
-    for _ in range(2):
-        now.t += 3.0
-        b.heartbeat(b.session, b.names[1:])  # robot_0's agent fell silent
-        for a in range(INST.n_agents):
-            b.pose(a, *b.last_pose[a])
+    for k in range(60):  # 6 s of a board ticking every 0.1 s, heartbeats every second
+        now.t += 0.1
+        if k % 10 == 9:
+            b.heartbeat(b.session, b.names[1:])  # robot_0's agent fell silent
+            for a in range(INST.n_agents):
+                b.pose(a, *b.last_pose[a])
         b.tick()
     assert list(b.lost) == [0] and "agent heartbeat" in b.lost[0]
     b.heartbeat_timeout = 0.0  # the fake robots below do not beat any more
@@ -283,6 +284,30 @@ def test_silent_robot_is_lost_and_the_others_finish():
     sol = b.result()
     assert sol.extra["lost_robots"] == ["robot_0"] and b.state.mode[0] == 4
     assert all(0 not in t["members"] for t in sol.tasks if t["start"] != t["start"] or t["start"] >= b.clock)
+
+
+def test_a_board_that_did_not_run_reads_its_queues_before_it_drops_anyone():
+    """A board process stopped (SIGSTOP) or starved for longer than every timeout: at its first
+    tick the heartbeats, choices and poses sent meanwhile are still unread in its queues, so every
+    timeout counts afresh from the resumption; silence after it still counts."""
+    now, logs = FakeTime(), []
+    b = started_board(now=now, heartbeat_timeout=5.0, decision_timeout=8.0,
+                      log=lambda level, text: logs.append(text))
+    for a in range(INST.n_agents):
+        b.heartbeat(b.session, [b.names[a]])
+    v = b.poll()
+    assert v.phase == "decide"
+    b.tick()
+    now.t += 15.0  # stopped for 15 s
+    b.tick()  # the watchdog runs before the queued messages are read
+    assert b.lost == {} and any("did not run for 15.0 s" in t for t in logs)
+    for k in range(52):
+        if k % 10 == 0:
+            b.heartbeat(b.session, b.names[1:])  # ... which come next: robot_0's agent is silent
+        now.t += 0.1
+        b.tick()
+    assert list(b.lost) == [0] and "agent heartbeat" in b.lost[0]  # 5 s of silence after the resumption
+    assert v.decider == 0 or v.decider not in b.lost  # the decider's 8 s count from the resumption too
 
 
 def test_decision_timeout_drops_the_decider():
@@ -677,7 +702,7 @@ def test_no_leg_timeout_when_factor_and_floor_are_zero():
     for _ in range(50):
         now.t += 100.0
         b.tick()
-    assert b.lost == {} and not logs[1:]
+    assert b.lost == {} and not [text for _, _, text in logs[1:] if "did not run" not in text]
 
 
 def test_a_wrong_gate_part_holds_the_mission_clock_at_most_gate_rescan_seconds(monkeypatch):

@@ -7,6 +7,8 @@ time the mission then equals the uninterrupted one (the offline rollout)."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import time
 
 import pytest
@@ -41,6 +43,26 @@ def test_killed_board_is_restarted_on_its_journal_and_the_mission_equals_offline
     assert sum(e["type"] == "resume" for r in recs for e in r.get("ev", ())) == 1
     log = (tmp_path / "mission_logs" / "task_board.log").read_text()
     assert "restarted by hmrta-mission" in log and "resumed from journal" in log
+
+
+def test_a_board_stopped_longer_than_the_heartbeat_timeout_resumes_without_dropping_anyone(tmp_path, domain, graph,
+                                                                                          launched):
+    """SIGSTOP the board for three heartbeat timeouts, then SIGCONT: the heartbeats sent meanwhile
+    wait in its queues (or are repaired by the middleware), so nobody is lost and the mission
+    completes."""
+    launcher, out = launch(tmp_path, domain, "--heartbeat-timeout", "5")
+    launched.append(launcher)
+    pid, done_then, _ = kill_mid_mission(graph, launcher, "hmrta_coordinator.task_board", 4, sig=signal.SIGSTOP)
+    try:
+        time.sleep(15.0)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    rc, so, se = finish(launcher, 90)
+    assert rc == 0, so + se
+    result = json.loads(out.read_text())
+    assert result["success"] and result["lost_robots"] == [] and result["undone_tasks"] == []
+    log = (tmp_path / "mission_logs" / "task_board.log").read_text()
+    assert "the board did not run for" in log, log[-2000:]
 
 
 def test_incident_time_falls_back_to_the_journal(tmp_path):

@@ -81,8 +81,9 @@ def child_pid(launcher: subprocess.Popen, needle: str) -> int:
     return found[0]
 
 
-def kill_mid_mission(graph, launcher: subprocess.Popen, needle: str, n_done: int) -> tuple[int, int, dict]:
-    """SIGKILL the launcher's child whose command line has ``needle`` once ``n_done`` tasks are
+def kill_mid_mission(graph, launcher: subprocess.Popen, needle: str, n_done: int,
+                     sig: int = signal.SIGKILL) -> tuple[int, int, dict]:
+    """SIGKILL (or ``sig``) the launcher's child whose command line has ``needle`` once ``n_done`` tasks are
     done (and the mission is not) and the launcher follows the board (what it reports after the
     crash comes from what it heard: on a loaded machine its DDS discovery can lag the mission's
     first seconds); returns (its pid, the tasks done then, {"b": latest board, "reported": the
@@ -103,7 +104,7 @@ def kill_mid_mission(graph, launcher: subprocess.Popen, needle: str, n_done: int
     assert b.phase != "done" and b.n_done < b.n_tasks
     pid = child_pid(launcher, needle)
     seen["reported"] = reported(launcher)
-    os.kill(pid, signal.SIGKILL)
+    os.kill(pid, sig)
     return pid, b.n_done, seen
 
 
