@@ -62,10 +62,15 @@ def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
     return path
 
 
+class _Mapping(dict):
+    """What an OrderedDict of the checkpoint reads as: a dict that also takes the attributes torch
+    pickles with it (a module's ``state_dict()`` carries ``_metadata``)."""
+
+
 class _Unpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str) -> Any:
         if (module, name) == ("collections", "OrderedDict"):
-            return dict
+            return _Mapping
         if (module, name) in _ALLOWED or (module == "torch" and name.endswith("Storage")):
             return _tensor_placeholder
         raise pickle.UnpicklingError(f"global {module}.{name} is not allowed in a checkpoint")

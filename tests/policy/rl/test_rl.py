@@ -828,6 +828,18 @@ def test_seeded_run_of_every_phase_reproduces_its_recorded_values(tmp_path):
     wsum = float(sum(v.double().abs().sum() for v in tr.model.state_dict().values()))
     esum = float(sum(v.double().abs().sum() for v in tr.ema.values()))
     assert wsum == pytest.approx(1641.945950626381, rel=1e-6) and esum == pytest.approx(1641.4687872076267, rel=1e-6)
+    # what a run writes is read like a shipped checkpoint: its description, its rules, a solve
+    from hmrta.methods import rules, solve
+    from hmrta.rl.checkpoint_info import describe
+
+    inst = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(0, 0)
+    for name in ("best.pt", "last.pt"):
+        path = tmp_path / "run" / name
+        d = describe(path)
+        assert d["weights"] == ["model", "ema"] and d["config"]["model"]["d_model"] == 16
+        assert 0 < d["episodes"] <= 98 and (d["episodes"] == 98) == (name == "last.pt")
+        assert rules("rl", checkpoint=str(path)) is not None
+        assert solve(inst, "rl", 0, checkpoint=str(path)).success
 
 
 def _exported(tmp_path, name, seed=0, **over):
