@@ -85,6 +85,7 @@ HEADER_REPEAT = 0.25  # seconds: an idle board streams its latest header again (
 CHECK_GATE = False  # tests: every incremental arrival gate is compared with the full scan
 GATE_RESCAN = 0.5  # seconds: while the arrival gate holds the mission clock, every robot is rescanned this often
 STALL_GAP = 1.0  # seconds: a watchdog tick (every 0.1 s on the node) later than this after the previous one: the board stalled
+LIVE_EVENTS = frozenset(("add_task", "cancel_task", "add_agent", "drop_agent"))  # journaled events from outside the mission file
 HEADER_BYTES = 330  # about the bytes of a stream header without its events (for the automatic keyframe period)
 
 
@@ -548,6 +549,9 @@ class MissionBoard(BoardCore):
         self.keyframes: Counter[str] = Counter()  # keyframes published, by reason
         self.stream_bytes = 0  # bytes of the stream headers published (about: the JSON of each)
         self._events: list[dict[str, Any]] = []  # applied since the last published version
+        # what changed the mission from outside its file (operator tasks, robots joining, robots the
+        # board dropped), by event type: such a mission no longer equals its offline rollout
+        self.live_events: Counter[str] = Counter()
         self.requests: dict[str, str] = {}  # operator task id -> last status reported on the events topic
         self._join_names: list[str] = []  # names of robots joining, given to the next added agents
         self._scenario_added = 0  # robots a scenario's add_robot events added (named robot_<A0 + k>)
@@ -613,6 +617,8 @@ class MissionBoard(BoardCore):
                 self._gate_sig = None  # confirmed outside the gate: recompute every robot
             elif kind == "add_task":
                 self.requests[str(ev["name"])] = "accepted"
+            if kind in LIVE_EVENTS:
+                self.live_events[kind] += 1
             elif kind == "resume":
                 self.restarts += 1
         self.version = int(rec["v"])
@@ -1236,6 +1242,7 @@ class MissionBoard(BoardCore):
         self.version += 1
         st = self.state
         events, self._events = self._events, []
+        self.live_events.update(ev["type"] for ev in events if ev["type"] in LIVE_EVENTS)
         if self.journal is not None:
             rec: dict[str, Any] = {"v": self.version, "rev": self.rev, "n_done": int(st.n_done), "phase": phase,
                                    "clock": float(self.clock)}
@@ -1314,6 +1321,7 @@ class MissionBoard(BoardCore):
             "authenticated": self.verifier is not None,
             "auth_rejections": {k: dict(v) for k, v in self.auth_rejected.items()},
             "board_versions": self.version,
+            "live_events": dict(self.live_events),
             "board_keyframes": dict(self.keyframes),
         })
         if self.journal is not None:

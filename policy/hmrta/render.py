@@ -101,10 +101,9 @@ def _draw_map(ax, inst: Instance, sol: Solution, colors: list) -> None:
     ax.set_title("map: depots (squares), tasks (required skills), routes")
     ax.grid(alpha=0.2)
     # routes: one line per agent, offset within the species
-    counts = [s.count for s in inst.species]
-    idx_in_species = []
-    for s, n in enumerate(counts):
-        idx_in_species += list(range(n))
+    species = [int(s) for s in inst.agent_species]  # robots added during a mission come last
+    counts = [species.count(s) for s in range(S)]
+    idx_in_species = [species[:a].count(s) for a, s in enumerate(species)]
     for a, route in enumerate(sol.routes):
         if not route:
             continue

@@ -14,7 +14,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .instance import Instance, atomic_write_text, text_field
+from .instance import Instance, atomic_write_text, instance_from_dict, text_field
 from .reading import finite, parse_json, read_text, short
 
 FORMAT = "hmrta-solution/1"
@@ -237,6 +237,24 @@ def check_solution(inst: Instance, sol: Solution, source: str = "solution") -> N
                                                           f"(expected 0..{inst.n_tasks - 1})")
 
 
+def final_instance(inst: Instance, sol: Solution, source: str = "solution") -> Instance:
+    """The instance ``sol`` indexes: ``inst``, or, for a mission that grew while it ran (tasks added,
+    robots joining), the mission as it ended, which such a solution carries (``final_instance``
+    in its extra fields) when it was made from ``inst``. Raises SolutionError for a solution of
+    another instance."""
+    grown = sol.extra.get("final_instance") if isinstance(sol.extra, dict) else None
+    if grown is None or (len(sol.tasks), len(sol.routes)) == (inst.n_tasks, inst.n_agents):
+        return inst
+    try:
+        out = instance_from_dict(grown, f"{source}: final_instance")
+    except ValueError as e:
+        raise _serr(source, str(e)) from None
+    if out.name != inst.name or out.n_tasks < inst.n_tasks or out.n_agents < inst.n_agents:
+        raise _serr(source, f"solution does not match the instance {short(inst.name)}: it ended as mission "
+                            f"{short(out.name)} with {out.n_agents} robots and {out.n_tasks} tasks")
+    return out
+
+
 def read_routes(inst: Instance, path: str | Path) -> list[list[int]]:
     """Read a routes JSON file (any object with a 'routes' key) and check it against the instance."""
     return parse_routes(inst, parse_json(read_text(path, RouteError), str(path), RouteError), str(path))
@@ -292,6 +310,8 @@ def solution_from_state(state, method: str, seed: int, compute_seconds: float) -
         extra["depot_stops"] = [int(x) for x in state.depot_stops]
     if state.log or state.M > state.base[0] or bool((state.release > 0).any()):
         extra["dynamic"] = dynamic_metrics(state)
+    if (state.M, state.A, inst.n_species) != tuple(state.base):  # tasks or robots were added: the mission as it
+        extra["final_instance"] = inst.to_dict()  # ended, which the routes and tasks index (see final_instance)
     return Solution(
         inst.name, method, int(seed), ok,
         float(ret.max()) if ok and len(ret) else (0.0 if ok else math.nan),

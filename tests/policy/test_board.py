@@ -179,7 +179,8 @@ def test_a_mission_through_the_board_equals_the_offline_rollout():
     same(sol, solve(INST, "greedy", SEED))
     assert n == sol.extra["decision_latency_ms"]["n"] > 0
     assert b.phase == "done" and sol.extra["lost_robots"] == [] and sol.extra["undone_tasks"] == []
-    assert sol.extra["board_versions"] == b.version > n
+    assert sol.extra["board_versions"] == b.version > n and sol.extra["live_events"] == {}
+    assert "final_instance" not in sol.extra
 
 
 def test_board_waits_for_every_robot_then_starts():
@@ -439,12 +440,15 @@ def test_operator_tasks_are_added_cancelled_answered_and_journaled(tmp_path):
     snap = b.state.snapshot()
     b2 = started_board(journal=j)
     assert b2.state.snapshot() == snap and set(b2.requests) == {"x", "inspect-7"}
+    assert b.live_events == b2.live_events == {"add_task": 2, "cancel_task": 1}  # the refused ones: none
     drive(b)
     events = [(e["id"], e["event"]) for e in b.task_events]
     assert ("inspect-7", "started") in events and ("inspect-7", "done") in events and ("x", "cancelled") in events
     assert events.index(("inspect-7", "started")) < events.index(("inspect-7", "done"))
     sol = b.result()
     assert sol.extra["undone_tasks"] == [INST.n_tasks] and len(sol.tasks) == INST.n_tasks + 2
+    assert sol.extra["live_events"] == {"add_task": 2, "cancel_task": 1}
+    assert len(sol.extra["final_instance"]["tasks"]) == INST.n_tasks + 2
 
 
 def test_a_refused_request_changes_nothing_even_while_the_clock_runs_ahead_of_the_state(tmp_path):

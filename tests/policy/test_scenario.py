@@ -56,6 +56,27 @@ def test_every_method_runs_a_scenario(scenario, method):
     assert sol.makespan >= max(t["finish"] for t in sol.tasks if t["finish"] == t["finish"])
 
 
+def test_the_solution_of_a_grown_mission_carries_the_mission_as_it_ended(scenario, tmp_path):
+    """Routes and tasks of a scenario's solution index the tasks and robots it added: the solution
+    carries that instance (``final_instance``), which reads back and draws; a plain mission's does not."""
+    from hmrta.solution import Solution, SolutionError, check_solution, final_instance
+
+    inst = load_instance(scenario)
+    sol = Solution.from_dict(json.loads(json.dumps(methods.solve(inst, "greedy", seed=0).to_dict())))
+    grown = final_instance(inst, sol)
+    assert (grown.n_tasks, grown.n_agents, grown.n_species) == (5, 6, 3) and grown.name == inst.name
+    check_solution(grown, sol)
+    assert final_instance(grown, sol) is grown
+    plain = load_instance(scenario.parent / "mission.yaml")
+    assert "final_instance" not in methods.solve(plain, "greedy", seed=0).extra
+    with pytest.raises(SolutionError, match="does not match"):
+        final_instance(dataclasses.replace(plain, name="other", _cache={}), sol)
+    pytest.importorskip("matplotlib")
+    from hmrta.render import render
+
+    assert render(grown, sol, tmp_path / "grown.png")[0].stat().st_size > 10000
+
+
 def test_cpsat_refuses_a_scenario(scenario):
     with pytest.raises(methods.MethodError, match="offline solver"):
         methods.solve(load_instance(scenario), "cpsat", seed=0)

@@ -41,7 +41,7 @@ def test_a_live_scenario_equals_the_offline_run(tmp_path, domain):
     out = tmp_path / "mission.json"
     proc = subprocess.run([str(BIN / "hmrta-mission"), "--scenario", str(path), "--method", "greedy", "--seed", "0",
                            "--out", str(out),
-                           "--quiet", "--no-plot", "--check-offline", "--domain-id", str(domain),
+                           "--quiet", "--check-offline", "--domain-id", str(domain),
                            "--agents-per-process", "15", "--timeout", "200"],
                           capture_output=True, text=True, timeout=260, env=dict(os.environ))
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -57,6 +57,10 @@ def test_a_live_scenario_equals_the_offline_run(tmp_path, domain):
     # the robot the scenario adds at t=2.5: its agent waited for it, sim_robot drove it from (0.5, 0.5)
     A = load_instance(EXAMPLE).n_agents
     assert len(live["routes"]) == A + 1 and live["robots"][A] == f"robot_{A}" and live["routes"][A]
+    # the result carries the mission as it ended, which its picture shows (drawn beside it)
+    grown = live["final_instance"]
+    assert len(grown["tasks"]) == n + 2 and grown["added_agents"] == [1] and live["live_events"] == {}
+    assert out.with_suffix(".png").stat().st_size > 10000 and f"wrote {out.with_suffix('.png')}" in proc.stdout
 
 
 def test_a_robot_joins_a_running_mission_by_starting_its_agent(tmp_path, domain, graph, mission_procs):

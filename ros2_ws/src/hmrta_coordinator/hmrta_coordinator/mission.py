@@ -15,8 +15,10 @@ once it has been restarted too often, a dying board (or a mission that times out
 interrupted) ends the mission: the launcher
 stops the rest at once and writes a partial result (``success`` false, ``partial`` true, the
 ``failure`` reason, and the routes and completed tasks of the latest board it saw). Exit status:
-0 mission completed, 3 completed without success (e.g. lost robots left tasks undone), 1 did not
-complete (partial result), 130 interrupted (partial result), 2 user error.
+0 mission completed, 3 completed without success (e.g. lost robots left tasks undone), 4 completed
+but differs from the offline rollout (``--check-offline``; not compared when operators, joining
+or dropped robots changed the mission), 1 did not complete (partial result), 130 interrupted
+(partial result), 2 user error.
 
 DDS discovery stays on this machine unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is already set
 (e.g. SUBNET for a real multi-machine fleet); without ``ROS_DOMAIN_ID`` a random domain in
@@ -489,7 +491,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plot", default=None, help="routes + Gantt picture (default: next to --out, .png)")
     p.add_argument("--no-plot", action="store_true", help="do not draw the picture")
     p.add_argument("--check-offline", action="store_true",
-                   help="also run the offline rollout (hmrta solve) and compare routes and makespan")
+                   help="also run the offline rollout (hmrta solve) and compare routes and makespan (exit 4 "
+                        "when they differ; not compared when operators, joining or dropped robots changed the mission)")
     p.add_argument("--timeout", type=float, default=600.0, help="give up after this many wall seconds")
     auth = p.add_mutually_exclusive_group()
     auth.add_argument("--keystore", default=None, metavar="DIR",
@@ -597,23 +600,37 @@ def main(argv: list[str] | None = None) -> int:
     if procs.record is not None:
         print(f"wrote {procs.record}" if procs.record.exists() else
               f"hmrta-mission: the recording {procs.record} was not written (see {log_dir / 'recorder.log'})")
+    differs = False
     if args.check_offline:
-        from hmrta.methods import solve
+        changed = sol.extra.get("live_events") or {}
+        if changed:  # operator tasks, robots joining or dropped: the offline rollout has none of them
+            print("offline rollout: not compared: the mission changed while it ran ("
+                  + ", ".join(f"{n} {kind}" for kind, n in sorted(changed.items())) + ")")
+        else:
+            from hmrta.methods import solve
 
-        ref = solve(inst, args.method, seed=args.seed, **method_options)
-        same = ref.routes == sol.routes and ref.makespan == sol.makespan
-        print(f"offline rollout ({args.method}): makespan {ref.makespan:.3f}; same routes and makespan: "
-              f"{'yes' if same else 'NO'}")
+            ref = solve(inst, args.method, seed=args.seed, **method_options)
+            same = ref.routes == sol.routes and ref.makespan == sol.makespan
+            print(f"offline rollout ({args.method}): makespan {ref.makespan:.3f}; same routes and makespan: "
+                  f"{'yes' if same else 'NO'}")
+            differs = not same
     if not args.no_plot:
         plot = Path(args.plot) if args.plot else out.with_suffix(".png")
         try:
             from hmrta.render import render
         except ImportError:
-            print("(no picture: hmrta.render is not available)")
+            print("(no picture: hmrta.render is not available; pip install 'hmrta[plot]')")
         else:
-            render(inst, sol, plot)
-            print(f"wrote {plot}")
-    return 0 if sol.success else 3
+            from hmrta.solution import final_instance
+
+            try:  # a mission that grew while it ran is drawn as it ended
+                render(final_instance(inst, sol, str(out)), sol, plot)
+                print(f"wrote {plot}")
+            except (ValueError, OSError) as e:
+                print(f"hmrta-mission: no picture: {e}", file=sys.stderr)
+    if differs:
+        print("hmrta-mission: the live mission differs from the offline rollout (--check-offline)", file=sys.stderr)
+    return 3 if not sol.success else 4 if differs else 0
 
 
 def entry() -> None:
