@@ -154,3 +154,23 @@ def test_param_parse(param, text, value):
 def test_param_parse_rejects(typ, text):
     with pytest.raises(ValueError, match=r"^a: expected"):
         P.Param("a", typ, None, "h").parse(text)
+
+
+@pytest.mark.parametrize("exe,args,flag", [
+    ("hmrta-mission", ["--time-scale", "-1"], "--time-scale"),
+    ("hmrta-mission", ["--timeout", "-5"], "--timeout"),
+    ("hmrta-mission", ["--timeout", "nan"], "--timeout"),
+    ("hmrta-mission", ["--heartbeat-timeout", "0"], "--heartbeat-timeout"),
+    ("hmrta-mission", ["--domain-id", "500"], "--domain-id"),
+    ("hmrta-mission", ["--seed", "-1"], "--seed"),
+    ("hmrta-task", ["--domain-id", "500", "list"], "--domain-id"),
+    ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "1,0", "--duration", "nan"], "--duration"),
+    ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "1,0", "--duration", "inf"], "--duration"),
+    ("hmrta-task", ["add", "--location", "nan,0.2", "--requirements", "1,0", "--duration", "1"], "--location"),
+    ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "inf,0", "--duration", "1"], "--requirements"),
+])
+def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_path):
+    r = subprocess.run([str(BIN / exe), *args], capture_output=True, text=True, timeout=60, cwd=tmp_path,
+                       env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert r.returncode == 2 and flag in r.stderr.splitlines()[-1], r.stderr
+    assert "Traceback" not in r.stderr and not list(tmp_path.iterdir())  # no output folder either

@@ -447,8 +447,11 @@ def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: 
 
 def print_metrics(sol, extra: dict[str, Any], inst) -> None:
     print(sol.summary())
-    print(f"  robots {inst.n_agents}, tasks {inst.n_tasks}: {inst.n_tasks - len(extra.get('undone_tasks', []))} done"
-          + (f", undone {extra['undone_tasks']}" if extra.get("undone_tasks") else ""))
+    A, M = len(sol.routes), len(sol.tasks)  # a mission that grew while it ran: as it ended
+    grew = "" if (A, M) == (inst.n_agents, inst.n_tasks) else \
+        f" (at the start {inst.n_agents} robots, {inst.n_tasks} tasks)"
+    print(f"  robots {A}, tasks {M}{grew}: {M - len(extra.get('undone_tasks', []))} done"
+          + (f", undone (cancelled included) {extra['undone_tasks']}" if extra.get("undone_tasks") else ""))
     if extra.get("lost_robots"):
         for r in extra["lost_robots"]:
             print(f"  lost robot {r}: {extra.get('lost_reasons', {}).get(r, '')}")
@@ -467,6 +470,15 @@ def print_metrics(sol, extra: dict[str, Any], inst) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # before any process started (loading, choosing the method)
+        print("hmrta-mission: interrupted before the mission started: no process was started, no result written",
+              file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None = None) -> int:
     from rclpy.executors import ExternalShutdownException
     from rclpy.utilities import remove_ros_args
 
@@ -506,6 +518,15 @@ def main(argv: list[str] | None = None) -> int:
                         "(Foxglove, rosbag2; hmrta render --from FILE.mcap)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(remove_ros_args(argv)[1:])
+    for flag, v, ok, want in (("--time-scale", args.time_scale, args.time_scale >= 0, "a number >= 0"),
+                              ("--timeout", args.timeout, args.timeout > 0, "a number of seconds > 0"),
+                              ("--heartbeat-timeout", args.heartbeat_timeout, args.heartbeat_timeout > 0,
+                               "a number of seconds > 0"),
+                              ("--seed", args.seed, args.seed >= 0, "an integer >= 0"),
+                              ("--domain-id", args.domain_id, args.domain_id is None or 0 <= args.domain_id <= 232,
+                               "a ROS domain id in 0..232")):
+        if not ok or (isinstance(v, float) and not math.isfinite(v)):
+            p.error(f"{flag}: expected {want}, got {v}")
 
     from hmrta.formats import load_instance
     from hmrta.instance import InstanceError
@@ -569,9 +590,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{n_proc} processes on ROS domain {env['ROS_DOMAIN_ID']} "
           f"(discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}); logs in {log_dir}", flush=True)
     t0 = time.monotonic()
-    procs.start()
     interrupted, status = False, "interrupted"
     try:
+        procs.start()
         status = run_monitor(procs, inst.n_tasks, args.timeout, args.quiet)
     except (KeyboardInterrupt, ExternalShutdownException):
         print("interrupted: stopping the mission", file=sys.stderr)

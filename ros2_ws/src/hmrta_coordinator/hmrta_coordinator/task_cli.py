@@ -16,16 +16,27 @@ within ``--timeout`` seconds (no board on this ROS domain?), 2 user error.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 import uuid
 
 
+def _number(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return v
+
+
 def _floats(text: str) -> list[float]:
     try:
-        return [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+        return [_number(x) for x in text.split(",") if x.strip()]
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated finite numbers, got {text!r}") from None
 
 
 def _point(text: str) -> list[float]:
@@ -37,13 +48,13 @@ def _point(text: str) -> list[float]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="hmrta-task", description=__doc__.split("\n\n")[0])
-    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the board")
-    p.add_argument("--domain-id", type=int, default=None, help="ROS domain (default: $ROS_DOMAIN_ID)")
+    p.add_argument("--timeout", type=_number, default=10.0, help="seconds to wait for the board")
+    p.add_argument("--domain-id", type=int, default=None, help="ROS domain 0..232 (default: $ROS_DOMAIN_ID)")
     sub = p.add_subparsers(dest="cmd", required=True)
     a = sub.add_parser("add", help="submit a task")
     a.add_argument("--location", type=_point, required=True, metavar="X,Y")
     a.add_argument("--requirements", type=_floats, required=True, metavar="R1,R2,...")
-    a.add_argument("--duration", type=float, required=True)
+    a.add_argument("--duration", type=_number, required=True, help="the work's duration (mission time units)")
     a.add_argument("--id", default=None, help="client task id (default: a random one)")
     c = sub.add_parser("cancel", help="cancel a task by its id")
     c.add_argument("id")
@@ -51,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if args.timeout <= 0:
         p.error("--timeout: expected a positive number")
+    if args.domain_id is not None and not 0 <= args.domain_id <= 232:
+        p.error(f"--domain-id: expected a ROS domain id in 0..232, got {args.domain_id}")
     if args.cmd == "add" and (args.duration < 0 or any(r < 0 for r in args.requirements)):
         p.error("--duration and --requirements: expected numbers >= 0")
 
