@@ -304,6 +304,12 @@ class LegTimer:
     resent: bool = False
 
 
+def _task_index(rid: str, M: int) -> int | None:
+    """A cancel request's id read as the index of one of the mission's M tasks (decimal digits), or
+    None. An operator's task of the same id takes precedence (MissionBoard.task_request)."""
+    return int(rid) if rid.isascii() and rid.isdigit() and int(rid) < M else None
+
+
 def _r(v: float | None) -> float | None:
     return None if v is None or v != v else round(float(v), 3)
 
@@ -986,13 +992,17 @@ class MissionBoard(BoardCore):
                    "the mission is over (every task is done or cancelled; the robots are going home)")
         elif op == "add" and rid in self.requests:
             why = f"task {rid!r}: a task with this id exists already"
-        elif op == "cancel" and rid not in self.requests:
-            why = f"task {rid!r}: no task with this id"
+        elif op == "cancel" and rid not in self.requests and _task_index(rid, st.M) is None:
+            why = (f"task {rid!r}: no task with this id (an operator's task by its id, a task of the mission "
+                   f"by its index 0..{st.M - 1})")
         if why is None:
             rec: dict[str, Any] = {"type": "add_task" if op == "add" else "cancel_task", "t": self._event_time(),
                                    "until": float(st.until), "name": rid}
             if op == "add":
                 rec["task"] = task
+            elif rid not in self.requests:  # a task of the mission, by its index
+                del rec["name"]
+                rec["task"] = ans["task"] = _task_index(rid, st.M)
             try:
                 self._external(rec)
             except EventRejected as e:

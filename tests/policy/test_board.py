@@ -433,7 +433,8 @@ def test_operator_tasks_are_added_cancelled_answered_and_journaled(tmp_path):
     assert b.task_request("add", "inspect-7", new)["reason"] == "task 'inspect-7': a task with this id exists already"
     bad = b.task_request("add", "too-big", {**new, "requirements": [99, 0, 0]})
     assert bad["event"] == "rejected" and "skill 0" in bad["reason"]
-    assert b.task_request("cancel", "nope")["reason"] == "task 'nope': no task with this id"
+    assert b.task_request("cancel", "nope")["reason"].startswith("task 'nope': no task with this id")
+    assert b.task_request("cancel", str(INST.n_tasks + 7))["event"] == "rejected"  # no such index either
     assert b.task_request("cancel", "x")["event"] == "accepted"
     drive(b, steps=2)
     b.poll()
@@ -475,6 +476,25 @@ def test_a_refused_request_changes_nothing_even_while_the_clock_runs_ahead_of_th
     assert (state_digest(b.state), b.rev, float(b.state.clock), j.read_text()) == before
     drive(b)
     b2 = started_board(journal=j)  # the journal replays to the same state
+    assert b2.state.snapshot() == b.state.snapshot()
+
+
+def test_a_task_of_the_mission_is_cancelled_by_its_index(tmp_path):
+    """``hmrta-task cancel 3``: a task of the mission file (no operator id) by the index that
+    ``hmrta-task list`` prints; journaled, so a restarted board has it cancelled too."""
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    drive(b, steps=2)
+    m = next(m for m in range(INST.n_tasks) if b.state.status[m] <= 1 and not b.state.members[m])  # nobody on it
+    ans = b.task_request("cancel", str(m))
+    assert ans["event"] == "accepted" and ans["task"] == m and b.state.status[m] == 4  # cancelled
+    assert b.task_request("cancel", str(m))["event"] == "rejected"  # already cancelled
+    b.poll()
+    assert b.live_events == {"cancel_task": 1}  # counted as published
+    drive(b)
+    sol = b.result()
+    assert m in sol.extra["undone_tasks"] and all(m not in r for r in sol.routes)
+    b2 = started_board(journal=j)
     assert b2.state.snapshot() == b.state.snapshot()
 
 

@@ -123,6 +123,8 @@ class Mission:
                 self.ops.append(rid)
         elif r < 0.08 and self.ops:
             b.task_request("cancel", self.ops.pop(rng.randrange(len(self.ops))))
+        elif r < 0.085:  # a task of the mission, by its index (refused when it is done or cancelled)
+            b.task_request("cancel", str(rng.randrange(b.inst.n_tasks)))
         elif r < 0.10:
             b.join(f"new_{b.state.A}", rng.randrange(b.state.inst.n_species),
                    position=(rng.random(), rng.random()) if rng.random() < 0.5 else None)

@@ -1,7 +1,7 @@
 """hmrta-task: submit, cancel and list a running mission's tasks (operator interface).
 
     hmrta-task add --location 0.3,0.7 --requirements 1,0,2 --duration 3 [--id inspect-7]
-    hmrta-task cancel inspect-7
+    hmrta-task cancel inspect-7        (or a task of the mission by its index: hmrta-task cancel 3)
     hmrta-task list
 
 ``add`` and ``cancel`` publish an ``hmrta-task-request/1`` on ``/hmrta/task_requests`` and wait
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--duration", type=_number, required=True, help="the work's duration (mission time units)")
     a.add_argument("--id", default=None, help="client task id (default: a random one)")
     c = sub.add_parser("cancel", help="cancel a task by its id")
-    c.add_argument("id")
+    c.add_argument("id", help="an operator's task id, or a task of the mission by its index (hmrta-task list)")
     sub.add_parser("list", help="the mission's tasks and their status")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if args.timeout <= 0:
