@@ -79,14 +79,23 @@ def test_a_robot_joins_a_running_mission_by_starting_its_agent(tmp_path, domain,
     new = subprocess.Popen([str(BIN / "agent_node"), "--ros-args", "-r", "__ns:=/robot_new",
                             *ros_params({"species": 2, "method": "greedy", "seed": 0})],
                            stdout=log, stderr=subprocess.STDOUT, env=env)
+    # a robot whose agent runs another method (other rules) does not ask to join
+    odd_log = open(tmp_path / "robot_odd.log", "w")
+    odd = subprocess.Popen([str(BIN / "agent_node"), "--ros-args", "-r", "__ns:=/robot_odd",
+                            *ros_params({"species": 1, "method": "rl", "seed": 0})],
+                           stdout=odd_log, stderr=subprocess.STDOUT, env=env)
     try:
         wait_board_exit(graph, procs, 150)
         new.wait(timeout=30)  # it exits with the mission, like every agent
+        odd.wait(timeout=30)  # ... and so does the one never added
     finally:
-        if new.poll() is None:
-            new.kill()
-            new.wait()
+        for p in (new, odd):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
         log.close()
+        odd_log.close()
+    assert "not taking part" in (tmp_path / "robot_odd.log").read_text()
     result = json.loads((tmp_path / "result.json").read_text())
     A = inst.n_agents
     assert result["success"] and result["robots"][A:] == ["robot_new"], (tmp_path / "robot_new.log").read_text()

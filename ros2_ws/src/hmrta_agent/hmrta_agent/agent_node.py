@@ -347,6 +347,7 @@ class AgentNode(Node):
         self.seq = 0
         self._sent: tuple[int, int, float, float] | None = None  # (board version, node, compute ms, monotonic time)
         self._warned: set[str] = set()
+        self._fit: dict[str, bool] = {}  # mission session -> whether its rules are this method's (joining)
         self.choice_pub = host.choice_publisher(self)
         self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
         self._pose: PoseStamped | None = None  # its driver's latest pose (a robot asking to join reports it)
@@ -372,7 +373,14 @@ class AgentNode(Node):
         """Not in the mission heard, with a species: it asks the board to add it (heartbeat)."""
         m = self.host.mission
         return (self.mission is None and not self.finished and self.species_param >= 0 and m is not None
-                and m.index(self.robot) is None)
+                and m.index(self.robot) is None and self._fits(m))
+
+    def _fits(self, mission: Mission) -> bool:
+        """A robot asks to join only a mission whose rules its method runs under: the board would
+        add it, and then drop it when its agent refuses to take part (compatible)."""
+        if mission.session not in self._fit:
+            self._fit[mission.session] = self.compatible(mission)
+        return self._fit[mission.session]
 
     # ------------------------------------------------------------------------------------------
     def is_ready(self) -> bool:
