@@ -176,6 +176,22 @@ def test_readme_is_short():
     assert n <= README_MAX_LINES, f"README.md has {n} lines (at most {README_MAX_LINES}); move detail to docs/"
 
 
+def test_mission_examples_in_the_docs_load():
+    """Every ``hmrta-instance/1`` YAML block in README.md and docs/ is a mission hmrta accepts
+    (a feasible team, every field right)."""
+    import yaml
+
+    from hmrta.instance import instance_from_dict
+
+    found = 0
+    for f in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        for block in re.findall(r"```yaml\n(.*?)```", f.read_text(encoding="utf-8"), flags=re.S):
+            if block.startswith("format: hmrta-instance/1"):
+                instance_from_dict(yaml.safe_load(block), str(f.relative_to(ROOT)))
+                found += 1
+    assert found >= 2
+
+
 # ---- the checkers catch what they should -------------------------------------------------------
 @pytest.mark.parametrize("heading, expected", [
     ("1. Problem (species-traits model)", "1-problem-species-traits-model"),

@@ -76,8 +76,17 @@ class Solution:
     def summary(self) -> str:
         if not self.success:
             return f"{self.instance}: {self.method} FAILED ({self.extra.get('failure', 'unknown reason')})"
-        return (f"{self.instance}: {self.method} makespan {self.makespan:.3f}  AWT {self.awt:.3f}  "
+        line = (f"{self.instance}: {self.method} makespan {self.makespan:.3f}  AWT {self.awt:.3f}  "
                 f"redundancy {self.redundancy:.3f}  compute {self.compute_seconds:.3f}s")
+        dyn = self.extra.get("dynamic") if isinstance(self.extra, dict) else None
+        if isinstance(dyn, dict) and isinstance(dyn.get("tasks_lost"), dict):  # a mission with events
+            lost = dyn["tasks_lost"]
+            resp = (f"response time (finish - release) mean {dyn['mean_response']:.3f}, max {dyn['max_response']:.3f}"
+                    if isinstance(dyn.get("mean_response"), (int, float)) and
+                    isinstance(dyn.get("max_response"), (int, float)) else "no task done")
+            line += (f"\n  {resp}; tasks lost: {lost.get('cancelled', 0)} cancelled, "
+                     f"{lost.get('unsatisfiable', 0)} unsatisfiable, {lost.get('rejected', 0)} additions rejected")
+        return line
 
 
 def _f(v: float) -> float | None:

@@ -67,8 +67,10 @@ def test_the_solution_of_a_grown_mission_carries_the_mission_as_it_ended(scenari
     assert (grown.n_tasks, grown.n_agents, grown.n_species) == (5, 6, 3) and grown.name == inst.name
     check_solution(grown, sol)
     assert final_instance(grown, sol) is grown
+    assert "response time (finish - release) mean" in sol.summary() and "1 cancelled" in sol.summary()
     plain = load_instance(scenario.parent / "mission.yaml")
     assert "final_instance" not in methods.solve(plain, "greedy", seed=0).extra
+    assert "\n" not in methods.solve(plain, "greedy", seed=0).summary()
     with pytest.raises(SolutionError, match="does not match"):
         final_instance(dataclasses.replace(plain, name="other", _cache={}), sol)
     pytest.importorskip("matplotlib")
