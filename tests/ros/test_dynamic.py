@@ -84,18 +84,27 @@ def test_a_robot_joins_a_running_mission_by_starting_its_agent(tmp_path, domain,
     odd = subprocess.Popen([str(BIN / "agent_node"), "--ros-args", "-r", "__ns:=/robot_odd",
                             *ros_params({"species": 1, "method": "rl", "seed": 0})],
                            stdout=odd_log, stderr=subprocess.STDOUT, env=env)
+    # a robot of a species the mission does not have: the board refuses it and tells its agent
+    alien_log = open(tmp_path / "robot_alien.log", "w")
+    alien = subprocess.Popen([str(BIN / "agent_node"), "--ros-args", "-r", "__ns:=/robot_alien",
+                              *ros_params({"species": 40, "method": "greedy", "seed": 0})],
+                             stdout=alien_log, stderr=subprocess.STDOUT, env=env)
     try:
         wait_board_exit(graph, procs, 150)
         new.wait(timeout=30)  # it exits with the mission, like every agent
-        odd.wait(timeout=30)  # ... and so does the one never added
+        odd.wait(timeout=30)  # ... and so do the ones never added
+        alien.wait(timeout=30)
     finally:
-        for p in (new, odd):
+        for p in (new, odd, alien):
             if p.poll() is None:
                 p.kill()
                 p.wait()
-        log.close()
-        odd_log.close()
+        for f in (log, odd_log, alien_log):
+            f.close()
     assert "not taking part" in (tmp_path / "robot_odd.log").read_text()
+    told = (tmp_path / "robot_alien.log").read_text()
+    assert "the board refuses to add this robot" in told and "not asking again" in told, told
+    assert (tmp_path / "logs" / "task_board.log").read_text().count("robot 'robot_alien' cannot join") == 1
     result = json.loads((tmp_path / "result.json").read_text())
     A = inst.n_agents
     assert result["success"] and result["robots"][A:] == ["robot_new"], (tmp_path / "robot_new.log").read_text()

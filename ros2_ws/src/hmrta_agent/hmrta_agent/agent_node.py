@@ -59,7 +59,7 @@ from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (Choice, DecodeError, Join, KeyframeRequest, Mission, Status, board_from_msg,
                                  choice_to_msg, clock_from_msg, keyframe_request_to_msg, mission_from_msg,
-                                 pose_from_msg, pose_to_msg, status_to_msg)
+                                 pose_from_msg, pose_to_msg, rejection_from_msg, status_to_msg)
 from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, spin_nodes
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
@@ -134,11 +134,23 @@ class Host:
         node.create_subscription(String, topics.BOARD, self._on_board, topics.BOARD_QOS)
         node.create_subscription(String, topics.KEYFRAME, self._on_keyframe, topics.KEYFRAME_QOS)
         node.create_subscription(Clock, getattr(node, "clock_topic", topics.CLOCK), self._on_clock, topics.CLOCK_QOS)
+        node.create_subscription(String, topics.REJECTIONS, self._on_rejection, topics.REJECTION_QOS)
         self._status_pub = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
         self._request_pub = node.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
         self._host = f"{socket.gethostname()}:{os.getpid()}"
         node.create_timer(period, self._beat)
         self._beat()
+
+    def _on_rejection(self, msg: String) -> None:
+        """The board refused to add a robot of this process that asked to join: it stops asking."""
+        try:
+            r = rejection_from_msg(msg)
+        except DecodeError:
+            return
+        if r.reason == "join_refused":
+            for a in self.agents:
+                if a.robot == r.robot and a.mission is None:
+                    a.refused(r.detail)
 
     def _on_mission(self, msg: String) -> None:
         if msg.data == self._mission_text:
@@ -348,6 +360,7 @@ class AgentNode(Node):
         self._sent: tuple[int, int, float, float] | None = None  # (board version, node, compute ms, monotonic time)
         self._warned: set[str] = set()
         self._fit: dict[str, bool] = {}  # mission session -> whether its rules are this method's (joining)
+        self._refused: str | None = None  # why the board refused to add this robot (joining)
         self.choice_pub = host.choice_publisher(self)
         self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
         self._pose: PoseStamped | None = None  # its driver's latest pose (a robot asking to join reports it)
@@ -373,7 +386,14 @@ class AgentNode(Node):
         """Not in the mission heard, with a species: it asks the board to add it (heartbeat)."""
         m = self.host.mission
         return (self.mission is None and not self.finished and self.species_param >= 0 and m is not None
-                and m.index(self.robot) is None and self._fits(m))
+                and m.index(self.robot) is None and self._fits(m) and self._refused is None)
+
+    def refused(self, why: str) -> None:
+        """The board refused to add this robot (hmrta-rejection/1 ``join_refused``): stop asking, and
+        end with the mission like every agent."""
+        if self._refused is None:
+            self._refused = why
+            self.get_logger().error(f"{self.robot}: the board refuses to add this robot: {why}; not asking again")
 
     def _fits(self, mission: Mission) -> bool:
         """A robot asks to join only a mission whose rules its method runs under: the board would

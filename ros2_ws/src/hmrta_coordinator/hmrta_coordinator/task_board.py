@@ -340,6 +340,10 @@ class TaskBoard(Node):
         warn = self.board.heartbeat(s.session, s.robots, s.payload, s.joining)
         if warn is not None:
             self.get_logger().warning(warn, throttle_duration_sec=5.0)
+        for j in s.joining:  # tell a robot the board refuses to add, so that its agent stops asking
+            why = self.board.join_refused.get(j.robot)
+            if why is not None and self._rate_ok():
+                self.pub_rej.publish(rejection_to_msg(Rejection("join_refused", why, j.robot)))
         self._flush()
 
     def on_pose(self, a: int, msg: Any) -> None:

@@ -584,7 +584,7 @@ def status_from_msg(msg: String) -> Status:
 # rejection (board -> anyone: why a message was refused)
 # ---------------------------------------------------------------------------------------------
 REJECTION_REASONS = ("malformed", "foreign_session", "unknown_robot", "lost", "duplicate", "stale", "not_released",
-                     "not_your_turn", "masked",
+                     "not_your_turn", "masked", "join_refused",
                      # authenticated missions (hmrta.keys.rejection_code)
                      "unsigned", "forged", "replayed", "unauthenticated")
 
