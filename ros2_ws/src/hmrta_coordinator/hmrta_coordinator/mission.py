@@ -372,7 +372,10 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
                     executor.spin_once(timeout_sec=0.02)
                 status = "ok" if rc == 0 else f"board process died ({exit_text(rc)}){when()}"
                 if rc != 0:
-                    procs.incidents.append(status + "; not restarted (the board's state lives in that process)")
+                    procs.incidents.append(status + ("; not restarted (the board's state lives in that process)"
+                                                     if procs.journal is None else
+                                                     f"; not restarted: it was restarted {procs.board.restarts} "
+                                                     f"time(s) already (at most {procs.max_restarts})"))
                 break
             if seen["phase"] != "done":  # after the end everybody exits on their own
                 failure = procs.supervise(seen["clock"])
