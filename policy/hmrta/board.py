@@ -522,6 +522,7 @@ class MissionBoard(BoardCore):
         self.auth_rejected: dict[str, Counter[str]] = {"choice": Counter(), "status": Counter()}
         self.finished = False
         self.restarts = 0  # times this mission's board was restarted on its journal
+        self._started_wall: float | None = None  # a replayed mission: the wall clock (epoch) at its start
         self._key: tuple | None = None
         # the incremental arrival gate (see gate): the state it was computed on, each robot's
         # part, robots whose pose changed since, robots waiting for their leg's departure
@@ -612,6 +613,7 @@ class MissionBoard(BoardCore):
             self.apply_event(ev)
             if kind == "start":
                 self.started = True
+                self._started_wall = ev.get("wall")
             elif kind == "choice":
                 self.accepted.add((int(ev["robot"]), int(ev["version"])))
                 if ev.get("latency_ms") is not None:
@@ -799,7 +801,7 @@ class MissionBoard(BoardCore):
     def start(self) -> None:
         self.started = True
         self.t_start = self.now()
-        self._events.append({"type": "start", "t": float(self.state.clock)})
+        self._events.append({"type": "start", "t": float(self.state.clock), "wall": time.time()})
         self.log("info", "all robots present: mission starts" if not self.lost else
                  f"mission starts without {len(self.lost)} robot(s)")
 
@@ -1314,6 +1316,8 @@ class MissionBoard(BoardCore):
         """The mission's hmrta-solution/1 (final once ``finished``)."""
         st = self.state
         wall = self.now() - (self.t_start or self.t_created)
+        if self.restarts and isinstance(self._started_wall, (int, float)):  # since the first board process started it
+            wall = max(wall, time.time() - self._started_wall)
         sol = solution_from_state(st, self.method, self.seed, wall)
         alive = [a for a in range(st.A) if a not in self.lost]
         sol.extra.update({

@@ -323,14 +323,17 @@ def test_decision_timeout_drops_the_decider():
 # ---------------------------------------------------------------------------------------------
 # journal
 # ---------------------------------------------------------------------------------------------
-def test_a_board_replayed_from_its_journal_continues_like_the_uninterrupted_mission(tmp_path):
+def test_a_board_replayed_from_its_journal_continues_like_the_uninterrupted_mission(tmp_path, monkeypatch):
     j = tmp_path / "journal.jsonl"
+    epoch = [1.0e9]
+    monkeypatch.setattr("hmrta.board.time.time", lambda: epoch[0])
     b = started_board(journal=j)
     drive(b, steps=7)
     b.poll()
     version, session, rev = b.version, b.session, b.rev
     legs, snap = b._legs_now(), b.state.snapshot()
     # crash: the object is dropped without closing; a new board on the same journal
+    epoch[0] += 40.0  # ... 40 s of wall time after the mission started
     b2 = started_board(journal=j)
     assert (b2.session, b2.version, b2.rev) == (session, version, rev)
     assert b2._legs_now() == legs and b2.state.snapshot() == snap and b2.ptr == b.ptr
@@ -339,6 +342,7 @@ def test_a_board_replayed_from_its_journal_continues_like_the_uninterrupted_miss
     sol = b2.result()
     same(sol, solve(INST, "greedy", SEED))
     assert sol.extra["board_restarts"] == 1 and b2.version > version
+    assert sol.extra["mission_wall_seconds"] >= 40.0  # counted from the mission's start, not the restart
     header, recs, _, dropped = read_journal(j)
     assert header["format"] == JOURNAL_FORMAT and dropped is None
     assert [r["v"] for r in recs] == list(range(1, b2.version + 1))  # one line per version, none twice
