@@ -14,6 +14,7 @@ from pathlib import Path
 from . import __version__
 
 EXAMPLE = Path(__file__).resolve().parent / "data" / "example.yaml"
+CONFIGS = Path(__file__).resolve().parent / "configs"  # the training configs (policy/configs), shipped with the package
 INSTANCE_HELP = "instance YAML, CTAS-D config.json (or its folder), or a folder of *.yaml"
 
 
@@ -464,6 +465,8 @@ def cmd_train(args) -> int:
 
     from .rl.train import Trainer, check_config, load_config, write_config
 
+    if not Path(args.config).exists() and (CONFIGS / f"{args.config}.yaml").is_file():
+        args.config = str(CONFIGS / f"{args.config}.yaml")  # a shipped config by its name
     try:
         cfg = load_config(args.config)
     except ValueError as e:
@@ -838,7 +841,9 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Train the policy. Idle OpenMP threads wait passively (OMP_WAIT_POLICY=PASSIVE "
                                    "is set before torch loads, unless the environment already sets it), so a run "
                                    "does not spin on cores that other processes need.")
-    t.add_argument("--config", default="policy/configs/default.yaml", help="training config YAML")
+    t.add_argument("--config", default="default",
+                   help="training config: a YAML file, or the name of a shipped one (" +
+                        ", ".join(sorted(p.stem for p in CONFIGS.glob("*.yaml"))) + ")")
     t.add_argument("--resume", action="store_true", help="continue the run in --run-dir (model, optimiser, RNG)")
     t.add_argument("--init", default=None, help="with --resume: start from this checkpoint instead of last.pt")
     t.add_argument("--reseed", action="store_true",

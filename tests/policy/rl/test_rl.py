@@ -567,6 +567,22 @@ def test_train_cli_rejects_init_or_reseed_without_resume(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+def test_train_finds_the_shipped_configs_by_name_from_any_directory(tmp_path, monkeypatch, capsys):
+    """The training configs ship with the package (hmrta/configs): the default and any other by
+    its name work outside a checkout too; a file of that name in the working directory wins."""
+    from hmrta.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["train", "--check"]) == 0
+    assert "a valid training config (name 'default')" in capsys.readouterr().out
+    assert main(["train", "--config", "coalition-team", "--check"]) == 0
+    assert "(name 'coalition-team')" in capsys.readouterr().out
+    (tmp_path / "default").write_text("name: mine\n")
+    assert main(["train", "--check"]) == 0
+    assert "(name 'mine')" in capsys.readouterr().out
+    assert main(["train", "--config", "nosuch", "--check"]) == 2
+
+
 def test_reseeded_resume_keeps_weights_but_not_the_random_streams(tmp_path):
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
     t1 = FixedTrainer(_tiny_cfg(), tmp_path / "a", device="cpu", log=lambda s: None)
