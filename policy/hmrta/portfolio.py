@@ -51,22 +51,27 @@ def candidate_methods(candidates: str | None) -> list[str]:
 
 
 def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
-             candidates: str | None = None) -> dict[str, Solution]:
-    """Each candidate's solution on the initial view of ``inst`` (candidates whose optional
-    dependency is missing, e.g. torch for rl, are left out)."""
+             candidates: str | None = None, left_out: dict[str, str] | None = None) -> dict[str, Solution]:
+    """Each candidate's solution on the initial view of ``inst``. Of the default candidates, those
+    whose optional dependency is missing (torch for rl) are left out, with the reason put in
+    ``left_out``; a candidate the caller named that cannot run is a MissingDependency."""
     from . import methods
     from .deps import MissingDependency
 
     view = initial_view(inst)
     out: dict[str, Solution] = {}
-    missing = []
+    missing: dict[str, str] = {}
     for c in candidate_methods(candidates):
         try:
             out[c] = methods.solve(view, c, seed=seed, **methods.options_for(c, {"checkpoint": checkpoint}))
         except MissingDependency as e:
-            missing.append(str(e))
+            if candidates is not None:  # asked for by name: never dropped silently
+                raise
+            missing[c] = str(e)
     if not out:
-        raise MethodError(f"portfolio: no candidate could run ({'; '.join(missing)})")
+        raise MethodError(f"portfolio: no candidate could run ({'; '.join(missing.values())})")
+    if left_out is not None:
+        left_out.update(missing)
     return out
 
 
@@ -92,14 +97,17 @@ def solve_portfolio(inst: Instance, seed: int = 0, checkpoint: str | None = None
     from . import methods
 
     t0 = time.perf_counter()
+    left_out: dict[str, str] = {}
     if initial_view(inst).n_tasks == 0:  # nothing known at time 0 to choose by
         chosen, results = candidate_methods(candidates)[0], {}
     else:
-        results = evaluate(inst, seed, checkpoint, candidates)
+        results = evaluate(inst, seed, checkpoint, candidates, left_out)
         chosen = choose(results)
     sol = results.get(chosen)
     if inst.dynamic or sol is None:  # the choice saw only the initial mission: now run the real one, events and all
         sol = methods.solve(inst, chosen, seed=seed, **methods.options_for(chosen, {"checkpoint": checkpoint}))
     sol.compute_seconds = time.perf_counter() - t0
     sol.extra["portfolio"] = {"chosen": chosen, "candidates": {c: s.makespan for c, s in results.items()}}
+    if left_out:  # default candidates that could not run here (e.g. rl without torch), with the reason
+        sol.extra["portfolio"]["left_out"] = left_out
     return sol

@@ -242,6 +242,21 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
         methods.resolve(inst, "cpsat")
 
 
+def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_named_ones(monkeypatch):
+    import sys
+
+    from hmrta.deps import MissingDependency
+
+    monkeypatch.setitem(sys.modules, "torch", None)  # as if torch were not installed
+    inst = load_instance(EXAMPLE)
+    sol = methods.solve(inst, "portfolio", seed=0)
+    pf = sol.extra["portfolio"]
+    assert set(pf["candidates"]) == {"greedy", "greedy-coalition"} and pf["left_out"]
+    assert all(c.startswith("rl") and "torch" in why for c, why in pf["left_out"].items())
+    with pytest.raises(MissingDependency, match="torch"):
+        methods.solve(inst, "portfolio", seed=0, candidates="greedy,rl")
+
+
 def test_portfolio_on_missions_that_change_and_its_candidates():
     pytest.importorskip("torch")
     import dataclasses
