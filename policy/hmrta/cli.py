@@ -402,8 +402,8 @@ def cmd_bench(args) -> int:
             raise UserError(str(e)) from None
     if args.jobs < 1:
         raise UserError(f"--jobs: expected a positive integer, got {args.jobs}")
-    if args.suite and not args.out:
-        args.out = f"docs/results/{args.suite}"  # the suite's tables live in docs/results/
+    if args.suite and not args.out:  # never the committed tables (docs/results/<suite>) unless asked for
+        args.out = f"bench-{args.suite}"
     out_dir = Path(args.out) if args.out else None
     summary = bench.run_bench(rows, methods, args.count, args.seed, out_dir, _solve_opts(args),
                               progress=_progress_on(args), with_bounds=args.bounds,
@@ -828,7 +828,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "rl,greedy-coalition when those methods run)")
     b.add_argument("--out", default=None,
                    help="folder for results.md, results.json, results.csv and a resumable cache "
-                        "(--suite default: docs/results/<suite>)")
+                        "(--suite default: bench-<suite> in the current folder; the committed tables are "
+                        "regenerated with --out docs/results/<suite>)")
     b.add_argument("--json", action="store_true", help="print the results as JSON instead of Markdown")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     _fanout_args(b, "solve the uncached items", " (not to be confused with --workers, CP-SAT's search workers "

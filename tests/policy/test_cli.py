@@ -252,3 +252,17 @@ def test_progress_per_instance_whenever_there_are_several(tmp_path, monkeypatch,
     assert "solve" in err and "2/2" in err and "instance" in err
     assert main(["solve", str(folder), "--method", "greedy", "--no-progress"]) == 0
     assert capsys.readouterr().err == ""
+
+
+# ---------------------------------------------------------------------------------------------
+# bad user input: exit 2, one line naming the option, nothing left behind
+# ---------------------------------------------------------------------------------------------
+def test_bench_suite_default_out_is_not_the_committed_tables(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", "--suite", "paper", "--tables", "SA-BT", "--max-tasks", "20", "--count", "1",
+                 "--methods", "greedy", "--no-progress"]) == 0
+    assert "wrote bench-paper/results.json" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bench-paper"]
+    assert (tmp_path / "bench-paper" / "results.md").is_file()
+    assert "--out docs/results/<suite>" in " ".join(build_parser()._subparsers._group_actions[0]
+                                                   .choices["bench"].format_help().split())
