@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import math
 import re
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -38,6 +39,7 @@ class Option:
     help: str
     choices: tuple[str, ...] | None = None
     minimum: float | None = None  # smallest value allowed (numbers)
+    maximum: float | None = None  # largest value allowed (numbers)
     live: bool = True  # also an option of the per-decision (ROS agent) form
 
     @property
@@ -54,9 +56,18 @@ class Option:
             raise MethodError(f"{method}: option {self.name}: expected {self.type.__name__}, got {value!r}") from None
         if self.choices is not None and v not in self.choices:
             raise MethodError(f"{method}: option {self.name}: expected one of {', '.join(self.choices)}, got {v!r}")
-        if self.minimum is not None and not v >= self.minimum:  # NaN fails too
-            raise MethodError(f"{method}: option {self.name}: expected a number >= {self.minimum}, got {value!r}")
+        if isinstance(v, float) and not math.isfinite(v):
+            raise MethodError(f"{method}: option {self.name}: expected a finite number{self._range()}, got {value!r}")
+        if (self.minimum is not None and v < self.minimum) or (self.maximum is not None and v > self.maximum):
+            raise MethodError(f"{method}: option {self.name}: expected a number{self._range()}, got {value!r}")
         return v
+
+    def _range(self) -> str:
+        if self.minimum is not None and self.maximum is not None:
+            return f" in [{self.minimum}, {self.maximum}]"
+        if self.minimum is not None:
+            return f" >= {self.minimum}"
+        return "" if self.maximum is None else f" <= {self.maximum}"
 
 
 @dataclass(frozen=True)
@@ -96,6 +107,7 @@ _RL = dict(rules="hmrta.rl.checkpoint_info:checkpoint_rules", needs=("torch",))
 # schedules), and at T = 1 their samples wander so far from their greedy decoding that the best of
 # ten is often worse than it
 SAMPLE_TEMPERATURE = 0.15
+MAX_SAMPLES = 10_000  # rollouts per mission: more would run for hours on a large mission
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("greedy", "the nearest admissible task, the cheap rule",
@@ -109,8 +121,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            "hmrta.rl.inference:solve_rl", "hmrta.rl.inference:rl_decider", options=(CHECKPOINT,), **_RL),
     Method("rl-sample", "learned policy, N sampled rollouts, best kept: RL(s.N); live: sampled decoding",
            "hmrta.rl.inference:solve_rl_sample", "hmrta.rl.inference:sample_decider",
-           options=(Option("samples", int, 10, "sampled rollouts per mission (offline; rl-sN is shorthand)",
-                           minimum=1, live=False),
+           options=(Option("samples", int, 10, f"sampled rollouts per mission, 1 to {MAX_SAMPLES} (offline; rl-sN "
+                           "is shorthand)", minimum=1, maximum=MAX_SAMPLES, live=False),
                     Option("temperature", float, SAMPLE_TEMPERATURE,
                            "sampling temperature: softmax(logits / T); below 1 the samples stay nearer the greedy "
                            "decoding (docs/semantics.md#sampling-temperature)", minimum=0.01),

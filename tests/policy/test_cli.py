@@ -266,3 +266,16 @@ def test_bench_suite_default_out_is_not_the_committed_tables(tmp_path, monkeypat
     assert (tmp_path / "bench-paper" / "results.md").is_file()
     assert "--out docs/results/<suite>" in " ".join(build_parser()._subparsers._group_actions[0]
                                                    .choices["bench"].format_help().split())
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--method", "rl-sample", "--temperature", "inf"], "option temperature: expected a finite number >= 0.01"),
+    (["--method", "rl-sample", "--temperature", "nan"], "option temperature: expected a finite number >= 0.01"),
+    (["--method", "rl-sample", "--temperature", "0"], "option temperature: expected a number >= 0.01"),
+    (["--method", "rl-sample", "--samples", "10001"], "option samples: expected a number in [1, 10000]"),
+    (["--method", "cpsat", "--time-limit", "inf"], "option time_limit: expected a finite number >= 0.01"),
+    (["--method", "cpsat", "--time-limit", "nan"], "option time_limit: expected a finite number >= 0.01"),
+])
+def test_method_options_out_of_range(argv, msg, capsys):
+    assert main(["solve", str(EXAMPLE), "--no-progress", *argv]) == 2
+    assert msg in _one_error_line(capsys)

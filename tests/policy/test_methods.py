@@ -6,6 +6,7 @@ from __future__ import annotations
 import ast
 import inspect
 import io
+import math
 import pickle
 import subprocess
 import sys
@@ -45,8 +46,15 @@ def test_option_errors_name_the_method():
     inst = load_instance(EXAMPLE)
     with pytest.raises(MethodError, match="method greedy takes no option 'time_limit'"):
         methods.solve(inst, "greedy", time_limit=3)
-    with pytest.raises(MethodError, match="rl-sample: option samples: expected a number >= 1"):
+    with pytest.raises(MethodError, match=r"rl-sample: option samples: expected a number in \[1, 10000\], got 0"):
         methods.solve(inst, "rl-sample", samples=0)
+    with pytest.raises(MethodError, match=r"rl-sample: option samples: expected a number in \[1, 10000\]"):
+        methods.solve(inst, "rl-s10001")
+    for bad in (math.inf, -math.inf, math.nan):
+        with pytest.raises(MethodError, match="rl-sample: option temperature: expected a finite number >= 0.01"):
+            methods.solve(inst, "rl-sample", temperature=bad)
+        with pytest.raises(MethodError, match="cpsat: option time_limit: expected a finite number >= 0.01"):
+            methods.solve(inst, "cpsat", time_limit=bad)
     with pytest.raises(MethodError, match="cpsat: option workers: expected int"):
         methods.solve(inst, "cpsat", workers=1.5)
     with pytest.raises(MethodError, match="unknown method 'greedy2'"):
