@@ -506,9 +506,9 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
                 continue  # a line cut short by an interruption
             cache[(r["row"], r["method"], r["index"], r["seed"], r.get("variant"))] = r
         log(f"resuming: {len(cache)} results cached in {cache_path}")
-    if out_dir:
-        out_dir.mkdir(parents=True, exist_ok=True)
     sets = [(row, _row_instances(row, count, seed)) for row in rows]
+    if out_dir:  # once the instances are drawn: a row that cannot be drawn leaves no empty folder
+        out_dir.mkdir(parents=True, exist_ok=True)
     total = sum(len(insts) for _, insts in sets) * len(methods)
     bar = tqdm(total=total, desc="bench", disable=not progress, unit="solve", file=sys.stderr)
     fh = open(cache_path, "a") if cache_path else None

@@ -22,6 +22,18 @@ class UserError(Exception):
     pass
 
 
+def _positive(flag: str, value: int | None) -> None:
+    """UserError naming ``flag`` unless ``value`` (None: not given) is a positive integer."""
+    if value is not None and value < 1:
+        raise UserError(f"{flag}: expected a positive integer, got {value}")
+
+
+def _seed(value: int) -> None:
+    """A generator seed: numpy's seed sequences take non-negative integers only."""
+    if value < 0:
+        raise UserError(f"--seed: expected a non-negative integer, got {value}")
+
+
 def _user_errors() -> tuple[type[BaseException], ...]:
     from .instance import InstanceError
     from .errors import MethodError
@@ -116,8 +128,7 @@ def _threads(args) -> TorchThreads | None:
     n = getattr(args, "threads", None)
     if n is None or args.cmd == "train":  # training sets its own (cmd_train)
         return None
-    if n < 1:
-        raise UserError(f"--threads: expected a positive integer, got {n}")
+    _positive("--threads", n)
     return TorchThreads(n)
 
 
@@ -275,17 +286,18 @@ def cmd_generate(args) -> int:
     from .generators import ScenarioGenerator, index_width
     from .instance import Instance
 
-    try:
+    _positive("--count", args.count)
+    _seed(args.seed)
+    try:  # every instance is drawn before the folder is made: a row no team can do leaves nothing
         gen = ScenarioGenerator(args.scenario, args.agents, args.species, args.tasks, args.skills)
+        instances = gen.generate(args.count, args.seed)
     except ValueError as e:
         raise UserError(str(e)) from None
-    if args.count < 1:
-        raise UserError(f"--count: expected a positive integer, got {args.count}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     width = index_width(args.count)
     name = f"{gen.name}_s{args.seed}"
-    for i, inst in enumerate(gen.generate(args.count, args.seed)):
+    for i, inst in enumerate(instances):
         inst.save(out / f"{name}_{str(i).zfill(width)}.yaml")
     print(f"wrote {args.count} instances to {out}/{name}_*.yaml")
     return 0
@@ -364,6 +376,11 @@ def cmd_bench(args) -> int:
     if len(given) > 1:
         raise UserError(f"bench: give your missions (INSTANCE...), --suite, or one --scenario row, not both "
                         f"{given[0]} and {given[1]}")
+    _positive("--count", args.count)
+    _positive("--max-tasks", args.max_tasks)
+    _seed(args.seed)
+    if args.max_tasks is not None and not args.suite:
+        raise UserError("--max-tasks: only applies with --suite (it skips the suite's larger rows)")
     if args.out and Path(args.out).suffix.lower() in (".json", ".md", ".csv"):
         raise UserError(f"--out {args.out}: expected a folder (results.md, results.json and results.csv go in it)")
     try:
@@ -387,7 +404,7 @@ def cmd_bench(args) -> int:
             if bad:
                 raise UserError(f"--tables: unknown table {bad[0]!r} (expected {', '.join(PAPER_ROWS)})")
         rows = bench.paper_suite(tables)
-        if args.max_tasks:
+        if args.max_tasks is not None:
             rows = [r for r in rows if r.tasks <= args.max_tasks]
     else:
         missing = [k for k in ("scenario", "agents", "species", "tasks", "skills") if getattr(args, k) is None]
@@ -395,13 +412,15 @@ def cmd_bench(args) -> int:
             raise UserError(f"bench: give your missions (INSTANCE...), --suite paper, or all of --scenario --agents "
                             f"--species --tasks --skills (missing --{missing[0]})")
         table = args.scenario
-        try:
+        try:  # every instance can be drawn (a team too small for the tasks cannot), before any work
             rows = [bench.Row(table, args.agents, args.species, args.tasks, args.skills)]
-            rows[0].generator()
+            rows[0].generator().generate(args.count, args.seed)
         except ValueError as e:
             raise UserError(str(e)) from None
-    if args.jobs < 1:
-        raise UserError(f"--jobs: expected a positive integer, got {args.jobs}")
+    if not rows:  # --max-tasks below every row of the suite
+        raise UserError(f"--max-tasks {args.max_tasks}: every row of --suite {args.suite}"
+                        f"{' --tables ' + args.tables if args.tables else ''} has more tasks")
+    _positive("--jobs", args.jobs)
     if args.suite and not args.out:  # never the committed tables (docs/results/<suite>) unless asked for
         args.out = f"bench-{args.suite}"
     out_dir = Path(args.out) if args.out else None
@@ -455,10 +474,8 @@ def cmd_train(args) -> int:
 
     from .deps import require
 
-    if args.threads is not None and args.threads < 1:
-        raise UserError(f"--threads: expected a positive integer, got {args.threads}")
-    if args.jobs < 1:
-        raise UserError(f"--jobs: expected a positive integer, got {args.jobs}")
+    _positive("--threads", args.threads)
+    _positive("--jobs", args.jobs)
     # idle OpenMP threads sleep instead of spinning: read once, when torch loads its OpenMP runtime
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     torch = require("torch", "hmrta train")
@@ -570,8 +587,8 @@ def cmd_checkpoint(args) -> int:
 def cmd_schedules(args) -> int:
     from .rl.schedules import ScheduleError, ScheduleSet, generate, make_generator
 
-    if args.count < 1:
-        raise UserError(f"--count: expected a positive integer, got {args.count}")
+    _positive("--count", args.count)
+    _seed(args.seed)
     if not args.min_tasks <= args.max_tasks or args.min_tasks < 1 or args.max_tasks > 200:
         raise UserError(f"--min-tasks/--max-tasks: expected 1 <= min <= max <= 200, got {args.min_tasks}..{args.max_tasks}")
     if not args.time_limit > 0:
@@ -817,7 +834,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="paper: every paper row (Tables I-IV); families: the mission families (docs/families.md)")
     b.add_argument("--tables", default=None, help="with --suite: comma list of SA-BT,SA-AT,MA-AT,MA-AT-large "
                    "(families: of family names, e.g. homog,binary)")
-    b.add_argument("--max-tasks", type=int, default=None, help="with --suite: skip rows with more tasks")
+    b.add_argument("--max-tasks", type=int, default=None, help="with --suite: skip rows with more tasks (at least "
+                                                              "one row must remain)")
     _row_args(b, required=False)
     b.add_argument("--count", type=int, default=50, help="instances per row")
     b.add_argument("--seed", type=int, default=1000, help="test-set seed (never used in training/validation)")

@@ -48,6 +48,9 @@ class ScenarioGenerator:
             raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {self.scenario!r}")
         if self.species < 1 or self.skills < 1 or self.tasks < 0:
             raise ValueError("species and skills must be >= 1 and tasks >= 0")
+        if self.agents < self.species:
+            raise ValueError(f"agents ({self.agents}) must be at least species ({self.species}): one agent or more "
+                             f"per species")
         if self.agents % self.species:
             raise ValueError(f"agents ({self.agents}) must be a multiple of species ({self.species})")
         if self.multi_skill and self.species > 2**self.skills - 1:
@@ -96,8 +99,8 @@ class ScenarioGenerator:
             if ok:
                 break
         else:  # e.g. AT with one agent per species: requirements of 2 are rarely coverable
-            raise ValueError(f"{self.name}: no feasible instance in {MAX_DRAWS} draws "
-                             "(too few agents per skill for these requirements)")
+            raise ValueError(f"{self.name}: no feasible instance in {MAX_DRAWS} draws (too few agents per skill "
+                             f"for these requirements: more agents, or fewer tasks)")
         depots = rng.random((self.species, 2))
         locs = rng.random((self.tasks, 2))
         durs = rng.random(self.tasks) * self.max_duration
@@ -115,14 +118,21 @@ class ScenarioGenerator:
         )
 
     def instance(self, seed: int, index: int) -> Instance:
+        _check_seed(seed)
         return self.sample(np.random.default_rng([seed, index]), f"{self.name}_s{seed}_{index_str(index, 1)}")
 
     def generate(self, count: int, seed: int) -> list[Instance]:
+        _check_seed(seed)
         width = index_width(count)
         return [
             self.sample(np.random.default_rng([seed, i]), f"{self.name}_s{seed}_{index_str(i, width)}")
             for i in range(count)
         ]
+
+
+def _check_seed(seed: int) -> None:
+    if seed < 0:  # numpy's seed sequences take non-negative integers only
+        raise ValueError(f"seed: expected a non-negative integer, got {seed}")
 
 
 def index_width(count: int) -> int:

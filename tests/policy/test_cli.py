@@ -279,3 +279,40 @@ def test_bench_suite_default_out_is_not_the_committed_tables(tmp_path, monkeypat
 def test_method_options_out_of_range(argv, msg, capsys):
     assert main(["solve", str(EXAMPLE), "--no-progress", *argv]) == 2
     assert msg in _one_error_line(capsys)
+
+
+def _exit2(argv, capsys, *needles) -> str:
+    """``main(argv)`` exits 2 with one line (no traceback) holding every needle."""
+    assert main(argv) == 2, argv
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    for n in needles:
+        assert n in err, (n, err)
+    return err.strip()
+
+
+ROW = ["--scenario", "MA-AT", "--agents", "6", "--species", "2", "--tasks", "6", "--skills", "3", "--count", "1"]
+HOPELESS = ["--scenario", "MA-AT", "--agents", "1", "--species", "1", "--tasks", "50", "--skills", "3"]
+
+
+@pytest.mark.parametrize("argv, needles", [
+    (["generate", *ROW, "--seed", "-1"], ["--seed: expected a non-negative integer, got -1"]),
+    (["generate", *ROW, "--agents", "0"], ["agents (0) must be at least species (2)"]),
+    (["generate", *HOPELESS], ["no feasible instance", "more agents"]),
+    (["generate", *ROW, "--count", "0"], ["--count: expected a positive integer, got 0"]),
+    (["bench", *ROW, "--seed", "-1"], ["--seed: expected a non-negative integer"]),
+    (["bench", *ROW, "--agents", "0"], ["agents (0) must be at least species (2)"]),
+    (["bench", *HOPELESS], ["no feasible instance", "more agents"]),
+    (["bench", *ROW, "--count", "0"], ["--count: expected a positive integer, got 0"]),
+    (["bench", *ROW, "--count", "-2"], ["--count: expected a positive integer, got -2"]),
+    (["bench", "--suite", "paper", "--max-tasks", "0"], ["--max-tasks: expected a positive integer, got 0"]),
+    (["bench", "--suite", "paper", "--max-tasks", "5"], ["--max-tasks 5: every row of --suite paper has more"]),
+    (["bench", "--suite", "families", "--tables", "homog", "--max-tasks", "1"], ["--max-tasks 1: every row"]),
+    (["bench", *ROW, "--max-tasks", "3"], ["--max-tasks: only applies with --suite"]),
+    (["schedules", "--count", "1", "--seed", "-1"], ["--seed: expected a non-negative integer"]),
+])
+def test_bad_counts_seeds_and_teams_leave_nothing(argv, needles, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / ("s.jsonl" if argv[0] == "schedules" else "out")
+    _exit2([*argv, "--out", str(out), *(["--no-progress"] if argv[0] != "generate" else [])], capsys, *needles)
+    assert list(tmp_path.iterdir()) == []  # no folder, no schedules header, no cache

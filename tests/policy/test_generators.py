@@ -103,6 +103,7 @@ def test_requirement_values_are_all_drawn():
     (("MA-AT", 8, 4, 20, 2), "at most 3 species"),
     (("SA-AT", 0, 0, 20, 3), ">= 1"),
     (("SA-BT", 4, 2, 20, 3), "SA needs at least as many species as skills"),  # would loop forever
+    (("MA-AT", 0, 2, 6, 3), r"agents \(0\) must be at least species \(2\)"),  # no agents: nothing to draw
 ])
 def test_generator_argument_errors(args, match):
     with pytest.raises(ValueError, match=match):
@@ -142,3 +143,10 @@ def test_hopeless_rows_fail_instead_of_looping():
     in all 3 skills; the generator gives up with a clear error (it used to loop forever)."""
     with pytest.raises(ValueError, match="no feasible instance in 10000 draws"):
         ScenarioGenerator("MA-AT", 2, 2, 30, 3).instance(seed=0, index=0)
+
+
+def test_negative_seeds_are_refused_by_name():
+    gen = ScenarioGenerator("MA-AT", 6, 2, 6, 3)
+    for call in (lambda: gen.generate(1, -1), lambda: gen.instance(-1, 0)):
+        with pytest.raises(ValueError, match="seed: expected a non-negative integer, got -1"):
+            call()
