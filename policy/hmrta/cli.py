@@ -696,6 +696,8 @@ def cmd_render(args) -> int:
         return cmd_render_recording(args)
     if args.instance is None or args.solution is None:
         raise UserError("render: give INSTANCE and SOLUTION (or --from FILE.mcap, a recorded mission)")
+    _positive("--frames", args.frames)
+    _positive("--fps", args.fps)
     inst = _load(args.instance)
     sol = _read_solution(args.solution)
     try:  # render() first checks that the solution belongs to the instance (SolutionError naming the file)

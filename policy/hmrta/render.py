@@ -228,6 +228,10 @@ def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool =
 
     check_solution(inst, solution, source)
     out = Path(out_path)
+    if gif or out.suffix.lower() == ".gif":  # before anything is written
+        for name, v in (("frames", frames), ("fps", fps)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {v!r}")
     if out.parent and not out.parent.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
     written = []

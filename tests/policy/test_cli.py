@@ -316,3 +316,15 @@ def test_bad_counts_seeds_and_teams_leave_nothing(argv, needles, tmp_path, monke
     out = tmp_path / ("s.jsonl" if argv[0] == "schedules" else "out")
     _exit2([*argv, "--out", str(out), *(["--no-progress"] if argv[0] != "generate" else [])], capsys, *needles)
     assert list(tmp_path.iterdir()) == []  # no folder, no schedules header, no cache
+
+
+@pytest.mark.parametrize("opt, value", [("--frames", "0"), ("--frames", "-5"), ("--fps", "0"), ("--fps", "-1")])
+def test_render_frames_and_fps(opt, value, tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    sol = tmp_path / "sol.json"
+    assert main(["solve", str(EXAMPLE), "--method", "greedy", "--out", str(sol)]) == 0
+    capsys.readouterr()
+    for out in ("r.png", "r.gif"):
+        _exit2(["render", str(EXAMPLE), str(sol), "--out", str(tmp_path / out), "--gif", opt, value], capsys,
+               f"{opt}: expected a positive integer, got {value}")
+    assert [p.name for p in tmp_path.iterdir()] == ["sol.json"]  # no png written before failing
