@@ -501,10 +501,16 @@ def cmd_train(args) -> int:
         raise UserError(str(e)) from None
     if (args.init or args.reseed) and not args.resume:
         raise UserError("--init and --reseed only apply with --resume")
+    _train_device(torch, args.device)
     run_dir = Path(args.run_dir or f"runs/{cfg['name']}")
     last = run_dir / "last.pt"
     if last.exists() and not args.resume:
         raise UserError(f"{run_dir} already holds a run: pass --resume to continue it or --run-dir for a new one")
+    if args.init and not Path(args.init).is_file():
+        raise UserError(f"--init {args.init}: no such checkpoint file")
+    if args.resume and not args.init and not last.is_file():
+        raise UserError(f"--resume: no checkpoint {last} to continue (start a new run without --resume, or give "
+                        f"--init CHECKPOINT)")
     if args.threads:
         torch.set_num_threads(args.threads)
     import signal
@@ -518,11 +524,8 @@ def cmd_train(args) -> int:
                  ray_address=args.ray_address)
     if args.resume:
         src = Path(args.init) if args.init else last
-        if src.exists():
-            tr.load(src, reseed=args.reseed)
-            print(f"resumed from {src}: iteration {tr.iteration}, {tr.episodes} episodes", file=sys.stderr)
-        else:
-            print(f"nothing to resume in {run_dir}: starting fresh", file=sys.stderr)
+        tr.load(src, reseed=args.reseed)
+        print(f"resumed from {src}: iteration {tr.iteration}, {tr.episodes} episodes", file=sys.stderr)
     write_config(cfg, run_dir / "config.yaml")
     print(f"training on {tr.device}; log {run_dir / 'log.csv'}", file=sys.stderr)
     try:
@@ -538,6 +541,23 @@ def cmd_train(args) -> int:
         tr.export(Path(args.export))
         print(f"exported {'best' if best.exists() else 'last'} weights to {args.export}", file=sys.stderr)
     return 0
+
+
+def _train_device(torch, device: str | None) -> None:
+    """``--device``: cpu, cuda or cuda:N, and a GPU that torch can use."""
+    import re
+
+    if device is None:
+        return
+    m = re.fullmatch(r"(cpu|cuda)(?::(\d+))?", device)
+    if m is None:
+        raise UserError(f"--device {device}: expected cpu, cuda or cuda:N")
+    if m[1] == "cuda":
+        if not torch.cuda.is_available():
+            raise UserError(f"--device {device}: CUDA is not available (torch {torch.__version__} finds no usable "
+                            f"GPU); use --device cpu")
+        if m[2] is not None and int(m[2]) >= torch.cuda.device_count():
+            raise UserError(f"--device {device}: no such GPU (torch finds {torch.cuda.device_count()})")
 
 
 def cmd_checkpoint_info(args) -> int:
@@ -865,15 +885,16 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--config", default="default",
                    help="training config: a YAML file, or the name of a shipped one (" +
                         ", ".join(sorted(p.stem for p in CONFIGS.glob("*.yaml"))) + ")")
-    t.add_argument("--resume", action="store_true", help="continue the run in --run-dir (model, optimiser, RNG)")
-    t.add_argument("--init", default=None, help="with --resume: start from this checkpoint instead of last.pt")
+    t.add_argument("--resume", action="store_true", help="continue the run in --run-dir (model, optimiser, RNG) from "
+                                                         "its last.pt, which must exist")
+    t.add_argument("--init", default=None, help="with --resume: start from this checkpoint file instead of last.pt")
     t.add_argument("--reseed", action="store_true",
                    help="with --resume: draw fresh random streams from the config's seed and forget the "
                         "checkpoint's best validation score (an independent continuation, e.g. under other rules)")
     t.add_argument("--run-dir", default=None, help="run folder (default runs/<config name>)")
     t.add_argument("--max-minutes", type=float, default=None, help="stop after this many minutes (checkpointed)")
     t.add_argument("--iterations", type=int, default=None, help="override train.iterations")
-    t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    t.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: cuda when available)")
     t.add_argument("--threads", type=int, default=None, metavar="N",
                    help="torch CPU threads (default: torch's, one per core; fewer beside other busy processes)")
     _fanout_args(t, "label the teachers' missions (behaviour cloning) and roll out the validation set",

@@ -328,3 +328,20 @@ def test_render_frames_and_fps(opt, value, tmp_path, capsys):
         _exit2(["render", str(EXAMPLE), str(sol), "--out", str(tmp_path / out), "--gif", opt, value], capsys,
                f"{opt}: expected a positive integer, got {value}")
     assert [p.name for p in tmp_path.iterdir()] == ["sol.json"]  # no png written before failing
+
+
+CONFIG = Path(__file__).resolve().parents[2] / "policy" / "configs" / "default.yaml"
+
+
+def test_train_device_and_missing_checkpoints(tmp_path, monkeypatch, capsys):
+    torch = pytest.importorskip("torch")
+    run = tmp_path / "run"
+    train = ["train", "--config", str(CONFIG), "--run-dir", str(run), "--no-progress"]
+    _exit2([*train, "--device", "tpu"], capsys, "--device tpu: expected cpu, cuda or cuda:N")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    _exit2([*train, "--device", "cuda"], capsys, "--device cuda: CUDA is not available", "--device cpu")
+    missing = tmp_path / "nosuch.pt"
+    _exit2([*train, "--resume", "--init", str(missing)], capsys, f"--init {missing}: no such checkpoint file")
+    _exit2([*train, "--resume", "--init", str(tmp_path)], capsys, f"--init {tmp_path}: no such checkpoint file")
+    _exit2([*train, "--resume"], capsys, f"--resume: no checkpoint {run / 'last.pt'} to continue")
+    assert list(tmp_path.iterdir()) == []  # no run folder
