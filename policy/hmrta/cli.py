@@ -28,6 +28,12 @@ def _positive(flag: str, value: int | None) -> None:
         raise UserError(f"{flag}: expected a positive integer, got {value}")
 
 
+def _seconds(flag: str, value: float | None) -> None:
+    """UserError naming ``flag`` unless ``value`` (None: not given) is a finite positive time."""
+    if value is not None and not 0 < value < float("inf"):  # NaN fails too
+        raise UserError(f"{flag}: expected a positive number of seconds, got {value}")
+
+
 def _seed(value: int) -> None:
     """A generator seed: numpy's seed sequences take non-negative integers only."""
     if value < 0:
@@ -611,8 +617,7 @@ def cmd_schedules(args) -> int:
     _seed(args.seed)
     if not args.min_tasks <= args.max_tasks or args.min_tasks < 1 or args.max_tasks > 200:
         raise UserError(f"--min-tasks/--max-tasks: expected 1 <= min <= max <= 200, got {args.min_tasks}..{args.max_tasks}")
-    if not args.time_limit > 0:
-        raise UserError(f"--time-limit: expected a positive number of seconds, got {args.time_limit}")
+    _seconds("--time-limit", args.time_limit)
     if args.jobs < 1 or args.workers < 1:
         raise UserError("--jobs and --workers: expected positive integers")
     out = Path(args.out)
@@ -642,6 +647,7 @@ def cmd_bound(args) -> int:
 
     from tqdm import tqdm
 
+    _seconds("--time-limit", args.time_limit)
     files = _resolve_instances([args.instance])
     many = len(files) > 1
     sol_args = [Path(p) for p in args.solutions]
@@ -659,7 +665,7 @@ def cmd_bound(args) -> int:
             path = str(_matching(p, f, "solution") if p.is_dir() else p)
             sols.append(_read_solution(path))
             check_solution(inst, sols[-1], path)  # a solution of another instance has no gap here
-        if args.time_limit:
+        if args.time_limit is not None:
             from .methods import solve
 
             with SolveProgress(f"cpsat {inst.name}", _progress_on(args)) as prog:

@@ -345,3 +345,13 @@ def test_train_device_and_missing_checkpoints(tmp_path, monkeypatch, capsys):
     _exit2([*train, "--resume", "--init", str(tmp_path)], capsys, f"--init {tmp_path}: no such checkpoint file")
     _exit2([*train, "--resume"], capsys, f"--resume: no checkpoint {run / 'last.pt'} to continue")
     assert list(tmp_path.iterdir()) == []  # no run folder
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "inf", "nan"])
+def test_time_limits_must_be_positive_and_finite(value, tmp_path, capsys):
+    _exit2(["bound", str(EXAMPLE), "--time-limit", value], capsys, f"--time-limit: expected a positive number of "
+                                                                    f"seconds, got {float(value)}")
+    out = tmp_path / "s.jsonl"
+    _exit2(["schedules", "--count", "1", "--time-limit", value, "--out", str(out), "--no-progress"], capsys,
+           "--time-limit: expected a positive number of seconds")
+    assert not out.exists()
