@@ -28,6 +28,34 @@ def _positive(flag: str, value: int | None) -> None:
         raise UserError(f"{flag}: expected a positive integer, got {value}")
 
 
+def _writable(flag: str, path: str | Path, folder: bool = False) -> Path:
+    """``path``, the output named by ``flag``: a file (``folder``: a folder) that can be written there,
+    checked before any work by creating and removing a probe file in the nearest existing folder on
+    its way. Otherwise a UserError naming the option, the path and the reason (nothing is left)."""
+    import os
+    import tempfile
+
+    p = Path(path)
+    if folder and p.exists() and not p.is_dir():
+        raise UserError(f"{flag} {p}: exists and is not a folder")
+    if not folder and p.is_dir():
+        raise UserError(f"{flag} {p}: is a folder, expected a file name")
+    if not folder and p.exists() and not p.is_file():
+        raise UserError(f"{flag} {p}: exists and is not a regular file")
+    here = p if folder else p.parent
+    while not here.exists() and here != here.parent:
+        here = here.parent
+    if not here.is_dir():
+        raise UserError(f"{flag} {p}: {here} is not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".hmrta-probe-", dir=here)
+    except OSError as e:
+        raise UserError(f"{flag} {p}: cannot write in {here} ({e.strerror})") from None
+    os.close(fd)
+    os.unlink(probe)
+    return p
+
+
 def _seconds(flag: str, value: float | None) -> None:
     """UserError naming ``flag`` unless ``value`` (None: not given) is a finite positive time."""
     if value is not None and not 0 < value < float("inf"):  # NaN fails too
@@ -229,6 +257,8 @@ def cmd_solve(args) -> int:
     many = len(files) > 1
     if many and out and out.suffix == ".json":
         raise UserError(f"--out {out}: with several instances, --out must be a folder")
+    if out:
+        _writable("--out", out, folder=many or out.is_dir() or out.suffix != ".json")
     sols = []
     for f in tqdm(files, desc="solve", disable=not many or not _progress_on(args), unit="instance", file=sys.stderr,
                   delay=SolveProgress.DELAY):
@@ -294,6 +324,7 @@ def cmd_generate(args) -> int:
 
     _positive("--count", args.count)
     _seed(args.seed)
+    _writable("--out", args.out, folder=True)
     try:  # every instance is drawn before the folder is made: a row no team can do leaves nothing
         gen = ScenarioGenerator(args.scenario, args.agents, args.species, args.tasks, args.skills)
         instances = gen.generate(args.count, args.seed)
@@ -344,6 +375,7 @@ def mapping_path(out: str | Path) -> Path:
 def cmd_convert(args) -> int:
     from .instance import atomic_write_text
 
+    _writable("--out", args.out)
     inst = _load(args.input)
     src = Path(args.input)
     cfg = src / "config.json" if src.is_dir() else src
@@ -429,7 +461,7 @@ def cmd_bench(args) -> int:
     _positive("--jobs", args.jobs)
     if args.suite and not args.out:  # never the committed tables (docs/results/<suite>) unless asked for
         args.out = f"bench-{args.suite}"
-    out_dir = Path(args.out) if args.out else None
+    out_dir = _writable("--out", args.out, folder=True) if args.out else None
     summary = bench.run_bench(rows, methods, args.count, args.seed, out_dir, _solve_opts(args),
                               progress=_progress_on(args), with_bounds=args.bounds,
                               log=lambda s: print(s, file=sys.stderr), compare=compare,
@@ -508,7 +540,9 @@ def cmd_train(args) -> int:
     if (args.init or args.reseed) and not args.resume:
         raise UserError("--init and --reseed only apply with --resume")
     _train_device(torch, args.device)
-    run_dir = Path(args.run_dir or f"runs/{cfg['name']}")
+    run_dir = _writable("--run-dir", args.run_dir or f"runs/{cfg['name']}", folder=True)
+    if args.export:
+        _writable("--export", args.export)
     last = run_dir / "last.pt"
     if last.exists() and not args.resume:
         raise UserError(f"{run_dir} already holds a run: pass --resume to continue it or --run-dir for a new one")
@@ -620,9 +654,7 @@ def cmd_schedules(args) -> int:
     _seconds("--time-limit", args.time_limit)
     if args.jobs < 1 or args.workers < 1:
         raise UserError("--jobs and --workers: expected positive integers")
-    out = Path(args.out)
-    if out.is_dir():
-        raise UserError(f"--out {out}: is a folder, expected a .jsonl file name")
+    out = _writable("--out", args.out)
     spec = {"kind": args.generator, "min_tasks": args.min_tasks, "max_tasks": args.max_tasks}
     if args.team_scale is not None and tuple(args.team_scale) != (1, 1):  # 1 1: the plain broad header
         spec["team_scale"] = list(args.team_scale)
@@ -694,6 +726,7 @@ def cmd_render_recording(args) -> int:
         raise UserError("render --from: give the recording and (optionally) the instance, not a solution file")
     if args.gif:
         raise UserError("render --from: --gif is not available for recordings")
+    _writable("--out", args.out)
     try:
         rec = read_recording(args.from_)
     except ReplayError as e:
@@ -724,6 +757,7 @@ def cmd_render(args) -> int:
         raise UserError("render: give INSTANCE and SOLUTION (or --from FILE.mcap, a recorded mission)")
     _positive("--frames", args.frames)
     _positive("--fps", args.fps)
+    _writable("--out", args.out)
     inst = _load(args.instance)
     sol = _read_solution(args.solution)
     try:  # render() first checks that the solution belongs to the instance (SolutionError naming the file)
@@ -740,6 +774,8 @@ def cmd_render(args) -> int:
 def cmd_demo(args) -> int:
     from .methods import solve
 
+    if args.out:
+        _writable("--out", args.out)
     inst = _load(args.instance or str(EXAMPLE))
     print(f"mission {inst.name}: {inst.n_agents} robots in {inst.n_species} species, {inst.n_tasks} tasks, "
           f"{inst.requirement_type} requirements")

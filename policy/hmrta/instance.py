@@ -233,8 +233,11 @@ def atomic_write_text(path: Path, text: str) -> None:
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    try:
+        tmp.write_text(text)
+        tmp.replace(path)
+    finally:  # a failed write (or a folder at ``path``) leaves no temp file behind
+        tmp.unlink(missing_ok=True)
 
 
 # ---------------------------------------------------------------------------------------------

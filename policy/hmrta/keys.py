@@ -100,26 +100,40 @@ def create_keystore(path: str | os.PathLike, robots: Iterable[str], *, force: bo
             raise KeystoreError(f"{out}: exists and is not a folder")
         if any(out.iterdir()) and not force:
             raise KeystoreError(f"{out}: folder is not empty (a keystore already? pass --force to replace it)")
-    parent = out.absolute().parent
+    target = Path(os.path.abspath(out))  # "." and ".." resolved: the folder is renamed by its own name
+    cwd = Path.cwd()
+    if target == cwd or target in cwd.parents:
+        raise KeystoreError(f"{out}: is the current folder or holds it (it cannot be replaced); give the keystore "
+                            f"a folder of its own")
+    parent = target.parent
     if not parent.is_dir():
         raise KeystoreError(f"{out}: parent folder {parent} does not exist")
     keys = {n: secrets.token_bytes(KEY_BYTES) for n in names}
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=parent))  # mode 0700
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=parent))  # mode 0700
+    except OSError as e:
+        raise KeystoreError(f"{out}: cannot write in {parent} ({e.strerror})") from None
+    old = None
     try:
         _write_private(tmp / KEYS_FILE, {"format": KEYSTORE_FORMAT, "robots": {n: k.hex() for n, k in keys.items()}})
         (tmp / ROBOTS_DIR).mkdir(mode=0o700)
         for n, k in keys.items():
             _write_private(tmp / ROBOTS_DIR / f"{n}.key.json", {"format": ROBOT_KEY_FORMAT, "robot": n, "key": k.hex()})
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=parent))
-            os.rename(out, old / "keystore")
-        os.rename(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
+        if target.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=parent))
+            os.rename(target, old / "keystore")
+        os.rename(tmp, target)
+    except BaseException as e:
         shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None:  # put the old keystore back (if it was moved at all), then drop its holder
+            if (old / "keystore").exists() and not target.exists():
+                os.rename(old / "keystore", target)
+            shutil.rmtree(old, ignore_errors=True)
+        if isinstance(e, OSError):
+            raise KeystoreError(f"{out}: cannot write the keystore ({e.strerror})") from None
         raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
     return keys
 
 

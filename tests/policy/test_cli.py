@@ -345,6 +345,11 @@ def test_train_device_and_missing_checkpoints(tmp_path, monkeypatch, capsys):
     _exit2([*train, "--resume", "--init", str(tmp_path)], capsys, f"--init {tmp_path}: no such checkpoint file")
     _exit2([*train, "--resume"], capsys, f"--resume: no checkpoint {run / 'last.pt'} to continue")
     assert list(tmp_path.iterdir()) == []  # no run folder
+    run.write_text("a file")
+    _exit2(train, capsys, f"--run-dir {run}: exists and is not a folder")
+    _exit2(["train", "--config", str(CONFIG), "--run-dir", str(tmp_path / "r2"), "--export", str(tmp_path)], capsys,
+           f"--export {tmp_path}: is a folder, expected a file name")
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
 
 
 @pytest.mark.parametrize("value", ["0", "-1", "inf", "nan"])
@@ -355,3 +360,59 @@ def test_time_limits_must_be_positive_and_finite(value, tmp_path, capsys):
     _exit2(["schedules", "--count", "1", "--time-limit", value, "--out", str(out), "--no-progress"], capsys,
            "--time-limit: expected a positive number of seconds")
     assert not out.exists()
+
+
+def _unwritable_cases(tmp_path):
+    sol = tmp_path / "in" / "sol.json"
+    assert main(["solve", str(EXAMPLE), "--method", "greedy", "--out", str(sol)]) == 0
+    return [
+        ["solve", str(EXAMPLE), "--method", "greedy", "--out", "/proc/x.json"],
+        ["render", str(EXAMPLE), str(sol), "--out", "/proc/x.png"],
+        ["convert", str(EXAMPLE), "--out", "/proc/x.yaml"],
+        ["bench", *ROW, "--methods", "greedy", "--no-progress", "--out", "/proc/x"],
+        ["generate", *ROW, "--out", "/proc/x"],
+        ["schedules", "--count", "1", "--no-progress", "--out", "/proc/x.jsonl"],
+        ["demo", "--method", "greedy", "--out", "/proc/x.json"],
+    ]
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs /proc")
+def test_unwritable_out_paths(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    for argv in _unwritable_cases(tmp_path):
+        capsys.readouterr()
+        out = argv[argv.index("--out") + 1]
+        _exit2(argv, capsys, f"--out {out}: cannot write in /proc")
+    _exit2(["keys", "create", "--robots", "a,b", "--out", "/proc/x"], capsys, "/proc/x: cannot write in /proc")
+    assert [p.name for p in tmp_path.iterdir()] == ["in"]
+
+
+def test_out_paths_of_the_wrong_kind_leave_nothing(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    afile = tmp_path / "afile"
+    afile.write_text("keep")
+    (tmp_path / "folder").mkdir()
+    for argv, msg in (
+        (["solve", str(EXAMPLE), str(CTAS), "--method", "greedy", "--out", "afile"], "--out afile: exists and is not a folder"),
+        (["solve", str(EXAMPLE), "--method", "greedy", "--out", "afile/x.json"], "--out afile/x.json: afile is not a folder"),
+        (["bench", *ROW, "--methods", "greedy", "--no-progress", "--out", "afile"], "--out afile: exists and is not a folder"),
+        (["generate", *ROW, "--out", "afile"], "--out afile: exists and is not a folder"),
+        (["convert", str(EXAMPLE), "--out", "folder"], "--out folder: is a folder, expected a file name"),
+        (["convert", str(CTAS), "--out", "folder"], "--out folder: is a folder, expected a file name"),
+        (["schedules", "--count", "1", "--out", "folder"], "--out folder: is a folder, expected a file name"),
+        (["keys", "create", "--robots", "a", "--out", "afile"], "afile: exists and is not a folder"),
+    ):
+        _exit2(argv, capsys, msg)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "folder"]
+    assert afile.read_text() == "keep" and list((tmp_path / "folder").iterdir()) == []
+
+
+def test_keys_create_refuses_the_current_folder(tmp_path, monkeypatch, capsys):
+    here = tmp_path / "here"
+    here.mkdir()
+    (here / "notes.txt").write_text("mine")
+    monkeypatch.chdir(here)
+    for out in (".", str(here), ".."):
+        _exit2(["keys", "create", "--robots", "a,b", "--out", out, "--force"], capsys,
+               f"{out}: is the current folder or holds it")
+    assert [p.name for p in tmp_path.iterdir()] == ["here"] and [p.name for p in here.iterdir()] == ["notes.txt"]

@@ -215,6 +215,10 @@ def test_yaml_round_trip_is_exact(valid_dict, write_yaml, tmp_path):
     assert back.to_yaml() == text
     assert back.to_dict() == inst.to_dict()
     assert not list(out.parent.glob(".*.tmp"))  # atomic write leaves no temp file
+    (tmp_path / "taken").mkdir()
+    with pytest.raises(IsADirectoryError):  # a failed write leaves no temp file either
+        inst.save(tmp_path / "taken")
+    assert not list(tmp_path.glob(".*tmp*"))
 
 
 def test_round_trip_awkward_floats(tmp_path):

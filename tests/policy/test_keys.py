@@ -236,7 +236,7 @@ def test_create_is_atomic_and_never_overwrites_by_accident(store, monkeypatch):
         real(p, data)
 
     monkeypatch.setattr(K, "_write_private", failing)
-    with pytest.raises(OSError):
+    with pytest.raises(K.KeystoreError, match="cannot write the keystore .No space left on device."):
         K.create_keystore(path, ["robot_9", "robot_8"], force=True)
     assert K.load_keystore(path) == keys  # the old keystore is untouched
     assert [p.name for p in path.parent.iterdir()] == ["ks"]  # no half-written leftovers
@@ -244,6 +244,19 @@ def test_create_is_atomic_and_never_overwrites_by_accident(store, monkeypatch):
     new = K.create_keystore(path, ["robot_9"], force=True)
     assert K.load_keystore(path) == new and sorted(new) == ["robot_9"]
     assert sorted(p.name for p in path.parent.iterdir()) == ["ks"]
+    # a failed swap puts the old keystore back and leaves no holder folder
+    real_rename = K.os.rename
+
+    def busy(src, dst):  # the new keystore cannot be moved into place
+        if Path(src).name.startswith(".ks.tmp-"):
+            raise OSError(16, "Device or resource busy")
+        real_rename(src, dst)
+
+    monkeypatch.setattr(K.os, "rename", busy)
+    with pytest.raises(K.KeystoreError, match="cannot write the keystore .Device or resource busy."):
+        K.create_keystore(path, ["robot_7"], force=True)
+    monkeypatch.setattr(K.os, "rename", real_rename)
+    assert K.load_keystore(path) == new and sorted(p.name for p in path.parent.iterdir()) == ["ks"]
     with pytest.raises(K.KeystoreError, match="duplicate name"):
         K.create_keystore(path.parent / "dup", ["a", "a"])
     with pytest.raises(K.KeystoreError, match="robot name"):
