@@ -257,18 +257,25 @@ def cmd_solve(args) -> int:
     many = len(files) > 1
     if many and out and out.suffix == ".json":
         raise UserError(f"--out {out}: with several instances, --out must be a folder")
+    to_folder = bool(out) and (many or out.is_dir() or out.suffix != ".json")
     if out:
-        _writable("--out", out, folder=many or out.is_dir() or out.suffix != ".json")
+        _writable("--out", out, folder=to_folder)
+    if to_folder:  # DIR/<stem>.json: two inputs of one stem would overwrite each other
+        by_stem: dict[str, Path] = {}
+        for f in files:
+            if f.stem in by_stem:
+                raise UserError(f"--out {out}: {by_stem[f.stem]} and {f} would both be written to "
+                                f"{out / f'{f.stem}.json'} (rename one, or solve them into separate folders)")
+            by_stem[f.stem] = f
+    insts = [_load(str(f)) for f in files]  # every input is read before anything is solved or written
     sols = []
-    for f in tqdm(files, desc="solve", disable=not many or not _progress_on(args), unit="instance", file=sys.stderr,
-                  delay=SolveProgress.DELAY):
-        inst = _load(str(f))
+    for f, inst in tqdm(list(zip(files, insts)), desc="solve", disable=not many or not _progress_on(args),
+                        unit="instance", file=sys.stderr, delay=SolveProgress.DELAY):
         with SolveProgress(f"{method} {inst.name}", _progress_on(args)) as prog:
             sol = solve(inst, method, seed=args.seed, progress=prog, **_solve_opts(args))
         sols.append(sol)
         if out:
-            target = out / f"{f.stem}.json" if (many or out.is_dir() or out.suffix != ".json") else out
-            sol.save(target)
+            sol.save(out / f"{f.stem}.json" if to_folder else out)
         if not args.json:
             print(sol.summary())
             if args.schedule:
@@ -688,15 +695,18 @@ def cmd_bound(args) -> int:
         if loose:
             raise UserError(f"{loose[0]}: with a folder of instances, expected a folder of <instance stem>.json "
                             f"solutions")
-    reports = []
-    for f in tqdm(files, desc="bound", disable=not many or not _progress_on(args), unit="instance", file=sys.stderr,
-                  delay=SolveProgress.DELAY):
+    work = []  # every instance and solution is read and checked before any bound is computed or printed
+    for f in files:
         inst = _load(str(f))
         sols = []
         for p in sol_args:
             path = str(_matching(p, f, "solution") if p.is_dir() else p)
             sols.append(_read_solution(path))
             check_solution(inst, sols[-1], path)  # a solution of another instance has no gap here
+        work.append((inst, sols))
+    reports = []
+    for inst, sols in tqdm(work, desc="bound", disable=not many or not _progress_on(args), unit="instance",
+                           file=sys.stderr, delay=SolveProgress.DELAY):
         if args.time_limit is not None:
             from .methods import solve
 

@@ -416,3 +416,28 @@ def test_keys_create_refuses_the_current_folder(tmp_path, monkeypatch, capsys):
         _exit2(["keys", "create", "--robots", "a,b", "--out", out, "--force"], capsys,
                f"{out}: is the current folder or holds it")
     assert [p.name for p in tmp_path.iterdir()] == ["here"] and [p.name for p in here.iterdir()] == ["notes.txt"]
+
+
+def test_solve_refuses_inputs_that_share_an_output_name(tmp_path, capsys):
+    for d in ("a", "b"):
+        (tmp_path / d).mkdir()
+        (tmp_path / d / "m.yaml").write_text(EXAMPLE.read_text())
+    out = tmp_path / "out"
+    a, b = tmp_path / "a" / "m.yaml", tmp_path / "b" / "m.yaml"
+    _exit2(["solve", str(a), str(b), "--method", "greedy", "--out", str(out)], capsys,
+           f"--out {out}: {a} and {b} would both be written to {out / 'm.json'}")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("cmd", ["solve", "bound"])
+def test_a_bad_file_in_a_folder_stops_before_anything_is_done(cmd, tmp_path, capsys):
+    folder = _missions(tmp_path, 2)
+    bad = folder / "zz_bad.yaml"  # sorted last: the others would be done first
+    bad.write_text("garbage: [\n")
+    capsys.readouterr()
+    argv = [cmd, str(folder), "--no-progress"] + (["--method", "greedy", "--out", str(tmp_path / "sols")]
+                                                  if cmd == "solve" else [])
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and f"{bad}:2: invalid YAML" in err and "Traceback" not in err  # nothing printed ...
+    assert not (tmp_path / "sols").exists()  # ... nor written
