@@ -41,6 +41,9 @@ def _load(path: str | Path, scenarios: bool) -> Instance:
     if p.suffix.lower() == ".json":
         return instance_from_ctas_config(parse_json(text, str(p), InstanceError), source=str(p))
     data = parse_yaml(text, str(p), InstanceError)
+    if data is None:  # no document at all: an empty file, or only comments
+        raise InstanceError(f"{p}: the file is empty (expected an hmrta-instance/1 mission: a mapping with keys "
+                            f"format, requirement_type, velocity, skills, species, tasks)")
     if is_scenario(data):  # a mission with timed events (hmrta-scenario/1)
         if not scenarios:
             raise InstanceError(f"{p}: expected a mission (hmrta-instance/1), got a scenario")

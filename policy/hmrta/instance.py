@@ -286,7 +286,8 @@ def _vector(v: Any, n: int, where: str, *, unit: bool = False, nonneg: bool = Tr
 
 def _keys(d: Any, allowed: set[str], required: set[str], where: str) -> dict:
     if not isinstance(d, dict):
-        raise _err(where, f"expected a mapping with keys {sorted(required)}, got {type(d).__name__}")
+        got = "nothing (an empty value)" if d is None else type(d).__name__
+        raise _err(where, f"expected a mapping with keys {sorted(required)}, got {got}")
     unknown = sorted({k if isinstance(k, str) else short(k) for k in d} - allowed)
     if unknown:
         raise _err(where, f"unknown key {short(unknown[0])} (expected one of {sorted(allowed)})")

@@ -6,6 +6,7 @@ import argparse
 import csv
 import io
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -441,3 +442,15 @@ def test_a_bad_file_in_a_folder_stops_before_anything_is_done(cmd, tmp_path, cap
     out, err = capsys.readouterr()
     assert out == "" and f"{bad}:2: invalid YAML" in err and "Traceback" not in err  # nothing printed ...
     assert not (tmp_path / "sols").exists()  # ... nor written
+
+
+@pytest.mark.parametrize("text", ["", "\n", "# only a comment\n"])
+def test_an_empty_instance_file_says_so(text, tmp_path, capsys):
+    f = tmp_path / "empty.yaml"
+    f.write_text(text)
+    for argv in (["solve", str(f)], ["bound", str(f)], ["convert", str(f), "--out", str(tmp_path / "x.yaml")]):
+        line = _exit2(argv, capsys, f"{f}: the file is empty (expected an hmrta-instance/1 mission")
+        assert "NoneType" not in line
+    assert [p.name for p in tmp_path.iterdir()] == ["empty.yaml"]
+    f.write_text(re.sub(r"^species:.*\n", "species:\n  -\n", EXAMPLE.read_text(), count=1, flags=re.M))
+    assert "NoneType" not in _exit2(["solve", str(f)], capsys, "species[0]: expected a mapping", "got nothing")

@@ -159,7 +159,7 @@ def test_invalid_yaml_names_line(write_yaml, text, line):
 
 
 @pytest.mark.parametrize("text,expect", [
-    ("", "expected a mapping"),  # empty file -> None
+    ("", "the file is empty (expected an hmrta-instance/1 mission: a mapping"),  # empty file -> None
     ("- 1\n- 2\n", "expected a mapping"),
     ("just a string\n", "expected a mapping"),
 ])
