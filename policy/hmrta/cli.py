@@ -759,7 +759,7 @@ def cmd_render_recording(args) -> int:
 
 def cmd_render(args) -> int:
     from .render import render
-    from .solution import SolutionError
+    from .solution import SolutionError, final_instance
 
     if args.from_ is not None:
         return cmd_render_recording(args)
@@ -770,12 +770,26 @@ def cmd_render(args) -> int:
     _writable("--out", args.out)
     inst = _load(args.instance)
     sol = _read_solution(args.solution)
+    animated = args.gif or Path(args.out).suffix.lower() == ".gif"
+    if animated and _progress_on(args):  # an animation takes a while: about a second per frame
+        from tqdm import tqdm
+
+        bar = tqdm(total=args.frames, desc="render GIF", unit="frame", file=sys.stderr, leave=False,
+                   delay=SolveProgress.DELAY)
+    else:
+        bar = None
     try:  # render() first checks that the solution belongs to the instance (SolutionError naming the file)
-        written = render(inst, sol, args.out, gif=args.gif, frames=args.frames, fps=args.fps, source=args.solution)
+        # a mission that grew while it ran (tasks added, robots joining) is drawn as it ended
+        written = render(final_instance(inst, sol, args.solution), sol, args.out, gif=args.gif, frames=args.frames,
+                         fps=args.fps, source=args.solution,
+                         progress=None if bar is None else lambda i, n: bar.update(i - bar.n))
     except SolutionError:
         raise
     except ValueError as e:  # e.g. an image format matplotlib cannot write
         raise UserError(f"--out {args.out}: {' '.join(str(e).splitlines())}") from None
+    finally:
+        if bar is not None:
+            bar.close()
     for w in written if isinstance(written, (list, tuple)) else [args.out]:
         print(f"wrote {w}")
     return 0
@@ -1031,6 +1045,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--gif", action="store_true", help="also write an animated GIF beside the PNG")
     r.add_argument("--frames", type=int, default=80, help="GIF frames")
     r.add_argument("--fps", type=int, default=10, help="GIF frames per second")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar while the GIF is drawn")
     r.set_defaults(fn=cmd_render)
 
     d = sub.add_parser("demo", help="solve the built-in example mission and print its schedule", formatter_class=F)

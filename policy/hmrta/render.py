@@ -16,7 +16,7 @@ from __future__ import annotations
 import contextlib
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -215,11 +215,12 @@ def _figure(inst: Instance, sol: Solution):
 
 
 def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool = False,
-           frames: int = 80, fps: int = 10, dpi: int = 110, source: str = "solution") -> list[Path]:
+           frames: int = 80, fps: int = 10, dpi: int = 110, source: str = "solution",
+           progress: Callable[[int, int], None] | None = None) -> list[Path]:
     """Write the map + Gantt figure to ``out_path`` (format from its suffix, e.g. .png/.svg/.pdf).
     With ``gif=True`` also write an animation beside it (``out_path`` with suffix .gif; if
     ``out_path`` itself ends in .gif only the animation is written). Returns the written paths.
-    A solution that does not belong to the instance (name, agent and task counts, species, task
+    ``progress(done, total)`` is called after each frame of the animation. A solution that does not belong to the instance (name, agent and task counts, species, task
     ids) raises :class:`~hmrta.solution.SolutionError` naming ``source``."""
     import matplotlib
 
@@ -243,7 +244,7 @@ def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool =
         written.append(out)
     if gif or out.suffix.lower() == ".gif":
         g = out if out.suffix.lower() == ".gif" else out.with_suffix(".gif")
-        _animate(inst, solution, g, frames, fps)
+        _animate(inst, solution, g, frames, fps, progress)
         written.append(g)
     return written
 
@@ -260,7 +261,8 @@ def _atomic(path: Path):
         tmp.unlink(missing_ok=True)
 
 
-def _animate(inst: Instance, sol: Solution, path: Path, frames: int, fps: int) -> None:
+def _animate(inst: Instance, sol: Solution, path: Path, frames: int, fps: int,
+             progress: Callable[[int, int], None] | None = None) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.animation import FuncAnimation, PillowWriter
 
@@ -289,5 +291,6 @@ def _animate(inst: Instance, sol: Solution, path: Path, frames: int, fps: int) -
 
     anim = FuncAnimation(fig, frame, frames=frames, blit=False)
     with _atomic(path) as tmp:
-        anim.save(str(tmp), writer=PillowWriter(fps=fps), dpi=60)
+        anim.save(str(tmp), writer=PillowWriter(fps=fps), dpi=60,
+                  progress_callback=None if progress is None else lambda i, n: progress(i + 1, n))
     plt.close(fig)

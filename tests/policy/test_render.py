@@ -34,8 +34,10 @@ def test_gif(tmp_path, case):
     from PIL import Image
 
     inst, sol = case
-    out = render(inst, sol, tmp_path / "fig.png", gif=True, frames=6)
+    seen = []
+    out = render(inst, sol, tmp_path / "fig.png", gif=True, frames=6, progress=lambda i, n: seen.append((i, n)))
     assert [p.suffix for p in out] == [".png", ".gif"]
+    assert seen == [(i, 6) for i in range(1, 7)]  # after each frame
     with Image.open(out[1]) as im:
         assert im.format == "GIF" and im.n_frames == 6
     only = render(inst, sol, tmp_path / "anim.gif", frames=3)

@@ -77,6 +77,12 @@ def test_the_solution_of_a_grown_mission_carries_the_mission_as_it_ended(scenari
     from hmrta.render import render
 
     assert render(grown, sol, tmp_path / "grown.png")[0].stat().st_size > 10000
+    # hmrta render SCENARIO SOLUTION draws it the same way
+    from hmrta.cli import main
+
+    (tmp_path / "sol.json").write_text(json.dumps(sol.to_dict()))
+    assert main(["render", str(scenario), str(tmp_path / "sol.json"), "--out", str(tmp_path / "cli.png")]) == 0
+    assert (tmp_path / "cli.png").stat().st_size > 10000
 
 
 def test_cpsat_refuses_a_scenario(scenario):
