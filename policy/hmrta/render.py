@@ -229,6 +229,8 @@ def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool =
 
     check_solution(inst, solution, source)
     out = Path(out_path)
+    if not out.suffix:  # matplotlib would take the format from the temporary file's name
+        raise ValueError(f"expected an image file name with its format as suffix (.png, .svg, .pdf, .gif), got {out}")
     if gif or out.suffix.lower() == ".gif":  # before anything is written
         for name, v in (("frames", frames), ("fps", fps)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:

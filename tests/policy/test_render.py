@@ -123,3 +123,10 @@ def test_render_refuses_a_solution_of_another_instance(tmp_path, case, change, e
     lines = err.getvalue().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"hmrta: error: {p}") and expect in lines[0], lines
     assert not (tmp_path / "x.png").exists() and not (tmp_path / "y.png").exists()
+
+
+def test_an_image_name_without_a_format_suffix_is_refused_before_anything_is_written(tmp_path, case):
+    inst, sol = case
+    with pytest.raises(ValueError, match="format as suffix"):
+        render(inst, sol, tmp_path / "fig", gif=True, frames=2)
+    assert not list(tmp_path.iterdir())
