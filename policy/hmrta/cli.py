@@ -970,7 +970,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--check", action="store_true", help="only validate the config, then exit (no training)")
     t.set_defaults(fn=cmd_train)
 
-    ck = sub.add_parser("checkpoint", help="policy checkpoints: average the weights of several", formatter_class=F)
+    ck = sub.add_parser("checkpoint", help="policy checkpoints: info (what one holds), average (the weights of several)", formatter_class=F)
     cksub = ck.add_subparsers(dest="checkpoint_cmd", required=True, metavar="ACTION")
     ca = cksub.add_parser("average", help="average the weights (the moving average where present) of checkpoints "
                                           "of the same network and rules; writes the config and the lineage "

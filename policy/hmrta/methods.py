@@ -322,10 +322,11 @@ def add_arguments(parser, live: bool = False, default: str = "greedy", methods_f
     names = mission_methods() if live else list(METHODS)
     if methods_flag:
         parser.add_argument("--methods", default=default,
-                            help="comma list of methods (rl-sN = rl-sample with N samples): " + help_text(names))
+                            help=f"comma list of methods (default: {default}; rl-sN = rl-sample with N samples): "
+                                 + help_text(names))
     else:
         parser.add_argument("--method", default=default, metavar="METHOD",
-                            help=help_text(names) + "; rl-sN = rl-sample with N samples")
+                            help=f"default: {default}. " + help_text(names) + "; rl-sN = rl-sample with N samples")
     seen: dict[str, tuple[Option, list[str]]] = {}
     for k in names:
         for o in METHODS[k].options:
