@@ -79,10 +79,17 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     return tuple(errs)
 
 
-def _load(path: str):
+def _load(path: str, static: str | None = None):
+    """The mission in ``path``; with ``static`` (what the command does), a scenario (a mission with
+    timed events) is refused: the command would silently drop its events."""
     from .formats import load_instance
 
-    return load_instance(path)
+    inst = load_instance(path)
+    if static and inst.dynamic:
+        raise UserError(f"{path}: a scenario (a mission with timed events): {static}, so its events would be "
+                        f"lost; give its mission file (the scenario's instance), or solve the scenario "
+                        f"(hmrta solve / bench run its events)")
+    return inst
 
 
 def _resolve_instances(paths: list[str]) -> list[Path]:
@@ -309,7 +316,7 @@ def cmd_evaluate(args) -> int:
         raise UserError(f"{routes_arg}: with a folder of instances, expected a folder of <instance stem>.json routes")
     sols = []
     for f in files:
-        inst = _load(str(f))
+        inst = _load(str(f), "evaluate re-simulates routes on a mission without events")
         path = _matching(routes_arg, f, "routes") if routes_arg.is_dir() else routes_arg
         routes = read_routes(inst, path)  # RouteError naming the file (unreadable, not UTF-8, bad JSON, bad ids)
         try:
@@ -383,7 +390,7 @@ def cmd_convert(args) -> int:
     from .instance import atomic_write_text
 
     _writable("--out", args.out)
-    inst = _load(args.input)
+    inst = _load(args.input, "hmrta-instance/1 holds no events")
     src = Path(args.input)
     cfg = src / "config.json" if src.is_dir() else src
     mapping = None
@@ -697,7 +704,7 @@ def cmd_bound(args) -> int:
                             f"solutions")
     work = []  # every instance and solution is read and checked before any bound is computed or printed
     for f in files:
-        inst = _load(str(f))
+        inst = _load(str(f), "the bounds hold for a mission without events")
         sols = []
         for p in sol_args:
             path = str(_matching(p, f, "solution") if p.is_dir() else p)

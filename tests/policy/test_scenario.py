@@ -213,3 +213,16 @@ def test_small_rollouts_run_their_forwards_on_one_thread(scenario):
     finally:
         hook.remove()
         torch.set_num_threads(old)
+
+
+@pytest.mark.parametrize("argv", [["evaluate", "{scen}", "{routes}"], ["bound", "{scen}"],
+                                  ["convert", "{scen}", "--out", "{tmp}/conv.yaml"]])
+def test_commands_that_would_drop_a_scenarios_events_refuse_it(scenario, tmp_path, argv, capsys):
+    from hmrta.cli import main
+
+    (tmp_path / "routes.json").write_text("[[], [], [], []]")
+    args = [a.format(scen=scenario, routes=tmp_path / "routes.json", tmp=tmp_path) for a in argv]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a scenario (a mission with timed events)" in err[0] and "events would be lost" in err[0]
+    assert not (tmp_path / "conv.yaml").exists()
