@@ -916,7 +916,7 @@ def build_parser() -> argparse.ArgumentParser:
                        formatter_class=F)
     c.add_argument("input", help="config.json, its folder, or an instance YAML")
     c.add_argument("--out", required=True,
-                   help="output YAML path; a CTAS-D input also writes OUT.mapping.json (robot id -> agent id)")
+                   help="output YAML path; a CTAS-D input also writes the robot id -> agent id mapping beside it (--out X.yaml: X.mapping.json)")
     c.set_defaults(fn=cmd_convert)
 
     b = sub.add_parser("bench", help="compare methods on generated rows (the paper's tables, the paper's numbers "
