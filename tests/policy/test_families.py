@@ -177,9 +177,9 @@ def test_bad_parameters_are_rejected():
 
 
 def test_bench_suite_families_writes_every_family(tmp_path, monkeypatch, capsys):
-    monkeypatch.chdir(tmp_path)  # the suite's default output folder: docs/results/families
+    monkeypatch.chdir(tmp_path)  # the suite's default output folder: bench-families (never docs/results/)
     assert main(["bench", "--suite", "families", "--count", "2", "--methods", "greedy", "--no-progress"]) == 0
-    md = (tmp_path / "docs" / "results" / "families" / "results.md").read_text()
+    md = (tmp_path / "bench-families" / "results.md").read_text()
     assert md.startswith("- command: `hmrta bench --suite families")  # the provenance header comes first
     assert "\n### Families (2 instances per row, seed 1000)\n" in md
     assert "| family | kn, ks, km, kb | method |" in md and "paper" not in md
