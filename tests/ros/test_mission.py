@@ -162,6 +162,38 @@ def test_sim_time_mission_equals_offline_solve(tmp_path, domain, per_process):
     assert result["transport"] == "ros2" and result["decision_latency_ms"]["n"] > 0
 
 
+@pytest.mark.parametrize("method", ["portfolio", "rl-s3"])
+def test_a_chosen_or_sampled_method_is_reported_as_asked(tmp_path, domain, method):
+    """portfolio: the result names it and what it chose (as offline), and the chosen method's live
+    mission equals its offline rollout; rl-sample: each robot samples its own decisions live, so
+    --check-offline says it does not compare (no rollout repeats those samples)."""
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    path = save_instance(inst, tmp_path / "inst.yaml")
+    out = tmp_path / "mission.json"
+    extra = ["--candidates", "greedy,greedy-coalition"] if method == "portfolio" else []
+    proc = subprocess.run([str(BIN / "hmrta-mission"), str(path), "--method", method, *extra, "--out", str(out),
+                           "--quiet", "--no-plot", "--check-offline", "--domain-id", str(domain),
+                           "--agents-per-process", "6", "--timeout", "150"],
+                          capture_output=True, text=True, timeout=200, env=dict(os.environ))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    result = json.loads(out.read_text())
+    if method == "portfolio":
+        assert result["method"] == "portfolio" and result["portfolio"]["chosen"] in ("greedy", "greedy-coalition")
+        assert set(result["portfolio"]["candidates"]) == {"greedy", "greedy-coalition"}
+        assert "same routes and makespan: yes" in proc.stdout
+    else:
+        assert result["method"] == "rl-sample" and result["success"]
+        assert "offline rollout: not compared: live, rl-sample samples each decision" in proc.stdout
+
+
+def test_a_bad_checkpoint_is_a_user_error_before_any_process_starts(tmp_path):
+    proc = subprocess.run([str(BIN / "hmrta-mission"), "--method", "rl", "--checkpoint", str(tmp_path / "nosuch.pt"),
+                           "--out", str(tmp_path / "m.json")], capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert proc.returncode == 2 and "nosuch.pt" in proc.stderr.splitlines()[-1], proc.stderr
+    assert "processes on ROS domain" not in proc.stdout and not list(tmp_path.iterdir())
+
+
 def test_lost_board_messages_are_recovered_from_keyframes_and_the_mission_equals_offline(tmp_path, graph,
                                                                                        mission_procs):
     """Both agent processes drop the board messages of some versions once, as if DDS had lost them

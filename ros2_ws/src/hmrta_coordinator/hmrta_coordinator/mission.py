@@ -360,7 +360,9 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
         while time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.1)
             rc = procs.board.proc.poll()
-            if rc is not None and rc != 0 and procs.journal is not None and procs.board.restarts < procs.max_restarts:
+            # exit code 2: the board refused its parameters (a user error): a restart would refuse them again
+            if (rc is not None and rc not in (0, 2) and procs.journal is not None
+                    and procs.board.restarts < procs.max_restarts):
                 procs.board.restarts += 1
                 procs.incidents.append(f"board process died ({exit_text(rc)}){when()}; restarted on its journal "
                                        f"({procs.board.restarts}/{procs.max_restarts})")
@@ -374,6 +376,8 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
                 if rc != 0:
                     procs.incidents.append(status + ("; not restarted (the board's state lives in that process)"
                                                      if procs.journal is None else
+                                                     "; not restarted: it refused its parameters (see its log)"
+                                                     if rc == 2 else
                                                      f"; not restarted: it was restarted {procs.board.restarts} "
                                                      f"time(s) already (at most {procs.max_restarts})"))
                 break
@@ -540,21 +544,29 @@ def _main(argv: list[str] | None = None) -> int:
     if args.scenario and args.instance:
         p.error("give the instance argument or --scenario, not both")
     path = Path(args.scenario or args.instance) if (args.scenario or args.instance) else default_instance()
-    try:
-        inst = load_instance(path)
-        # the live method every robot runs (a per-mission choice such as portfolio is made here)
-        args.method, method_options, scores = methods.resolve(inst, args.method, args.seed,
-                                                              **methods.options_from_args(args))
-    except (InstanceError, methods.MethodError) as e:
-        print(f"hmrta-mission: {e}", file=sys.stderr)
-        return 2
-    if scores is not None:
-        own = f" with checkpoint {method_options['checkpoint']}" if method_options.get("checkpoint") else ""
-        print("method chosen by simulation: " + args.method + own + " ("
-              + ", ".join(f"{c} {v:.2f}" for c, v in scores.items()) + ")", flush=True)
     if args.agents_per_process < 1:
         print("hmrta-mission: --agents-per-process must be >= 1", file=sys.stderr)
         return 2
+    from hmrta import keys as hkeys
+
+    asked = args.method
+    try:
+        inst = load_instance(path)
+        if args.keystore:  # every robot of the mission has a key (before any simulation is run)
+            hkeys.load_keystore(Path(args.keystore).absolute(), [f"robot_{a}" for a in range(inst.n_agents)])
+        # the live method every robot runs (a per-mission choice such as portfolio is made here)
+        args.method, method_options, scores = methods.resolve(inst, args.method, args.seed,
+                                                              **methods.options_from_args(args))
+        methods.rules(args.method, **method_options)  # its checkpoint readable (a bad one: here, not in every node)
+    except (InstanceError, methods.MethodError, hkeys.KeystoreError) as e:
+        print(f"hmrta-mission: {e}", file=sys.stderr)
+        return 2
+    chosen = None
+    if scores is not None:
+        own = f" with checkpoint {method_options['checkpoint']}" if method_options.get("checkpoint") else ""
+        chosen = args.method + (f"@{method_options['checkpoint']}" if method_options.get("checkpoint") else "")
+        print("method chosen by simulation: " + args.method + own + " ("
+              + ", ".join(f"{c} {v:.2f}" for c, v in scores.items()) + ")", flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.exists():
@@ -568,8 +580,6 @@ def _main(argv: list[str] | None = None) -> int:
     # robots the scenario's add_robot events add: the board names the k-th robot_<robots + k>; their
     # agents start now and wait until the board adds them (sim_robot simulates them from then on)
     added = [f"robot_{inst.n_agents + k}" for k in range(sum(e.get("type") == "add_agent" for e in inst.events))]
-    from hmrta import keys as hkeys
-
     keystore = None
     try:
         if args.authenticate:
@@ -615,8 +625,12 @@ def _main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 130 if interrupted else 1
     sol = Solution.from_dict(json.loads(out.read_text()))
+    if chosen is not None:  # labelled as offline: the method asked for, what it chose and why
+        sol.method = asked
+        sol.extra["portfolio"] = {"chosen": chosen, "candidates": scores}
     if procs.incidents:  # the mission completed in spite of them: the result says what happened
         sol.extra["incidents"] = list(procs.incidents)
+    if chosen is not None or procs.incidents:
         sol.save(out)
         for line in procs.incidents:
             print(f"  incident: {line}")
@@ -632,11 +646,15 @@ def _main(argv: list[str] | None = None) -> int:
         if changed:  # operator tasks, robots joining or dropped: the offline rollout has none of them
             print("offline rollout: not compared: the mission changed while it ran ("
                   + ", ".join(f"{n} {kind}" for kind, n in sorted(changed.items())) + ")")
+        elif args.method == "rl-sample":  # each robot samples its own decisions: no rollout repeats them
+            print("offline rollout: not compared: live, rl-sample samples each decision on the deciding robot "
+                  "(offline it keeps the best of several sampled rollouts)")
         else:
             from hmrta.methods import solve
 
             ref = solve(inst, args.method, seed=args.seed, **method_options)
-            same = ref.routes == sol.routes and ref.makespan == sol.makespan
+            same = ref.routes == sol.routes and (ref.makespan == sol.makespan or (
+                math.isnan(ref.makespan) and math.isnan(sol.makespan)))  # a failed mission has none
             print(f"offline rollout ({args.method}): makespan {ref.makespan:.3f}; same routes and makespan: "
                   f"{'yes' if same else 'NO'}")
             differs = not same
