@@ -994,6 +994,9 @@ class MissionBoard(BoardCore):
                    "the mission is over (every task is done or cancelled; the robots are going home)")
         elif op == "add" and rid in self.requests:
             why = f"task {rid!r}: a task with this id exists already"
+        elif op == "add" and rid.isascii() and rid.isdigit():
+            why = (f"task {rid!r}: an id of decimal digits names a task of the mission by its index (hmrta-task "
+                   f"cancel {rid}): choose an id with a letter")
         elif op == "cancel" and rid not in self.requests and _task_index(rid, st.M) is None:
             why = (f"task {rid!r}: no task with this id (an operator's task by its id, a task of the mission "
                    f"by its index 0..{st.M - 1})")
@@ -1005,6 +1008,8 @@ class MissionBoard(BoardCore):
             elif rid not in self.requests:  # a task of the mission, by its index
                 del rec["name"]
                 rec["task"] = ans["task"] = _task_index(rid, st.M)
+            elif rid in st.names:  # an operator's task: say which task it is, as for an add
+                ans["task"] = st.names.index(rid)
             try:
                 self._external(rec)
             except EventRejected as e:

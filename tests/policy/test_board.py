@@ -493,8 +493,12 @@ def test_a_task_of_the_mission_is_cancelled_by_its_index(tmp_path):
     ans = b.task_request("cancel", str(m))
     assert ans["event"] == "accepted" and ans["task"] == m and b.state.status[m] == 4  # cancelled
     assert b.task_request("cancel", str(m))["event"] == "rejected"  # already cancelled
+    digits = b.task_request("add", "3", {"location": [0.2, 0.8], "requirements": [1, 0, 0], "duration": 1.0})
+    assert digits["event"] == "rejected" and "names a task of the mission by its index" in digits["reason"]
+    assert b.task_request("add", "op-1", {"location": [0.2, 0.8], "requirements": [1, 0, 0], "duration": 1.0})["event"] == "accepted"
+    assert b.task_request("cancel", "op-1")["task"] == INST.n_tasks  # which task a cancel cancelled
     b.poll()
-    assert b.live_events == {"cancel_task": 1}  # counted as published
+    assert b.live_events == {"cancel_task": 2, "add_task": 1}  # counted as published
     drive(b)
     sol = b.result()
     assert m in sol.extra["undone_tasks"] and all(m not in r for r in sol.routes)

@@ -174,3 +174,25 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
                        env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
     assert r.returncode == 2 and flag in r.stderr.splitlines()[-1], r.stderr
     assert "Traceback" not in r.stderr and not list(tmp_path.iterdir())  # no output folder either
+
+
+@pytest.mark.parametrize("exe,args,says", [
+    ("task_board", ["-p", "heartbeat_timeout:=10"], "needs a decimal point"),
+    ("task_board", ["-p", "heartbeat_timeout:=-1.0"], "heartbeat_timeout: expected a finite number >= 0"),
+    ("task_board", ["-p", "queue_depth:=0"], "queue_depth: expected"),
+    ("sim_robot", ["-p", "rate:=0.0", "-p", "time_scale:=1.0"], "rate: expected"),
+    ("sim_robot", ["-p", "time_scale:=-1.0"], "time_scale: expected"),
+    ("sim_robot", ["-p", "heartbeat_period:=0.0"], "heartbeat_period: expected"),
+])
+def test_bad_node_parameters_are_one_line_user_errors(exe, args, says, domain):
+    example = ROOT / "policy" / "hmrta" / "data" / "example.yaml"
+    extra = ["-p", f"instance:={example}"] if exe == "task_board" else []
+    r = subprocess.run([str(BIN / exe), "--ros-args", *extra, *args], capture_output=True, text=True, timeout=60,
+                       env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain)))
+    assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_zero_agent_heartbeat_period_is_refused():
+    r = subprocess.run([str(BIN / "agent_node"), "--heartbeat-period", "0"], capture_output=True, text=True,
+                       timeout=60, env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert r.returncode == 2 and "--heartbeat-period" in r.stderr

@@ -74,9 +74,10 @@ def test_silent_pose_drops_nobody_but_a_silent_agent_does():
         b.heartbeat(b.session, [b.names[a]])
         b.pose(a, *inst.depots[a])
     assert b.started
-    for _ in range(4):  # 12 s: every pose silent, robot_1's agent silent too
-        now[0] += 3.0
-        b.heartbeat(b.session, [n for n in b.names if n != "robot_1"])
+    for k in range(120):  # 12 s of a board ticking every 0.1 s: every pose silent, robot_1's agent silent too
+        now[0] += 0.1
+        if k % 10 == 9:
+            b.heartbeat(b.session, [n for n in b.names if n != "robot_1"])
         b.tick()
     assert list(b.lost) == [1] and "agent heartbeat" in b.lost[1]
 

@@ -45,6 +45,7 @@ import time
 from typing import Any
 
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -60,7 +61,7 @@ from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (Choice, DecodeError, Join, KeyframeRequest, Mission, Status, board_from_msg,
                                  choice_to_msg, clock_from_msg, keyframe_request_to_msg, mission_from_msg,
                                  pose_from_msg, pose_to_msg, rejection_from_msg, status_to_msg)
-from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, spin_nodes
+from hmrta_msgs_py.runtime import LEAN_NODE, TYPE_HINT, declare_method_parameters, spin_nodes
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 
@@ -583,6 +584,8 @@ def main(args: list[str] | None = None) -> None:
     cli = p.parse_args(remove_ros_args(argv)[1:])
     if cli.torch_threads < 1:
         p.error("--torch-threads: expected a positive integer")
+    if not 0 < cli.heartbeat_period < float("inf"):
+        p.error(f"--heartbeat-period: expected a number of seconds > 0, got {cli.heartbeat_period}")
     rclpy.init(args=argv)
     host = Host()
     host.ignore.update(cli.ignore_board_version)
@@ -593,8 +596,8 @@ def main(args: list[str] | None = None) -> None:
                      for r in cli.robots]
         else:
             nodes = [AgentNode(host)]
-    except (MethodError, ValueError) as e:  # bad policy / checkpoint: a user error
-        print(f"agent_node: {e}", file=sys.stderr)
+    except (InvalidParameterTypeException, MethodError, ValueError) as e:  # bad policy / checkpoint: a user error
+        print(f"agent_node: {e}" + (TYPE_HINT if isinstance(e, InvalidParameterTypeException) else ""), file=sys.stderr)
         rclpy.try_shutdown()
         raise SystemExit(2) from None
     _set_torch_threads(cli.torch_threads)  # the deciders are built: torch is loaded if they use it

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -47,7 +48,7 @@ from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (DecodeError, KeyframeRequest, Mission, board_from_msg, clock_to_msg,
                                  keyframe_request_to_msg, mission_from_msg, pose_from_msg, pose_to_msg)
-from hmrta_msgs_py.runtime import spin_nodes
+from hmrta_msgs_py.runtime import TYPE_HINT, spin_nodes
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 EPS = 1e-6
@@ -99,6 +100,12 @@ class SimRobot(Node):
         heartbeat = P("heartbeat_period", 1.0).value
         self.exit_on_done = P("exit_on_done", True).value
         clock_topic = P("clock_topic", "/hmrta/clock").value
+        for k, v, ok, want in (("time_scale", self.time_scale, self.time_scale >= 0, "a number >= 0 (0: as fast "
+                                                                                    "as possible)"),
+                               ("rate", rate, rate > 0, "a number of ticks per second > 0"),
+                               ("heartbeat_period", heartbeat, heartbeat > 0, "a number of seconds > 0")):
+            if not ok or not math.isfinite(v):
+                raise ValueError(f"{k}: expected {want}, got {v!r}")
         if not clock_topic.startswith("/") or clock_topic.rstrip("/") == "/clock":
             raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {clock_topic!r}")
         self.mission: Mission | None = None
@@ -388,8 +395,9 @@ def main(args: list[str] | None = None) -> None:
     rclpy.init(args=argv)
     try:
         node = SimRobot()
-    except ValueError as e:  # a bad parameter: a user error
-        print(f"sim_robot: {e}", file=sys.stderr)
+    except (InvalidParameterTypeException, ValueError) as e:  # a bad parameter: a user error
+        print(f"sim_robot: {e}" + (TYPE_HINT if isinstance(e, InvalidParameterTypeException) else ""),
+              file=sys.stderr)
         rclpy.try_shutdown()
         raise SystemExit(2) from None
     spin_nodes([node], until=node.done if node.exit_on_done else None)

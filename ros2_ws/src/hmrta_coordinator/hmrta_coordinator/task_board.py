@@ -61,12 +61,14 @@ than decoding it.
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from functools import partial
 from typing import Any
 
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
@@ -88,7 +90,7 @@ from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mis
                                  choice_from_msg, clock_from_msg, keyframe_request_from_msg, markers_to_msg,
                                  mission_to_msg, pose_from_msg, rejection_to_msg, request_id_of, result_to_msg,
                                  status_from_msg, task_event_to_msg, task_request_from_msg)
-from hmrta_msgs_py.runtime import declare_method_parameters, spin_nodes
+from hmrta_msgs_py.runtime import TYPE_HINT, declare_method_parameters, spin_nodes
 
 
 class TaskBoard(Node):
@@ -135,9 +137,16 @@ class TaskBoard(Node):
         if not scale > 0:
             raise ValueError(f"scale: expected a positive number of metres per mission unit, got {scale!r}")
         for k, v in (("arrival_tolerance", tolerance), ("leg_timeout_factor", leg_timeout_factor),
-                     ("leg_timeout_floor", leg_timeout_floor)):
-            if not v >= 0:
-                raise ValueError(f"{k}: expected a number >= 0, got {v!r}")
+                     ("leg_timeout_floor", leg_timeout_floor), ("startup_timeout", startup_timeout),
+                     ("heartbeat_timeout", heartbeat_timeout), ("decision_timeout", decision_timeout),
+                     ("rejection_rate", self.rejection_rate), ("marker_period", marker_period),
+                     ("progress_period", self.progress_period)):
+            if not (v >= 0 and math.isfinite(v)):
+                raise ValueError(f"{k}: expected a finite number >= 0, got {v!r}")
+        if queue_depth < 1:
+            raise ValueError(f"queue_depth: expected a number of messages >= 1, got {queue_depth}")
+        if not frame_id:
+            raise ValueError("frame_id: expected the frame of the mission's coordinates (e.g. map), got ''")
         self.inst = inst = load_instance(path)
         rules = method_rules(self.method, **method_opts)  # from the checkpoint's config: no torch here
         if real_time:
@@ -460,10 +469,14 @@ def main(args: list[str] | None = None) -> None:
     rclpy.init(args=argv)
     try:
         board = TaskBoard()
-    except (InstanceError, MethodError, JournalError, ValueError) as e:  # bad mission file / policy: a user error
-        print(f"task_board: {e}", file=sys.stderr)
+    except (InvalidParameterTypeException, InstanceError, MethodError, JournalError, ValueError) as e:  # bad mission file / policy: a user error
+        print(f"task_board: {e}" + (TYPE_HINT if isinstance(e, InvalidParameterTypeException) else ""), file=sys.stderr)
         rclpy.try_shutdown()
         raise SystemExit(2) from None
+    except KeyboardInterrupt:  # stopped while it loads the mission (its journal is replayed on the next start)
+        print("task_board: interrupted during start-up", file=sys.stderr)
+        rclpy.try_shutdown()
+        raise SystemExit(130) from None
     spin_nodes([board], until=board.done if board.exit_on_done else None)
 
 

@@ -29,24 +29,29 @@ def local_env(env: dict[str, str] | None = None, domain_id: int | None = None) -
     return out
 
 
+# what a node adds to rclpy's InvalidParameterTypeException: ROS reads -p x:=10 as an integer
+TYPE_HINT = " (a number parameter needs a decimal point: -p NAME:=10.0, not 10)"
+
+
 def declare_method_parameters(node) -> tuple[str, dict]:
     """Declare ``method`` and every live method option (the table
     :func:`hmrta_msgs_py.params.method_parameters`, generated from :data:`hmrta.methods.METHODS`)
     on ``node``; return the method and the options given (unset ones omitted). Raises MethodError
     for an unknown method or an option it does not take."""
-    from hmrta.methods import get, parse
+    from hmrta.methods import live_spec
 
     from .params import method_parameters
 
     method_param, *option_params = method_parameters()
     method = node.declare_parameter(method_param.name, method_param.default).value
-    name, implied = parse(method)
-    opts = dict(implied)
+    opts = {}
     for p in option_params:
         value = node.declare_parameter(p.name, p.default).value
         if value != p.default:  # ROS has no None: the default stands for "not given"
             opts[p.name] = value
-    return method, get(name).check(opts, live=True)
+    # the spec's shorthand and own checkpoint (rl-s5: sampled decisions, live one per turn; rl@broad)
+    name, options = live_spec(method, opts)
+    return name, options
 
 
 def parameters_help(params) -> str:
