@@ -623,6 +623,8 @@ def _main(argv: list[str] | None = None) -> int:
         print(f"hmrta-mission: the mission did not complete ({status}); {sol.extra['tasks_done']}/{inst.n_tasks} "
               f"tasks were done; wrote the partial result {out}; board log tail:\n{log_tail(procs.board.log)}",
               file=sys.stderr)
+        if procs.record is not None and procs.record.exists():
+            print(f"wrote {procs.record} (the recording up to the end)", file=sys.stderr)
         return 130 if interrupted else 1
     sol = Solution.from_dict(json.loads(out.read_text()))
     if chosen is not None:  # labelled as offline: the method asked for, what it chose and why
