@@ -600,6 +600,10 @@ def main(args: list[str] | None = None) -> None:
         print(f"agent_node: {e}" + (TYPE_HINT if isinstance(e, InvalidParameterTypeException) else ""), file=sys.stderr)
         rclpy.try_shutdown()
         raise SystemExit(2) from None
+    except KeyboardInterrupt:  # stopped while it starts (loading the mission or the policy)
+        print("agent_node: interrupted during start-up", file=sys.stderr)
+        rclpy.try_shutdown()
+        raise SystemExit(130) from None
     _set_torch_threads(cli.torch_threads)  # the deciders are built: torch is loaded if they use it
     host.attach(nodes[0], cli.heartbeat_period)
     spin_nodes(nodes, until=host.all_done)

@@ -400,6 +400,10 @@ def main(args: list[str] | None = None) -> None:
               file=sys.stderr)
         rclpy.try_shutdown()
         raise SystemExit(2) from None
+    except KeyboardInterrupt:  # stopped while it starts (loading the mission or the policy)
+        print("sim_robot: interrupted during start-up", file=sys.stderr)
+        rclpy.try_shutdown()
+        raise SystemExit(130) from None
     spin_nodes([node], until=node.done if node.exit_on_done else None)
 
 
