@@ -63,9 +63,9 @@ def _seconds(flag: str, value: float | None) -> None:
 
 
 def _seed(value: int) -> None:
-    """A generator seed: numpy's seed sequences take non-negative integers only."""
-    if value < 0:
-        raise UserError(f"--seed: expected a non-negative integer, got {value}")
+    """A seed: numpy's seed sequences take non-negative integers only, torch's generators 64 bits."""
+    if not 0 <= value < 2**63:
+        raise UserError(f"--seed: expected an integer in 0..2^63-1, got {value}")
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -258,6 +258,7 @@ def cmd_solve(args) -> int:
     from .methods import solve
     from tqdm import tqdm
 
+    _seed(args.seed)
     files = _resolve_instances(args.instances)
     method = args.method
     out = Path(args.out) if args.out else None
@@ -805,6 +806,7 @@ def cmd_render(args) -> int:
 def cmd_demo(args) -> int:
     from .methods import solve
 
+    _seed(args.seed)
     if args.out:
         _writable("--out", args.out)
     inst = _load(args.instance or str(EXAMPLE))

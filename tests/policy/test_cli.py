@@ -297,11 +297,11 @@ HOPELESS = ["--scenario", "MA-AT", "--agents", "1", "--species", "1", "--tasks",
 
 
 @pytest.mark.parametrize("argv, needles", [
-    (["generate", *ROW, "--seed", "-1"], ["--seed: expected a non-negative integer, got -1"]),
+    (["generate", *ROW, "--seed", "-1"], ["--seed: expected an integer in 0..2^63-1, got -1"]),
     (["generate", *ROW, "--agents", "0"], ["agents (0) must be at least species (2)"]),
     (["generate", *HOPELESS], ["no feasible instance", "more agents"]),
     (["generate", *ROW, "--count", "0"], ["--count: expected a positive integer, got 0"]),
-    (["bench", *ROW, "--seed", "-1"], ["--seed: expected a non-negative integer"]),
+    (["bench", *ROW, "--seed", "-1"], ["--seed: expected an integer in 0..2^63-1"]),
     (["bench", *ROW, "--agents", "0"], ["agents (0) must be at least species (2)"]),
     (["bench", *HOPELESS], ["no feasible instance", "more agents"]),
     (["bench", *ROW, "--count", "0"], ["--count: expected a positive integer, got 0"]),
@@ -310,7 +310,9 @@ HOPELESS = ["--scenario", "MA-AT", "--agents", "1", "--species", "1", "--tasks",
     (["bench", "--suite", "paper", "--max-tasks", "5"], ["--max-tasks 5: every row of --suite paper has more"]),
     (["bench", "--suite", "families", "--tables", "homog", "--max-tasks", "1"], ["--max-tasks 1: every row"]),
     (["bench", *ROW, "--max-tasks", "3"], ["--max-tasks: only applies with --suite"]),
-    (["schedules", "--count", "1", "--seed", "-1"], ["--seed: expected a non-negative integer"]),
+    (["schedules", "--count", "1", "--seed", "-1"], ["--seed: expected an integer in 0..2^63-1"]),
+    (["solve", str(EXAMPLE), "--method", "rl-s3", "--seed", str(2**64)], ["--seed: expected an integer in 0..2^63-1"]),
+    (["demo", "--seed", "-1"], ["--seed: expected an integer in 0..2^63-1"]),
 ])
 def test_bad_counts_seeds_and_teams_leave_nothing(argv, needles, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
