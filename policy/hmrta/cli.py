@@ -876,11 +876,19 @@ def _fanout_args(p: argparse.ArgumentParser, what: str, note: str = "") -> None:
                         "ray start --address HOST:PORT; docs/training.md)")
 
 
+class Parser(argparse.ArgumentParser):
+    """A bad command line is one line on stderr, like every other user error (exit 2); the usage is
+    in --help. Its subcommands' parsers are of this class too."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .methods import add_arguments as add_method_arguments
     from .rl.schedules import GENERATORS as SCHEDULE_GENERATORS
 
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="hmrta",
         description="Heterogeneous multi-robot task allocation: instances, simulator, baselines, learned policy.",
         formatter_class=HelpFormatter)

@@ -489,10 +489,10 @@ def _main(argv: list[str] | None = None) -> int:
     from rclpy.executors import ExternalShutdownException
     from rclpy.utilities import remove_ros_args
 
-    from hmrta.cli import HelpFormatter  # each default shown once
+    from hmrta.cli import HelpFormatter, Parser  # each default shown once; bad arguments: one line
 
     argv = list(sys.argv if argv is None else argv)
-    p = argparse.ArgumentParser(prog="hmrta-mission", description=__doc__.split("\n\n")[0],
+    p = Parser(prog="hmrta-mission", description=__doc__.split("\n\n")[0],
                                 formatter_class=HelpFormatter)
     p.add_argument("instance", nargs="?", default=None,
                    help="instance YAML (or CTAS-D config.json); default: the built-in example mission")

@@ -47,7 +47,9 @@ def _point(text: str) -> list[float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="hmrta-task", description=__doc__.split("\n\n")[0])
+    from hmrta.cli import Parser  # bad arguments: one line
+
+    p = Parser(prog="hmrta-task", description=__doc__.split("\n\n")[0])
     p.add_argument("--timeout", type=_number, default=10.0, help="seconds to wait for the board")
     p.add_argument("--domain-id", type=int, default=None, help="ROS domain 0..232 (default: $ROS_DOMAIN_ID)")
     sub = p.add_subparsers(dest="cmd", required=True)
