@@ -541,6 +541,11 @@ def cmd_train(args) -> int:
         cfg = load_config(args.config)
     except ValueError as e:
         raise UserError(str(e)) from None
+    given = cfg["pretrain"].get("schedules")  # the datasets it reads (a path or a list): before any run folder
+    for f in [given] if isinstance(given, str) else list(given or []):
+        if not Path(f).is_file():
+            raise UserError(f"{args.config}: pretrain.schedules: {f}: no such file (a config's paths are relative "
+                            f"to the working folder, {Path.cwd()}; the shipped configs' to the repository root)")
     if args.check:
         print(f"{args.config}: a valid training config (name {cfg['name']!r})")
         return 0

@@ -581,6 +581,12 @@ def test_train_finds_the_shipped_configs_by_name_from_any_directory(tmp_path, mo
     assert main(["train", "--check"]) == 0
     assert "(name 'mine')" in capsys.readouterr().out
     assert main(["train", "--config", "nosuch", "--check"]) == 2
+    capsys.readouterr()
+    # a dataset a config names is looked for before anything is written (from here: relative paths miss)
+    assert main(["train", "--config", "schedules", "--check"]) == 2
+    assert "pretrain.schedules: policy/datasets/" in capsys.readouterr().err
+    assert main(["train", "--config", "schedules", "--run-dir", str(tmp_path / "run")]) == 2
+    assert not (tmp_path / "run").exists()
 
 
 def test_reseeded_resume_keeps_weights_but_not_the_random_streams(tmp_path):
