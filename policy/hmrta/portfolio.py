@@ -53,8 +53,9 @@ def candidate_methods(candidates: str | None) -> list[str]:
 def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
              candidates: str | None = None, left_out: dict[str, str] | None = None) -> dict[str, Solution]:
     """Each candidate's solution on the initial view of ``inst``. Of the default candidates, those
-    whose optional dependency is missing (torch for rl) are left out, with the reason put in
-    ``left_out``; a candidate the caller named that cannot run is a MissingDependency."""
+    that cannot run here (torch missing for rl) or on this mission (more skills than the learned
+    policy takes) are left out, with the reason put in ``left_out``; a candidate the caller named
+    that cannot run raises."""
     from . import methods
     from .deps import MissingDependency
 
@@ -64,7 +65,7 @@ def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
     for c in candidate_methods(candidates):
         try:
             out[c] = methods.solve(view, c, seed=seed, **methods.options_for(c, {"checkpoint": checkpoint}))
-        except MissingDependency as e:
+        except (MissingDependency, MethodError) as e:  # no torch; a mission beyond the policy (more skills)
             if candidates is not None:  # asked for by name: never dropped silently
                 raise
             missing[c] = str(e)

@@ -78,6 +78,9 @@ class Solution:
             return f"{self.instance}: {self.method} FAILED ({self.extra.get('failure', 'unknown reason')})"
         line = (f"{self.instance}: {self.method} makespan {self.makespan:.3f}  AWT {self.awt:.3f}  "
                 f"redundancy {self.redundancy:.3f}  compute {self.compute_seconds:.3f}s")
+        pf = self.extra.get("portfolio") if isinstance(self.extra, dict) else None
+        if isinstance(pf, dict) and pf.get("chosen"):  # a method chosen per mission: which one
+            line += f"  chose {pf['chosen']}"
         dyn = self.extra.get("dynamic") if isinstance(self.extra, dict) else None
         if isinstance(dyn, dict) and isinstance(dyn.get("tasks_lost"), dict):  # a mission with events
             lost = dyn["tasks_lost"]

@@ -265,6 +265,19 @@ def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_na
         methods.solve(inst, "portfolio", seed=0, candidates="greedy,rl")
 
 
+def test_portfolio_leaves_out_the_learned_policy_on_a_mission_beyond_it():
+    pytest.importorskip("torch")
+    from hmrta.generators import ScenarioGenerator
+
+    inst = ScenarioGenerator("MA-AT", 6, 3, 5, 7).instance(0, 0)  # 7 skills: the policy takes at most 5
+    sol = methods.solve(inst, "portfolio", seed=0)
+    pf = sol.extra["portfolio"]
+    assert sol.success and set(pf["candidates"]) == {"greedy", "greedy-coalition"}
+    assert all("at most 5 skills" in why for why in pf["left_out"].values()) and "chose " in sol.summary()
+    with pytest.raises(MethodError, match="at most 5 skills"):
+        methods.solve(inst, "portfolio", seed=0, candidates="greedy,rl")
+
+
 def test_portfolio_on_missions_that_change_and_its_candidates():
     pytest.importorskip("torch")
     import dataclasses
