@@ -275,19 +275,23 @@ def read_routes(inst: Instance, path: str | Path) -> list[list[int]]:
 # ---------------------------------------------------------------------------------------------
 # metrics (SPEC §4)
 # ---------------------------------------------------------------------------------------------
-def redundancy(inst: Instance, members: Sequence[Sequence[int]], satisfied: Sequence[bool]) -> float:
-    """Ability redundancy W: mean over tasks of sum_k |c_L,k - q_k| / sum_k q_k (eta if unsatisfied)."""
+def redundancy(inst: Instance, members: Sequence[Sequence[int]], satisfied: Sequence[bool],
+               counted: Sequence[bool] | None = None) -> float:
+    """Ability redundancy W: mean over tasks of sum_k |c_L,k - q_k| / sum_k q_k (eta if unsatisfied),
+    over the ``counted`` tasks only when given (a task the operator cancelled needs no coalition)."""
     if inst.n_tasks == 0:
         return 0.0
     traits, req = inst.traits, inst.requirements
     w = []
     for m in range(inst.n_tasks):
+        if counted is not None and not counted[m]:
+            continue
         if not satisfied[m]:
             w.append(ETA)
             continue
         c = traits[list(members[m])].sum(0) if members[m] else np.zeros(inst.skills)  # [K]
         w.append(float(np.abs(c - req[m]).sum() / req[m].sum()))
-    return float(np.mean(w))
+    return float(np.mean(w)) if w else 0.0
 
 
 def satisfies(inst: Instance, coalition: Sequence[int], m: int) -> list[int]:
@@ -301,7 +305,7 @@ def satisfies(inst: Instance, coalition: Sequence[int], m: int) -> list[int]:
 
 def solution_from_state(state, method: str, seed: int, compute_seconds: float) -> Solution:
     """Build a Solution from a finished :class:`hmrta.core.MissionState`."""
-    from .core import DONE
+    from .core import CANCELLED, DONE
 
     inst = state.inst
     ok = bool(state.success)
@@ -328,7 +332,7 @@ def solution_from_state(state, method: str, seed: int, compute_seconds: float) -
         inst.name, method, int(seed), ok,
         float(ret.max()) if ok and len(ret) else (0.0 if ok else math.nan),
         float(state.wait_total.mean()) if inst.n_agents else 0.0,
-        redundancy(inst, state.members, done),
+        redundancy(inst, state.members, done, ~(state.by_operator & (state.status == CANCELLED))),
         compute_seconds,
         [list(map(int, r)) for r in state.routes], tasks, agents, extra,
     )

@@ -68,6 +68,12 @@ def test_the_solution_of_a_grown_mission_carries_the_mission_as_it_ended(scenari
     check_solution(grown, sol)
     assert final_instance(grown, sol) is grown
     assert "response time (finish - release) mean" in sol.summary() and "1 cancelled" in sol.summary()
+    # the task the operator cancelled needs no coalition: it is not scored as unsatisfied (ETA = 10, of 5 tasks)
+    from hmrta.solution import redundancy
+
+    kept = [t["finish"] == t["finish"] for t in sol.tasks]  # (not NaN)
+    assert sol.redundancy == pytest.approx(redundancy(grown, [t["members"] for t in sol.tasks], kept, kept))
+    assert sol.redundancy < 10 / 5
     plain = load_instance(scenario.parent / "mission.yaml")
     assert "final_instance" not in methods.solve(plain, "greedy", seed=0).extra
     assert "\n" not in methods.solve(plain, "greedy", seed=0).summary()
