@@ -297,7 +297,7 @@ def average(paths: list[str | Path], out: str | Path, window: tuple[int, int] | 
     sums: dict[str, torch.Tensor] = {}
     ref: tuple[dict, dict] | None = None
     sources, config, dtypes = [], None, {}
-    for p in map(Path, paths):
+    for p in map(checkpoint_path, paths):  # a bare shipped name (broad) is read too
         ck = load(p)
         model_cfg, rules = _network(ck, p)
         if ref is None:

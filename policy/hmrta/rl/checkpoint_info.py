@@ -55,10 +55,10 @@ def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
     given = checkpoint or os.environ.get("HMRTA_CHECKPOINT")
     if not given:
         return DEFAULT_CHECKPOINT
-    path = Path(given)
-    if (isinstance(given, str) and not path.exists() and path.suffix == "" and "/" not in given
-            and (SHIPPED_DIR / f"{given}.pt").is_file()):
-        return SHIPPED_DIR / f"{given}.pt"
+    path, name = Path(given), str(given)
+    if (not path.exists() and path.suffix == "" and "/" not in name
+            and (SHIPPED_DIR / f"{name}.pt").is_file()):
+        return SHIPPED_DIR / f"{name}.pt"
     return path
 
 

@@ -896,6 +896,10 @@ def test_checkpoint_average_of_itself_and_of_two(tmp_path, capsys):
         if wa[k].is_floating_point():
             torch.testing.assert_close(ab["model"][k], (wa[k] + wb[k]) / 2)
     assert [s["path"] for s in ab["lineage"][0]["sources"]] == [str(a), str(b)]
+    # shipped checkpoints by their names, as everywhere else
+    assert main(["checkpoint", "average", "coalition-team", "coalition-team", "--out", str(tmp_path / "ct.pt")]) == 0
+    capsys.readouterr()
+    assert all(s["path"].endswith("checkpoints/coalition-team.pt") for s in load(tmp_path / "ct.pt")["lineage"][0]["sources"])
     pol = load_policy(tmp_path / "ab.pt")  # the result loads and solves
     assert pol.rules == Rules(max_open=2, safety=True)
     inst = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
