@@ -11,7 +11,7 @@ from typing import Iterator
 
 import numpy as np
 
-from .instance import DEFAULT_VELOCITY, Instance, Species, Task
+from .instance import DEFAULT_VELOCITY, MAX_AGENTS, Instance, Species, Task
 
 SCENARIOS = ("SA-BT", "SA-AT", "MA-AT", "MA-BT")
 
@@ -53,6 +53,8 @@ class ScenarioGenerator:
                              f"per species")
         if self.agents % self.species:
             raise ValueError(f"agents ({self.agents}) must be a multiple of species ({self.species})")
+        if self.agents > MAX_AGENTS:  # what a mission file may hold: the set must read back
+            raise ValueError(f"agents ({self.agents}): a mission holds at most {MAX_AGENTS}")
         if self.multi_skill and self.species > 2**self.skills - 1:
             raise ValueError(f"MA needs distinct non-zero trait vectors: at most {2**self.skills - 1} species")
         if not self.multi_skill and self.species < self.skills:

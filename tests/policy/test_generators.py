@@ -150,3 +150,8 @@ def test_negative_seeds_are_refused_by_name():
     for call in (lambda: gen.generate(1, -1), lambda: gen.instance(-1, 0)):
         with pytest.raises(ValueError, match="seed: expected a non-negative integer, got -1"):
             call()
+
+
+def test_a_team_larger_than_a_mission_file_may_hold_is_refused():
+    with pytest.raises(ValueError, match="a mission holds at most 10000"):
+        ScenarioGenerator("MA-AT", 10_002, 2, 6, 3)
