@@ -294,3 +294,12 @@ def test_value_limits_keep_every_time_finite(valid_dict):
         _set(path, value)(d)
         with pytest.raises(InstanceError, match=re.escape(expect)):
             instance_from_dict(d, "m.yaml")
+
+
+def test_numbers_with_an_exponent_and_no_decimal_point_are_numbers(write_yaml):
+    """2e-1 is a number to YAML 1.2 and to people (PyYAML's YAML 1.1 read it as a string)."""
+    text = ("format: hmrta-instance/1\nrequirement_type: additive\nvelocity: 2e-1\nskills: 1\n"
+            "species:\n  - {traits: [1], count: 2, depot: [1e-1, 0.5]}\n"
+            "tasks:\n  - {location: [0.5, 0.5], requirements: [1], duration: 3E0}\n")
+    inst = load_instance(write_yaml(text))
+    assert inst.velocity == 0.2 and inst.depots[0][0] == 0.1 and inst.tasks[0].duration == 3.0
