@@ -247,6 +247,15 @@ def check_solution(inst: Instance, sol: Solution, source: str = "solution") -> N
             if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m < inst.n_tasks:
                 raise _serr(f"{source}: routes[{a}][{i}]", f"unknown task id {short(m)} "
                                                           f"(expected 0..{inst.n_tasks - 1})")
+    on_route = [set(r) for r in sol.routes]
+    for m, t in enumerate(sol.tasks):  # a task done by robots whose routes never visit it: routes edited
+        finish = t.get("finish")
+        if finish is None or finish != finish:  # not done
+            continue
+        for a in t.get("members") or ():
+            if not (isinstance(a, int) and 0 <= a < len(on_route) and m in on_route[a]):
+                raise _serr(f"{source}: tasks[{m}].members", f"robot {short(a)} did task {m}, but task {m} is "
+                                                            f"not on its route: the routes and tasks disagree")
 
 
 def final_instance(inst: Instance, sol: Solution, source: str = "solution") -> Instance:

@@ -225,3 +225,18 @@ def test_routes_file_reader(tmp_path):
         read_routes(INST, p)
     with pytest.raises(RouteError, match="is a folder, expected a file"):
         read_routes(INST, tmp_path)
+
+
+def test_a_solution_whose_routes_miss_the_tasks_its_robots_did_is_refused():
+    """Routes edited apart from the tasks (every route emptied, success and makespan kept): render
+    and bound would draw and score a schedule that does not exist."""
+    from hmrta.generators import ScenarioGenerator
+    from hmrta.methods import solve
+    from hmrta.solution import SolutionError, check_solution
+
+    inst = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(0, 0)
+    d = solve(inst, "greedy", seed=0).to_dict()
+    check_solution(inst, Solution.from_dict(d))
+    d["routes"] = [[] for _ in d["routes"]]
+    with pytest.raises(SolutionError, match=r"tasks\[0\]\.members: robot \d+ did task 0, but task 0 is not on its route"):
+        check_solution(inst, Solution.from_dict(d))
