@@ -833,7 +833,9 @@ def cmd_keys(args) -> int:
     if args.instance:
         robots = [f"robot_{a}" for a in range(_load(args.instance).n_agents)]
     else:
-        robots = [r.strip() for r in args.robots.split(",") if r.strip()]
+        robots = [r.strip() for r in args.robots.split(",")]
+        if not all(robots):
+            raise UserError(f"--robots {args.robots!r}: expected comma-separated robot names, found an empty one")
     try:
         create_keystore(args.out, robots, force=args.force)
     except KeystoreError as e:

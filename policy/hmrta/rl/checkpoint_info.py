@@ -44,7 +44,9 @@ def shipped_checkpoints() -> list[str]:
 
 def missing(path: Path) -> CheckpointError:
     """The error for a checkpoint file that is not there (names the shipped ones)."""
-    return CheckpointError(f"{path}: no such checkpoint (shipped: {', '.join(shipped_checkpoints())}; "
+    env = os.environ.get("HMRTA_CHECKPOINT")
+    via = " (named by $HMRTA_CHECKPOINT)" if env and Path(env) == Path(path) else ""
+    return CheckpointError(f"{path}{via}: no such checkpoint (shipped: {', '.join(shipped_checkpoints())}; "
                            "or train one with `hmrta train`)")
 
 
