@@ -150,7 +150,7 @@ def run(agents: int, tasks: int, seed: int, period: int, samples: int) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     ap.add_argument("--sizes", nargs="+", default=DEFAULT_SIZES, help="robots,tasks (MA-AT, 10 species, 5 skills)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--keyframe-period", type=int, default=0, help="versions between keyframes (0: by size)")

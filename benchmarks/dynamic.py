@@ -41,7 +41,7 @@ def dynamic_mission(inst, seed: int, gap: float, lost: float = 0.1):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     ap.add_argument("--count", type=int, default=10, help="missions")
     ap.add_argument("--seed", type=int, default=2024, help="generator seed")
     ap.add_argument("--gap", type=float, default=1.5, help="mean time between two releases")

@@ -44,7 +44,7 @@ def bench(row: tuple[int, int, int, int], count: int, seed: int, repeat: int) ->
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     ap.add_argument("--rows", nargs="+", default=DEFAULT_ROWS, help="agents,species,tasks,skills (MA-AT)")
     ap.add_argument("--count", type=int, default=20, help="instances per row (default 20)")
     ap.add_argument("--seed", type=int, default=1, help="set seed (default 1)")
