@@ -346,11 +346,21 @@ def cmd_generate(args) -> int:
     except ValueError as e:
         raise UserError(str(e)) from None
     out = Path(args.out)
+    made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     width = index_width(args.count)
     name = f"{gen.name}_s{args.seed}"
-    for i, inst in enumerate(instances):
-        inst.save(out / f"{name}_{str(i).zfill(width)}.yaml")
+    written: list[Path] = []
+    try:
+        for i, inst in enumerate(instances):
+            written.append(out / f"{name}_{str(i).zfill(width)}.yaml")
+            inst.save(written[-1])
+    except BaseException:  # interrupted (or a write failed): no partial set is left behind
+        for f in written:
+            f.unlink(missing_ok=True)
+        if made and not any(out.iterdir()):
+            out.rmdir()
+        raise
     print(f"wrote {args.count} instances to {out}/{name}_*.yaml")
     return 0
 
