@@ -39,7 +39,15 @@ def _load(path: str | Path, scenarios: bool) -> Instance:
         p = cfg
     text = read_text(p, InstanceError)
     if p.suffix.lower() == ".json":
-        return instance_from_ctas_config(parse_json(text, str(p), InstanceError), source=str(p))
+        data = parse_json(text, str(p), InstanceError)
+        fmt = data.get("format") if isinstance(data, dict) else None
+        if isinstance(fmt, str) and fmt.startswith("hmrta-") and fmt != "hmrta-instance/1":  # e.g. a solution
+            raise InstanceError(f"{p}: an {fmt} file, expected a mission (an hmrta-instance/1 YAML file or a "
+                                f"CTAS-D config.json)")
+        if isinstance(data, dict) and "setup" not in data and "methods" in data and "rows" in data:
+            raise InstanceError(f"{p}: an hmrta bench results file, expected a mission (an hmrta-instance/1 YAML "
+                                f"file or a CTAS-D config.json)")
+        return instance_from_ctas_config(data, source=str(p))
     data = parse_yaml(text, str(p), InstanceError)
     if data is None:  # no document at all: an empty file, or only comments
         raise InstanceError(f"{p}: the file is empty (expected an hmrta-instance/1 mission: a mapping with keys "

@@ -303,3 +303,19 @@ def test_numbers_with_an_exponent_and_no_decimal_point_are_numbers(write_yaml):
             "tasks:\n  - {location: [0.5, 0.5], requirements: [1], duration: 3E0}\n")
     inst = load_instance(write_yaml(text))
     assert inst.velocity == 0.2 and inst.depots[0][0] == 0.1 and inst.tasks[0].duration == 3.0
+
+
+def test_an_hmrta_output_given_as_a_mission_is_named(tmp_path):
+    """A solution or a bench results file where a mission belongs: said so, not read as a CTAS-D
+    config that lacks 'setup'."""
+    from hmrta.generators import ScenarioGenerator
+    from hmrta.methods import solve
+
+    sol = tmp_path / "sol.json"
+    sol.write_text(__import__("json").dumps(solve(ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(0, 0), "greedy").to_dict()))
+    res = tmp_path / "results.json"
+    res.write_text('{"seed": 1000, "count": 5, "methods": ["greedy"], "rows": [], "provenance": {}}')
+    with pytest.raises(InstanceError, match="an hmrta-solution/1 file, expected a mission"):
+        load_instance(sol)
+    with pytest.raises(InstanceError, match="an hmrta bench results file, expected a mission"):
+        load_instance(res)
