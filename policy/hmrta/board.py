@@ -625,10 +625,10 @@ class MissionBoard(BoardCore):
                 self._gate_sig = None  # confirmed outside the gate: recompute every robot
             elif kind == "add_task":
                 self.requests[str(ev["name"])] = "accepted"
-            if kind in LIVE_EVENTS:
-                self.live_events[kind] += 1
             elif kind == "resume":
                 self.restarts += 1
+            if kind in LIVE_EVENTS:
+                self.live_events[kind] += 1
         self.version = int(rec["v"])
         self.clock = max(self.clock, float(rec.get("clock", 0.0)))
         self.finished = self.finished or rec.get("phase") == "done"
