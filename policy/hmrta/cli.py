@@ -335,7 +335,6 @@ def cmd_evaluate(args) -> int:
 
 def cmd_generate(args) -> int:
     from .generators import ScenarioGenerator, index_width
-    from .instance import Instance
 
     _positive("--count", args.count)
     _seed(args.seed)
@@ -663,9 +662,7 @@ def cmd_checkpoint(args) -> int:
     require("torch", "hmrta checkpoint")
     from .rl.checkpoint import average
 
-    out = Path(args.out)
-    if out.is_dir():
-        raise UserError(f"--out {out}: is a folder, expected a checkpoint file name")
+    out = _writable("--out", args.out)
     if not out.parent.is_dir():
         raise UserError(f"--out {out}: no such folder {out.parent}")
     entry = average(args.checkpoints, out, window=args.window, greedy_depot=args.greedy_depot)

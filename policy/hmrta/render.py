@@ -101,9 +101,11 @@ def _draw_map(ax, inst: Instance, sol: Solution, colors: list) -> None:
     ax.set_title("map: depots (squares), tasks (required skills), routes")
     ax.grid(alpha=0.2)
     # routes: one line per agent, offset within the species
-    species = [int(s) for s in inst.agent_species]  # robots added during a mission come last
-    counts = [species.count(s) for s in range(S)]
-    idx_in_species = [species[:a].count(s) for a, s in enumerate(species)]
+    counts = [0] * S  # robots of each species; robots added during a mission come last
+    idx_in_species = []  # [A] each robot's rank within its species
+    for s in inst.agent_species.tolist():
+        idx_in_species.append(counts[s])
+        counts[s] += 1
     for a, route in enumerate(sol.routes):
         if not route:
             continue
@@ -220,8 +222,9 @@ def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool =
     """Write the map + Gantt figure to ``out_path`` (format from its suffix, e.g. .png/.svg/.pdf).
     With ``gif=True`` also write an animation beside it (``out_path`` with suffix .gif; if
     ``out_path`` itself ends in .gif only the animation is written). Returns the written paths.
-    ``progress(done, total)`` is called after each frame of the animation. A solution that does not belong to the instance (name, agent and task counts, species, task
-    ids) raises :class:`~hmrta.solution.SolutionError` naming ``source``."""
+    ``progress(done, total)`` is called after each frame of the animation. A solution that does
+    not belong to the instance (name, agent and task counts, species, task ids) raises
+    :class:`~hmrta.solution.SolutionError` naming ``source``."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -45,7 +45,6 @@ import time
 from typing import Any
 
 import rclpy
-from rclpy.exceptions import InvalidParameterTypeException
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -61,7 +60,7 @@ from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (Choice, DecodeError, Join, KeyframeRequest, Mission, Status, board_from_msg,
                                  choice_to_msg, clock_from_msg, keyframe_request_to_msg, mission_from_msg,
                                  pose_from_msg, pose_to_msg, rejection_from_msg, status_to_msg)
-from hmrta_msgs_py.runtime import LEAN_NODE, TYPE_HINT, declare_method_parameters, spin_nodes
+from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, spin_nodes, starting
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 
@@ -589,21 +588,13 @@ def main(args: list[str] | None = None) -> None:
     rclpy.init(args=argv)
     host = Host()
     host.ignore.update(cli.ignore_board_version)
-    try:
+    with starting("agent_node", (MethodError, ValueError)):  # bad policy / checkpoint: a user error
         if cli.robots:
             lean = LEAN_NODE if len(cli.robots) > 1 else {}
             nodes = [AgentNode(host, namespace="/" + r, parameter_overrides=[Parameter("robot", value=r)], **lean)
                      for r in cli.robots]
         else:
             nodes = [AgentNode(host)]
-    except (InvalidParameterTypeException, MethodError, ValueError) as e:  # bad policy / checkpoint: a user error
-        print(f"agent_node: {e}" + (TYPE_HINT if isinstance(e, InvalidParameterTypeException) else ""), file=sys.stderr)
-        rclpy.try_shutdown()
-        raise SystemExit(2) from None
-    except KeyboardInterrupt:  # stopped while it starts (loading the mission or the policy)
-        print("agent_node: interrupted during start-up", file=sys.stderr)
-        rclpy.try_shutdown()
-        raise SystemExit(130) from None
     _set_torch_threads(cli.torch_threads)  # the deciders are built: torch is loaded if they use it
     host.attach(nodes[0], cli.heartbeat_period)
     spin_nodes(nodes, until=host.all_done)

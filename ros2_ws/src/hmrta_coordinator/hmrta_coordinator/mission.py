@@ -26,7 +26,6 @@ DDS discovery stays on this machine unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is 
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -549,11 +548,13 @@ def _main(argv: list[str] | None = None) -> int:
         return 2
     from hmrta import keys as hkeys
 
-    asked = args.method
+    asked, keystore = args.method, None
     try:
         inst = load_instance(path)
-        if args.keystore:  # every robot of the mission has a key (before any simulation is run)
-            hkeys.load_keystore(Path(args.keystore).absolute(), [f"robot_{a}" for a in range(inst.n_agents)])
+        robots = [f"robot_{a}" for a in range(inst.n_agents)]
+        if args.keystore:  # every robot of the mission has a key (checked before any simulation runs)
+            keystore = Path(args.keystore).absolute()
+            hkeys.load_keystore(keystore, robots)
         # the live method every robot runs (a per-mission choice such as portfolio is made here)
         args.method, method_options, scores = methods.resolve(inst, args.method, args.seed,
                                                               **methods.options_from_args(args))
@@ -563,9 +564,9 @@ def _main(argv: list[str] | None = None) -> int:
         return 2
     chosen = None
     if scores is not None:
-        own = f" with checkpoint {method_options['checkpoint']}" if method_options.get("checkpoint") else ""
-        chosen = args.method + (f"@{method_options['checkpoint']}" if method_options.get("checkpoint") else "")
-        print("method chosen by simulation: " + args.method + own + " ("
+        ck = method_options.get("checkpoint")
+        chosen = args.method + (f"@{ck}" if ck else "")  # as offline results name it
+        print("method chosen by simulation: " + args.method + (f" with checkpoint {ck}" if ck else "") + " ("
               + ", ".join(f"{c} {v:.2f}" for c, v in scores.items()) + ")", flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -576,22 +577,17 @@ def _main(argv: list[str] | None = None) -> int:
     env.setdefault("ROS_LOG_DIR", str(log_dir / "ros"))
     env.setdefault("PYTHONUNBUFFERED", "1")
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")})
-    robots = [f"robot_{a}" for a in range(inst.n_agents)]
     # robots the scenario's add_robot events add: the board names the k-th robot_<robots + k>; their
     # agents start now and wait until the board adds them (sim_robot simulates them from then on)
     added = [f"robot_{inst.n_agents + k}" for k in range(sum(e.get("type") == "add_agent" for e in inst.events))]
-    keystore = None
-    try:
-        if args.authenticate:
-            log_dir.mkdir(parents=True, exist_ok=True)
-            keystore = log_dir / "keys"
+    if args.authenticate:  # a fresh keystore in the mission's log folder
+        log_dir.mkdir(parents=True, exist_ok=True)
+        keystore = log_dir / "keys"
+        try:
             hkeys.create_keystore(keystore, robots, force=True)
-        elif args.keystore:
-            keystore = Path(args.keystore).absolute()
-            hkeys.load_keystore(keystore, robots)  # every robot of the mission has a key
-    except hkeys.KeystoreError as e:
-        print(f"hmrta-mission: {e}", file=sys.stderr)
-        return 2
+        except hkeys.KeystoreError as e:
+            print(f"hmrta-mission: {e}", file=sys.stderr)
+            return 2
     procs = MissionProcesses(path, robots, out, log_dir, env, seed=args.seed, method=args.method,
                              method_options=method_options, agents_per_process=args.agents_per_process,
                              time_scale=args.time_scale, keystore=keystore,

@@ -36,7 +36,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import rclpy
-from rclpy.exceptions import InvalidParameterTypeException
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -48,7 +47,7 @@ from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (DecodeError, KeyframeRequest, Mission, board_from_msg, clock_to_msg,
                                  keyframe_request_to_msg, mission_from_msg, pose_from_msg, pose_to_msg)
-from hmrta_msgs_py.runtime import TYPE_HINT, spin_nodes
+from hmrta_msgs_py.runtime import spin_nodes, starting
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 EPS = 1e-6
@@ -393,17 +392,8 @@ def main(args: list[str] | None = None) -> None:
 
     help_requested(argv, "sim_robot", __doc__.split("\n\n")[0], node_parameters("sim_robot"))
     rclpy.init(args=argv)
-    try:
+    with starting("sim_robot"):  # a bad parameter: a user error
         node = SimRobot()
-    except (InvalidParameterTypeException, ValueError) as e:  # a bad parameter: a user error
-        print(f"sim_robot: {e}" + (TYPE_HINT if isinstance(e, InvalidParameterTypeException) else ""),
-              file=sys.stderr)
-        rclpy.try_shutdown()
-        raise SystemExit(2) from None
-    except KeyboardInterrupt:  # stopped while it starts (loading the mission or the policy)
-        print("sim_robot: interrupted during start-up", file=sys.stderr)
-        rclpy.try_shutdown()
-        raise SystemExit(130) from None
     spin_nodes([node], until=node.done if node.exit_on_done else None)
 
 

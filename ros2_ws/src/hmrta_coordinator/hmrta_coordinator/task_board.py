@@ -68,7 +68,6 @@ from functools import partial
 from typing import Any
 
 import rclpy
-from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
@@ -90,7 +89,7 @@ from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mis
                                  choice_from_msg, clock_from_msg, keyframe_request_from_msg, markers_to_msg,
                                  mission_to_msg, pose_from_msg, rejection_to_msg, request_id_of, result_to_msg,
                                  status_from_msg, task_event_to_msg, task_request_from_msg)
-from hmrta_msgs_py.runtime import TYPE_HINT, declare_method_parameters, spin_nodes
+from hmrta_msgs_py.runtime import declare_method_parameters, spin_nodes, starting
 
 
 class TaskBoard(Node):
@@ -467,16 +466,9 @@ def main(args: list[str] | None = None) -> None:
 
     help_requested(argv, "task_board", __doc__.split("\n\n")[0], node_parameters("task_board"))
     rclpy.init(args=argv)
-    try:
+    # a bad mission file, policy or parameter is a user error
+    with starting("task_board", (InstanceError, MethodError, JournalError, ValueError)):
         board = TaskBoard()
-    except (InvalidParameterTypeException, InstanceError, MethodError, JournalError, ValueError) as e:  # bad mission file / policy: a user error
-        print(f"task_board: {e}" + (TYPE_HINT if isinstance(e, InvalidParameterTypeException) else ""), file=sys.stderr)
-        rclpy.try_shutdown()
-        raise SystemExit(2) from None
-    except KeyboardInterrupt:  # stopped while it loads the mission (its journal is replayed on the next start)
-        print("task_board: interrupted during start-up", file=sys.stderr)
-        rclpy.try_shutdown()
-        raise SystemExit(130) from None
     spin_nodes([board], until=board.done if board.exit_on_done else None)
 
 

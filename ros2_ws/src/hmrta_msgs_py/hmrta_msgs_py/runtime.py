@@ -1,8 +1,10 @@
 """Shared process plumbing for HMRTA executables: environment defaults, executor, spinning."""
 from __future__ import annotations
 
+import contextlib
 import os
 import random
+import sys
 from typing import Callable
 
 import rclpy
@@ -29,8 +31,25 @@ def local_env(env: dict[str, str] | None = None, domain_id: int | None = None) -
     return out
 
 
-# what a node adds to rclpy's InvalidParameterTypeException: ROS reads -p x:=10 as an integer
-TYPE_HINT = " (a number parameter needs a decimal point: -p NAME:=10.0, not 10)"
+@contextlib.contextmanager
+def starting(prog: str, user_errors: tuple[type[BaseException], ...] = (ValueError,)):
+    """Around a node's construction (rclpy initialised): a user error (one of ``user_errors``, or
+    a parameter of the wrong type) is one line on stderr and exit 2; Ctrl-C while it loads the
+    mission or the policy is one line and exit 130. Either way rclpy is shut down."""
+    from rclpy.exceptions import InvalidParameterTypeException
+
+    try:
+        yield
+    except (InvalidParameterTypeException, *user_errors) as e:
+        hint = (" (a number parameter needs a decimal point: -p NAME:=10.0, not 10)"  # ROS reads 10 as an integer
+                if isinstance(e, InvalidParameterTypeException) else "")
+        print(f"{prog}: {e}{hint}", file=sys.stderr)
+        rclpy.try_shutdown()
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted during start-up", file=sys.stderr)
+        rclpy.try_shutdown()
+        raise SystemExit(130) from None
 
 
 def declare_method_parameters(node) -> tuple[str, dict]:
