@@ -75,7 +75,13 @@ class Solution:
 
     def summary(self) -> str:
         if not self.success:
-            return f"{self.instance}: {self.method} FAILED ({self.extra.get('failure', 'unknown reason')})"
+            line = f"{self.instance}: {self.method} FAILED ({self.extra.get('failure', 'unknown reason')})"
+            running = self.extra.get("in_progress") if isinstance(self.extra, dict) else None
+            if isinstance(running, list) and running:  # a partial result: what was under way when it stopped
+                line += "\n  coalitions complete when it stopped: " + ", ".join(
+                    f"task {r['task']} (start {r['start']:.3f}, finish due {r['finish']:.3f}, robots {r['members']})"
+                    for r in running)
+            return line
         line = (f"{self.instance}: {self.method} makespan {self.makespan:.3f}  AWT {self.awt:.3f}  "
                 f"redundancy {self.redundancy:.3f}  compute {self.compute_seconds:.3f}s")
         pf = self.extra.get("portfolio") if isinstance(self.extra, dict) else None
@@ -148,6 +154,14 @@ def _list(v: Any, where: str) -> list:
     return v
 
 
+def _members(v: Any, A: int, where: str) -> list[int]:
+    """A coalition: a list of agent ids of the A agents the file lists."""
+    for i, a in enumerate(_list(v, where)):
+        if isinstance(a, bool) or not isinstance(a, int) or not 0 <= a < A:
+            raise _serr(f"{where}[{i}]", f"unknown agent id {short(a)} (expected 0..{A - 1}: the file lists {A} agents)")
+    return list(v)
+
+
 def _operator_cancelled(d: dict) -> bool:
     """Whether a dynamic mission's operator cancelled tasks (they stay undone in a success)."""
     dyn = d.get("dynamic")
@@ -186,17 +200,13 @@ def _solution_from_dict(d: Any, source: str) -> Solution:
     for m, t in enumerate(raw_tasks):
         w = f"{source}: tasks[{m}]"
         t = _fields(t, _TASK_KEYS, w)
-        members = _list(t["members"], f"{w}.members")
-        for i, a in enumerate(members):
-            if isinstance(a, bool) or not isinstance(a, int) or not 0 <= a < A:
-                raise _serr(f"{w}.members[{i}]", f"unknown agent id {short(a)} (expected 0..{A - 1}: "
-                                                 f"the file lists {A} agents)")
+        members = _members(t["members"], A, f"{w}.members")
         start, finish = _time(t["start"], f"{w}.start"), _time(t["finish"], f"{w}.finish")
         if math.isnan(start) != math.isnan(finish) or finish < start:
             raise _serr(f"{w}.finish", f"expected a finish >= the start ({short(t['start'])}), got {short(t['finish'])}")
         if d["success"] and math.isnan(start) and not _operator_cancelled(d):  # cancelled tasks have no start
             raise _serr(f"{w}.start", "expected a time: the solution succeeded, so every task was done")
-        tasks.append({"start": start, "finish": finish, "members": list(members)})
+        tasks.append({"start": start, "finish": finish, "members": members})
     routes = _list(d["routes"], f"{source}: routes")
     if len(routes) != A:
         raise _serr(f"{source}: routes", f"expected one route per agent ({A} agents listed), got {len(routes)}")
@@ -211,6 +221,8 @@ def _solution_from_dict(d: Any, source: str) -> Solution:
             raise _serr(f"{source}: {k}", f"expected a string, got {short(extra[k])}")
     if extra.get("lower_bound") is not None:
         _time(extra["lower_bound"], f"{source}: lower_bound")
+    if "in_progress" in extra:
+        extra["in_progress"] = _in_progress(extra["in_progress"], tasks, A, d["success"], f"{source}: in_progress")
     if d["success"]:
         if math.isnan(metrics[0]):
             raise _serr(f"{source}: makespan", "expected a number: the solution succeeded")
@@ -221,6 +233,28 @@ def _solution_from_dict(d: Any, source: str) -> Solution:
                                                f"got {short(d['makespan'])}")
     return Solution(texts["instance"], texts["method"], seed, d["success"], *metrics, float(cs),
                     [list(r) for r in routes], tasks, agents, extra)
+
+
+def _in_progress(raw: Any, tasks: list[dict], A: int, success: bool, where: str) -> list[dict]:
+    """The validated ``in_progress`` list of a partial result: tasks not done (no finish in
+    ``tasks``) that had started, each once, with a start, a planned finish not before it, and
+    agent ids."""
+    if success:
+        raise _serr(where, "expected no tasks in progress: the solution succeeded")
+    out, seen = [], set()
+    for i, r in enumerate(_list(raw, where)):
+        w = f"{where}[{i}]"
+        r = _fields(r, ("task", "start", "finish", "members"), w)
+        m = _int(r["task"], f"{w}.task")
+        if not m < len(tasks) or m in seen or not math.isnan(tasks[m]["finish"]):
+            raise _serr(f"{w}.task", f"expected a task not done and listed once (0..{len(tasks) - 1}), got {short(m)}")
+        seen.add(m)
+        start, finish = _time(r["start"], f"{w}.start"), _time(r["finish"], f"{w}.finish")
+        if not finish >= start:  # (also refuses a missing time)
+            raise _serr(f"{w}.finish", f"expected a planned finish >= the start ({short(r['start'])}), "
+                                       f"got {short(r['finish'])}")
+        out.append({"task": m, "start": start, "finish": finish, "members": _members(r["members"], A, f"{w}.members")})
+    return out
 
 
 def read_solution(path: str | Path) -> Solution:
@@ -313,8 +347,11 @@ def satisfies(inst: Instance, coalition: Sequence[int], m: int) -> list[int]:
 
 
 def solution_from_state(state, method: str, seed: int, compute_seconds: float) -> Solution:
-    """Build a Solution from a finished :class:`hmrta.core.MissionState`."""
-    from .core import CANCELLED, DONE
+    """Build a Solution from a finished :class:`hmrta.core.MissionState`, or from one that stopped
+    (a partial result): then ``tasks`` holds the times of the tasks done only, and the tasks in
+    progress (their coalition complete: started, or starting once its members arrive) are listed
+    in ``extra["in_progress"]`` with their start, planned finish and coalition."""
+    from .core import CANCELLED, DONE, IN_PROGRESS
 
     inst = state.inst
     ok = bool(state.success)
@@ -331,6 +368,10 @@ def solution_from_state(state, method: str, seed: int, compute_seconds: float) -
     extra: dict[str, Any] = {}
     if not ok:
         extra["failure"] = state.failure
+        running = np.flatnonzero(state.status == IN_PROGRESS)  # [R] started, not finished when it stopped
+        if len(running):
+            extra["in_progress"] = [{"task": int(m), "start": float(state.start[m]), "finish": float(state.finish[m]),
+                                     "members": sorted(int(a) for a in state.members[m])} for m in running]
     if int(state.depot_stops.sum()):
         extra["depot_stops"] = [int(x) for x in state.depot_stops]
     if state.log or state.M > state.base[0] or bool((state.release > 0).any()):

@@ -170,6 +170,10 @@ def test_failed_and_evaluated_solutions_validate():
     d = as_json(failed.to_dict())
     assert d["success"] is False and d["makespan"] is None and d["failure"]
     assert_valid("hmrta-solution/1", d)
+    stopped = simulate(ScenarioGenerator("MA-AT", 15, 5, 20, 5).instance(1, 0), Greedy(), 0,
+                       Rules(t_max=12.0, safety=True))  # stopped with coalitions under way
+    assert stopped.extra["in_progress"]
+    assert_valid("hmrta-solution/1", as_json(stopped.to_dict()))
     ok = solve(INST, "greedy", 1)
     assert_valid("hmrta-solution/1", as_json(evaluate_routes(INST, ok.routes, "evaluate", 1).to_dict()))
     # a solution missing a field, or of another version, does not validate

@@ -240,3 +240,74 @@ def test_a_solution_whose_routes_miss_the_tasks_its_robots_did_is_refused():
     d["routes"] = [[] for _ in d["routes"]]
     with pytest.raises(SolutionError, match=r"tasks\[0\]\.members: robot \d+ did task 0, but task 0 is not on its route"):
         check_solution(inst, Solution.from_dict(d))
+
+
+# ---- partial results: the coalitions under way when a run stopped -----------------------------
+def _stopped():
+    """A greedy run of an MA-AT mission stopped by its time limit with tasks in progress."""
+    from hmrta.baselines import Greedy
+    from hmrta.core import Rules
+    from hmrta.generators import ScenarioGenerator
+    from hmrta.sim import simulate
+
+    inst = ScenarioGenerator("MA-AT", 15, 5, 20, 5).instance(1, 0)
+    return inst, simulate(inst, Greedy(), 0, Rules(t_max=12.0, safety=True), "greedy")
+
+
+def test_a_stopped_run_lists_the_tasks_in_progress_and_reads_back():
+    from hmrta.baselines import Greedy
+    from hmrta.core import IN_PROGRESS, MissionState, Rules
+
+    inst, sol = _stopped()
+    # the same run by hand: the state where it stopped
+    st = MissionState(inst, seed=0, rules=Rules(t_max=12.0, safety=True))
+    while not st.done:
+        st.step(Greedy()(st))
+    running = [m for m in range(inst.n_tasks) if st.status[m] == IN_PROGRESS]
+    assert not sol.success and running
+    assert sol.extra["in_progress"] == [{"task": m, "start": float(st.start[m]), "finish": float(st.finish[m]),
+                                         "members": sorted(st.members[m])} for m in running]
+    assert all(math.isnan(sol.tasks[m]["finish"]) for m in running)  # not done: no times in tasks
+    d = json.loads(json.dumps(sol.to_dict()))
+    back = Solution.from_dict(d)
+    assert back.extra["in_progress"] == sol.extra["in_progress"] and back.to_dict() == d
+    line = back.summary().splitlines()[1]
+    assert line.startswith("  coalitions complete when it stopped: ") and f"task {running[0]} (start " in line
+
+
+def test_a_finished_run_has_no_tasks_in_progress():
+    from hmrta.methods import solve
+
+    assert "in_progress" not in solve(INST, "greedy", 0).extra
+
+
+@pytest.mark.parametrize("edit,expect", [
+    (lambda d, r: r.update(task=r["task"] + 100), "in_progress[0].task: expected a task not done"),
+    (lambda d, r: d["in_progress"].append(dict(r)), "in_progress[1].task: expected a task not done and listed once"),
+    (lambda d, r: r.update(finish=r["start"] / 2), "in_progress[0].finish: expected a planned finish >= the start"),
+    (lambda d, r: r.update(start=None), "in_progress[0].finish: expected a planned finish >= the start"),
+    (lambda d, r: r.update(members=[99]), "in_progress[0].members[0]: unknown agent id 99"),
+    (lambda d, r: r.pop("members"), "in_progress[0]: missing key 'members'"),
+    (lambda d, r: d.update(in_progress={}), "in_progress: expected a list"),
+])
+def test_tasks_in_progress_are_validated(tmp_path, edit, expect):
+    from hmrta.solution import SolutionError, read_solution
+
+    _, sol = _stopped()
+    d = json.loads(json.dumps(sol.to_dict()))
+    edit(d, d["in_progress"][0])
+    p = tmp_path / "s.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(SolutionError) as ei:
+        read_solution(p)
+    msg = str(ei.value)
+    assert msg.startswith(f"{p}: ") and "\n" not in msg and expect in msg, msg
+
+
+def test_a_successful_solution_with_tasks_in_progress_is_refused():
+    from hmrta.solution import SolutionError
+
+    d = _sol_dict()
+    d["in_progress"] = [{"task": 0, "start": 1.0, "finish": 2.0, "members": [0]}]
+    with pytest.raises(SolutionError, match="in_progress: expected no tasks in progress: the solution succeeded"):
+        Solution.from_dict(d)

@@ -216,6 +216,7 @@ def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_v
     the mission, every version goes through the ROS codec."""
     from types import SimpleNamespace
 
+    from hmrta.core import IN_PROGRESS
     from hmrta.methods import rules
     from hmrta_coordinator.mission import partial_result
     from hmrta_msgs_py.codec import Board, board_to_msg
@@ -247,6 +248,10 @@ def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_v
     d = sol.to_dict()
     assert d["board_version"] == b.version and d["tasks_done"] == b.state.n_done > 0
     assert d["routes"] == [list(r) for r in b.state.routes]
+    # the coalitions under way at that version are listed with their times (the tasks say nothing of them)
+    running = [m for m in range(tb.INST.n_tasks) if b.state.status[m] == IN_PROGRESS]
+    assert [(r["task"], r["start"], r["members"]) for r in d.get("in_progress", [])] == [
+        (m, float(b.state.start[m]), sorted(b.state.members[m])) for m in running]
     # without version 1 (the stream matched late too) nothing can be rebuilt: nothing is reported done
     procs.board_tail = tail[1:]
     d = partial_result(tb.INST, procs, "greedy", tb.SEED, 1.0, "board process died (SIGKILL)").to_dict()
