@@ -27,14 +27,13 @@ mission referenced by path.
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 from typing import Any, Callable
 
 import yaml
 
 from .instance import MAX_VALUE, Instance, InstanceError, instance_from_dict
-from .reading import SafeStrictLoader, short
+from .reading import SafeStrictLoader, finite, short
 
 FORMAT = "hmrta-scenario/1"
 TYPES = ("add_task", "cancel_task", "add_robot", "lose_robot")
@@ -66,10 +65,6 @@ def _line(text: str | None, keys: list) -> str:
         return f" (line {node.start_mark.line + 1})"
     except Exception:  # noqa: BLE001 - the line is a courtesy; the field is always named
         return ""
-
-
-def _num(v: Any) -> bool:
-    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
 
 
 def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
@@ -136,12 +131,12 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
             if k not in e:
                 raise err(keys, w, f"missing field {k!r} for {kind}")
         t = e["t"]
-        if not _num(t) or not 0 <= t <= MAX_VALUE:
+        if not finite(t) or not 0 <= t <= MAX_VALUE:
             raise err(keys + ["t"], f"{w}.t", f"expected a time >= 0, got {short(t)}")
 
         def vec(k: str, n: int, unit: bool = False) -> list[float]:
             v = e[k]
-            if not isinstance(v, list) or len(v) != n or not all(_num(x) and x >= 0 for x in v):
+            if not isinstance(v, list) or len(v) != n or not all(finite(x) and x >= 0 for x in v):
                 raise err(keys + [k], f"{w}.{k}", f"expected a list of {n} numbers >= 0, got {short(v)}")
             if unit and not all(x <= 1 for x in v):
                 raise err(keys + [k], f"{w}.{k}", f"expected a point in the unit square [0, 1], got {short(v)}")
@@ -158,7 +153,7 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
                 raise err(keys + ["id"], f"{w}.id", f"duplicate task id {cid!r}")
             ids.add(cid)
             dur = e["duration"]
-            if not _num(dur) or not 0 <= dur <= MAX_VALUE:
+            if not finite(dur) or not 0 <= dur <= MAX_VALUE:
                 raise err(keys + ["duration"], f"{w}.duration", f"expected a number >= 0, got {short(dur)}")
             rec.update(type="add_task", name=cid, task={"location": vec("location", 2, True),
                                                         "requirements": vec("requirements", K),

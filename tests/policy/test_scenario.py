@@ -124,6 +124,12 @@ def test_cli_solve_and_bad_file(scenario, tmp_path):
      "events[0].location: expected a point in the unit square"),
     ({"t": 1, "type": "add_task", "id": "a", "location": [0, 0], "requirements": [1, 0]}, "missing field 'duration'"),
     ({"t": 1, "type": "lose_robot", "robot": 0, "why": "x"}, "events[0].why: unknown field"),
+    # integers too large for a float are refused like any number out of range (no OverflowError)
+    ({"t": 10 ** 400, "type": "lose_robot", "robot": 0}, "events[0].t: expected a time >= 0"),
+    ({"t": 1, "type": "add_task", "id": "a", "location": [0, 0], "requirements": [10 ** 400, 0], "duration": 1},
+     "events[0].requirements"),
+    ({"t": 1, "type": "add_task", "id": "a", "location": [0, 0], "requirements": [1, 0], "duration": 10 ** 400},
+     "events[0].duration"),
 ])
 def test_scenario_errors_name_the_field(event, message):
     import yaml
