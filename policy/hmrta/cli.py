@@ -28,6 +28,27 @@ def _positive(flag: str, value: int | None) -> None:
         raise UserError(f"{flag}: expected a positive integer, got {value}")
 
 
+def _jobs(args) -> None:
+    """--jobs N: a positive integer and, on a local Ray (no --ray-address: a cluster may have more
+    CPUs), at most this machine's cores: more workers than cores make every solve and torch thread
+    wait for a core."""
+    import os
+
+    _positive("--jobs", args.jobs)
+    cores = os.cpu_count() or 1
+    if args.ray_address is None and args.jobs > cores:
+        raise UserError(f"--jobs {args.jobs}: expected at most {cores}, the cores of this machine (a local Ray with "
+                        f"more workers than cores oversubscribes them; --ray-address HOST:PORT for a cluster)")
+
+
+def _row_sizes(args) -> None:
+    """--species, --tasks and --skills of a generated row: positive integers (a mission without
+    tasks is readable, but a generated set of them measures nothing; --agents is checked against
+    --species by the generator)."""
+    for flag in ("--species", "--tasks", "--skills"):
+        _positive(flag, getattr(args, flag[2:]))
+
+
 def _writable(flag: str, path: str | Path, folder: bool = False) -> Path:
     """``path``, the output named by ``flag``: a file (``folder``: a folder) that can be written there,
     checked before any work by creating and removing a probe file in the nearest existing folder on
@@ -337,6 +358,7 @@ def cmd_generate(args) -> int:
     from .generators import ScenarioGenerator, index_width
 
     _positive("--count", args.count)
+    _row_sizes(args)
     _seed(args.seed)
     _writable("--out", args.out, folder=True)
     try:  # every instance is drawn before the folder is made: a row no team can do leaves nothing
@@ -424,7 +446,7 @@ def cmd_bench(args) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if not methods:
         raise UserError(f"--methods: expected a comma list of methods, got {args.methods!r}")
-    from .methods import METHODS, MethodError, options_for, parse
+    from .methods import METHODS, MethodError, check_options, options_for, parse
 
     for m in methods:
         parse(m)  # unknown method: user error before any work
@@ -433,6 +455,8 @@ def cmd_bench(args) -> int:
             takers = [n for n, rec in METHODS.items() if rec.option(k)]
             raise MethodError(f"--{k.replace('_', '-')}: none of the methods {', '.join(methods)} takes it "
                               f"(methods that do: {', '.join(takers)})")
+    for m in methods:  # and a value out of range, before the cache is written
+        check_options(m, options_for(m, _solve_opts(args)))
     given = [x for x, on in (("INSTANCE", args.instances), ("--suite", args.suite), ("--scenario", args.scenario))
              if on]
     if len(given) > 1:
@@ -473,6 +497,7 @@ def cmd_bench(args) -> int:
         if missing:
             raise UserError(f"bench: give your missions (INSTANCE...), --suite paper, or all of --scenario --agents "
                             f"--species --tasks --skills (missing --{missing[0]})")
+        _row_sizes(args)
         table = args.scenario
         try:  # every instance can be drawn (a team too small for the tasks cannot), before any work
             rows = [bench.Row(table, args.agents, args.species, args.tasks, args.skills)]
@@ -482,7 +507,7 @@ def cmd_bench(args) -> int:
     if not rows:  # --max-tasks below every row of the suite
         raise UserError(f"--max-tasks {args.max_tasks}: every row of --suite {args.suite}"
                         f"{' --tables ' + args.tables if args.tables else ''} has more tasks")
-    _positive("--jobs", args.jobs)
+    _jobs(args)
     if args.suite and not args.out:  # never the committed tables (docs/results/<suite>) unless asked for
         args.out = f"bench-{args.suite}"
     out_dir = _writable("--out", args.out, folder=True) if args.out else None
@@ -537,17 +562,19 @@ def cmd_train(args) -> int:
     from .deps import require
 
     _positive("--threads", args.threads)
-    _positive("--jobs", args.jobs)
+    _jobs(args)
     # idle OpenMP threads sleep instead of spinning: read once, when torch loads its OpenMP runtime
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     torch = require("torch", "hmrta train")
 
-    from .rl.train import Trainer, check_config, load_config, write_config
+    from .rl.train import Trainer, load_config, write_config
 
     if not Path(args.config).exists() and (CONFIGS / f"{args.config}.yaml").is_file():
         args.config = str(CONFIGS / f"{args.config}.yaml")  # a shipped config by its name
-    try:
-        cfg = load_config(args.config)
+    over = {k: v for k, v in (("max_minutes", args.max_minutes), ("iterations", args.iterations)) if v is not None}
+    try:  # the command line's values replace the file's and are checked with them (also by --check)
+        cfg = load_config(args.config, {"train": over},
+                          ", ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in over.items()))
     except ValueError as e:
         raise UserError(str(e)) from None
     given = cfg["pretrain"].get("schedules")  # the datasets it reads (a path or a list): before any run folder
@@ -558,14 +585,6 @@ def cmd_train(args) -> int:
     if args.check:
         print(f"{args.config}: a valid training config (name {cfg['name']!r})")
         return 0
-    if args.max_minutes is not None:
-        cfg["train"]["max_minutes"] = args.max_minutes
-    if args.iterations is not None:
-        cfg["train"]["iterations"] = args.iterations
-    try:  # the command-line overrides are checked like the file's values
-        check_config(cfg, f"{args.config} (with --max-minutes/--iterations)")
-    except ValueError as e:
-        raise UserError(str(e)) from None
     if (args.init or args.reseed) and not args.resume:
         raise UserError("--init and --reseed only apply with --resume")
     _train_device(torch, args.device)
@@ -679,8 +698,8 @@ def cmd_schedules(args) -> int:
     if not args.min_tasks <= args.max_tasks or args.min_tasks < 1 or args.max_tasks > 200:
         raise UserError(f"--min-tasks/--max-tasks: expected 1 <= min <= max <= 200, got {args.min_tasks}..{args.max_tasks}")
     _seconds("--time-limit", args.time_limit)
-    if args.jobs < 1 or args.workers < 1:
-        raise UserError("--jobs and --workers: expected positive integers")
+    _jobs(args)
+    _positive("--workers", args.workers)
     out = _writable("--out", args.out)
     spec = {"kind": args.generator, "min_tasks": args.min_tasks, "max_tasks": args.max_tasks}
     if args.team_scale is not None and tuple(args.team_scale) != (1, 1):  # 1 1: the plain broad header
@@ -791,7 +810,7 @@ def cmd_render(args) -> int:
     inst = _load(args.instance)
     sol = _read_solution(args.solution)
     animated = args.gif or Path(args.out).suffix.lower() == ".gif"
-    if animated and _progress_on(args):  # an animation takes a while: about a second per frame
+    if animated and _progress_on(args):  # a GIF: 0.05 to 0.3 s per frame
         from tqdm import tqdm
 
         bar = tqdm(total=args.frames, desc="render GIF", unit="frame", file=sys.stderr, leave=False,
@@ -875,16 +894,17 @@ def _row_args(p: argparse.ArgumentParser, required: bool) -> None:
                    help=pre + "trait kind (SA single-skill / MA multi-skill) x requirement kind (AT additive / BT binary)")
     p.add_argument("--agents", type=int, required=required, default=None,
                    help=pre + "number of agents (a multiple of --species)")
-    p.add_argument("--species", type=int, required=required, default=None, help=pre + "number of species")
-    p.add_argument("--tasks", type=int, required=required, default=None, help=pre + "number of tasks")
-    p.add_argument("--skills", type=int, required=required, default=None, help=pre + "number of skills K")
+    p.add_argument("--species", type=int, required=required, default=None, help=pre + "number of species (at least 1)")
+    p.add_argument("--tasks", type=int, required=required, default=None, help=pre + "number of tasks (at least 1)")
+    p.add_argument("--skills", type=int, required=required, default=None, help=pre + "number of skills K (at least 1)")
 
 
 def _fanout_args(p: argparse.ArgumentParser, what: str, note: str = "") -> None:
     """--jobs and --ray-address (hmrta.fanout) of a command that fans ``what`` out."""
     p.add_argument("--jobs", type=int, default=1, metavar="N",
                    help=f"{what} as Ray tasks on a local Ray with N CPUs (one torch thread each; needs pip "
-                        f"install 'hmrta[ray]'); 1: in this process{note}")
+                        f"install 'hmrta[ray]'), N at most this machine's cores unless --ray-address; 1: in this "
+                        f"process{note}")
     p.add_argument("--ray-address", default=None, metavar="HOST:PORT",
                    help=f"{what} on an existing Ray cluster instead (started with ray start --head / "
                         "ray start --address HOST:PORT; docs/training.md)")
@@ -956,8 +976,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--max-tasks", type=int, default=None, help="with --suite: skip rows with more tasks (at least "
                                                               "one row must remain)")
     _row_args(b, required=False)
-    b.add_argument("--count", type=int, default=50, help="instances per row")
-    b.add_argument("--seed", type=int, default=1000, help="test-set seed (never used in training/validation)")
+    b.add_argument("--count", type=int, default=50, help="instances per generated row (not used on your missions)")
+    b.add_argument("--seed", type=int, default=1000, help="test-set seed of the generated rows (never used in "
+                                                          "training/validation; not used on your missions)")
     add_method_arguments(b, methods_flag=True)
     b.add_argument("--bounds", action="store_true", help="also report each method's gap to the best lower bound")
     b.add_argument("--compare", action="append", default=None, metavar="A,B",
@@ -998,7 +1019,8 @@ def build_parser() -> argparse.ArgumentParser:
                  "; the labels, and so the run, are the same whatever N")
     t.add_argument("--export", default=None, help="after training, write the best weights + config here")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
-    t.add_argument("--check", action="store_true", help="only validate the config, then exit (no training)")
+    t.add_argument("--check", action="store_true", help="only validate the config (with --iterations and "
+                                                        "--max-minutes applied), then exit (no training)")
     t.set_defaults(fn=cmd_train)
 
     ck = sub.add_parser("checkpoint", help="policy checkpoints: info (what one holds), average (the weights of several)", formatter_class=F)

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from .instance import MAX_VALUE, Instance, Species, Task
+from .reading import finite  # as a mission file's numbers: also integers beyond the float range
 
 # agent modes (LOST: removed from the mission by drop_agent, e.g. a robot that stopped reporting)
 FREE, TASK, HOME, WAIT, LOST = 0, 1, 2, 3, 4
@@ -145,12 +146,8 @@ def _short(v: Any, n: int = 60) -> str:
 # ---------------------------------------------------------------------------------------------
 # event records (MissionState.log, apply_event)
 # ---------------------------------------------------------------------------------------------
-def _num_ok(v: Any) -> bool:
-    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
-
-
 def _vector(v: Any, n: int, where: str) -> tuple[float, ...]:
-    if not isinstance(v, (list, tuple)) or len(v) != n or not all(_num_ok(x) for x in v):
+    if not isinstance(v, (list, tuple)) or len(v) != n or not all(finite(x) for x in v):
         raise EventRejected(f"{where}: expected a list of {n} finite numbers, got {_short(v)}")
     out = tuple(float(x) for x in v)
     if any(x < 0 or x > MAX_VALUE for x in out):
@@ -159,7 +156,7 @@ def _vector(v: Any, n: int, where: str) -> tuple[float, ...]:
 
 
 def _unit_point(v: Any, where: str) -> tuple[float, float]:
-    if not isinstance(v, (list, tuple)) or len(v) != 2 or not all(_num_ok(x) and 0 <= x <= 1 for x in v):
+    if not isinstance(v, (list, tuple)) or len(v) != 2 or not all(finite(x) and 0 <= x <= 1 for x in v):
         raise EventRejected(f"{where}: expected [x, y] in the unit square, got {_short(v)}")
     return float(v[0]), float(v[1])
 
@@ -180,7 +177,7 @@ def _task_from_record(d: Any, K: int, requirement_type: str = "additive") -> Tas
     if not any(req):
         raise EventRejected("new task: requirements: expected at least one non-zero requirement (all zero)")
     dur = d["duration"]
-    if not _num_ok(dur) or not 0 <= dur <= MAX_VALUE:
+    if not finite(dur) or not 0 <= dur <= MAX_VALUE:
         raise EventRejected(f"new task: duration: expected a number in [0, {MAX_VALUE:g}], got {_short(dur)}")
     return Task(loc, req, float(dur))
 
@@ -189,7 +186,7 @@ def _check_record(rec: Any) -> None:
     """Shape of an external event record (values are checked when it is applied)."""
     if not isinstance(rec, dict) or rec.get("type") not in EVENT_TYPES:
         raise EventRejected(f"event: expected a mapping with type one of {', '.join(EVENT_TYPES)}, got {_short(rec)}")
-    if not _num_ok(rec.get("t")):
+    if not finite(rec.get("t")):
         raise EventRejected(f"event {rec['type']}: t: expected a finite number, got {_short(rec.get('t'))}")
     kind = rec["type"]
     if kind == "cancel_task" and not (("task" in rec) ^ ("name" in rec)):
@@ -850,7 +847,7 @@ class MissionState:
         if self.done:
             raise EventRejected("the mission is over")
         t = self.clock if now is None else now
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t):
+        if not finite(t):
             raise EventRejected(f"event time: expected a finite number, got {_short(t)}")
         if t < self.clock:
             raise EventRejected(f"event time {t} lies before the mission clock {self.clock}")
@@ -1401,7 +1398,7 @@ class _Fields:
 
     def number(self, key: str) -> float:
         v = self.raw(key)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        if not finite(v):
             raise self.err(key, "a finite number", v)
         return float(v)
 

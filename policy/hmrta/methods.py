@@ -41,6 +41,7 @@ class Option:
     minimum: float | None = None  # smallest value allowed (numbers)
     maximum: float | None = None  # largest value allowed (numbers)
     live: bool = True  # also an option of the per-decision (ROS agent) form
+    within: str | None = None  # another option whose value bounds this one's (a time it is part of)
 
     @property
     def flag(self) -> str:
@@ -96,6 +97,15 @@ class Method:
                 raise MethodError(f"method {self.name} takes no option {k!r}"
                                   + (f" (it takes: {', '.join(takes)})" if takes else " (it takes no options)"))
             out[k] = v if v is None and k == "checkpoint" else o.coerce(self.name, v)
+        for k, v in out.items():
+            o = self.option(k)
+            if o.within is not None and v is not None:
+                b = self.option(o.within)
+                limit = out.get(b.name, b.default)
+                if v > limit:
+                    raise MethodError(f"{self.name}: option {o.name} ({o.flag}) {v:g} is more than option {b.name} "
+                                      f"({b.flag}) {limit:g}{'' if b.name in out else ', its default'}: it is a "
+                                      f"part of that time (expected at most {limit:g})")
         return out
 
 
@@ -137,8 +147,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
                            choices=("none", "greedy", "rl")),
                     Option("workers", int, 2, "parallel search workers", minimum=1),
                     Option("heuristic_seconds", float, None,
-                           "seconds of list scheduling and annealing before CP-SAT (default: a quarter of the limit)",
-                           minimum=0.0)),
+                           "seconds of list scheduling and annealing before CP-SAT, a part of the time limit (at "
+                           "most --time-limit; default: a quarter of it)", minimum=0.0, within="time_limit")),
            needs=("ortools",)),
     Method("portfolio", "per mission, the best of several methods by simulation (greedy, greedy-coalition, "
            "rl with the default, broad and coalition-team checkpoints); live missions run the chosen one",
@@ -221,12 +231,20 @@ def _needs(m: Method) -> None:
         require(mod, f"method {m.name}")
 
 
+def check_options(method: str, options: dict[str, Any]) -> dict[str, Any]:
+    """The typed options of an offline run of ``method`` (a name or shorthand): those its shorthand
+    implies and those given, each checked (MethodError naming the method and the option)."""
+    name, implied = parse(method)
+    m = get(name)
+    return m.check(_merge(m, implied, options))
+
+
 def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **options: Any):
     """Solve ``inst`` with ``method`` (a name or shorthand) -> Solution (``sol.method`` = its label).
     ``progress`` (optional) is passed to solvers that report progress."""
     name, implied = parse(method)
     m = get(name)
-    opts = m.check(_merge(m, implied, options))
+    opts = check_options(method, options)
     if m.decide is None and m.choose is None and getattr(inst, "dynamic", False):
         raise MethodError(f"method {name} is an offline solver: it cannot plan a scenario whose tasks or robots "
                           f"change over time (use greedy, greedy-coalition or an rl method)")

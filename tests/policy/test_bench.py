@@ -177,6 +177,30 @@ events:
 """
 
 
+def test_given_missions_claim_no_test_set_and_no_paper_counterpart(tmp_path):
+    """A user's missions are given, not drawn: their summary holds no test-set seed or count, and
+    CP-SAT is not labelled against the paper's CTAS-D where no paper numbers stand beside it. A
+    paper row keeps both."""
+    from hmrta.bench import MissionSet
+
+    (tmp_path / "mission.yaml").write_text(MISSION)
+    mine = MissionSet.load("mine", [tmp_path / "mission.yaml"])
+
+    def bench(row, count, seed):
+        return run_bench([row], ["greedy", "cpsat"], count, seed, None, {"time_limit": 0.2}, progress=False,
+                         log=lambda s: None, compare=[("cpsat", "greedy")])
+
+    s = bench(mine, 3, 7)
+    assert "seed" not in s and "count" not in s and s["rows"][0]["results"]["cpsat"]["n"] == 1
+    md = to_markdown(s)
+    assert "| mine | 4, 2, 3, 2 | CP-SAT | 100% |" in md and "| mine | CP-SAT vs Greedy |" in md
+    assert "paper" not in md
+    paper = bench(PAPER_ROW, 1, 5)
+    assert (paper["seed"], paper["count"]) == (5, 1)
+    md = to_markdown(paper)
+    assert "| 9, 3, 20, 3 | CP-SAT (vs paper CTAS-D) | 100% |" in md and "| CP-SAT (vs paper CTAS-D) vs Greedy |" in md
+
+
 def test_dynamic_columns_only_for_rows_with_dynamic_missions(tmp_path):
     """A row of scenario files and instances with released tasks gets mean / max response and
     tasks lost (by kind) in Markdown, JSON and CSV, equal to the solutions' own figures; a static

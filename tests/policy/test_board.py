@@ -456,6 +456,33 @@ def test_operator_tasks_are_added_cancelled_answered_and_journaled(tmp_path):
     assert len(sol.extra["final_instance"]["tasks"]) == INST.n_tasks + 2
 
 
+def test_an_added_task_is_accepted_exactly_when_a_mission_file_could_hold_it():
+    """The board's check of an add request and a mission file's validation take the same bounds
+    (duration and requirements in [0, MAX_VALUE], the location in the unit square), integers beyond
+    the float range included: a refusal is an answer, never an exception."""
+    from hmrta.instance import MAX_VALUE, InstanceError
+
+    b = started_board()
+    base = {"location": [0.2, 0.8], "requirements": [1, 0, 0], "duration": 2.0}
+    changes = [{"duration": 0}, {"duration": MAX_VALUE}, {"duration": MAX_VALUE + 1}, {"duration": 10**400},
+               {"duration": -1.0}, {"requirements": [10**400, 0, 0]}, {"requirements": [0, 0, 0]},
+               {"location": [0.2, 1.5]}, {"location": [10**400, 0.5]}]
+    in_file, live = [], []
+    for i, change in enumerate(changes):
+        task = {**base, **change}
+        d = INST.to_dict()
+        try:
+            instance_from_dict({**d, "tasks": d["tasks"] + [task]})
+            in_file.append(True)
+        except InstanceError:
+            in_file.append(False)
+        ans = b.task_request("add", f"op-{i}", task)
+        live.append(ans["event"] == "accepted")
+        assert ans["event"] == "accepted" or ans["reason"].startswith("new task: "), ans
+    assert in_file == [True, True] + [False] * 7
+    assert live == in_file
+
+
 def test_a_refused_request_changes_nothing_even_while_the_clock_runs_ahead_of_the_state(tmp_path):
     """An operator add the team cannot do, or a join of an unknown species, between two events
     (the mission clock ahead of the held state): the state, its revision and its journal stay as

@@ -276,6 +276,12 @@ def test_bench_suite_default_out_is_not_the_committed_tables(tmp_path, monkeypat
     (["--method", "rl-sample", "--samples", "10001"], "option samples: expected a number in [1, 10000]"),
     (["--method", "cpsat", "--time-limit", "inf"], "option time_limit: expected a finite number >= 0.01"),
     (["--method", "cpsat", "--time-limit", "nan"], "option time_limit: expected a finite number >= 0.01"),
+    # the heuristic phase is a part of the time limit
+    (["--method", "cpsat", "--heuristic-seconds", "5", "--time-limit", "2"],
+     "cpsat: option heuristic_seconds (--heuristic-seconds) 5 is more than option time_limit (--time-limit) 2: "
+     "it is a part of that time (expected at most 2)"),
+    (["--method", "cpsat", "--heuristic-seconds", "61"],
+     "option heuristic_seconds (--heuristic-seconds) 61 is more than option time_limit (--time-limit) 60, its default"),
 ])
 def test_method_options_out_of_range(argv, msg, capsys):
     assert main(["solve", str(EXAMPLE), "--no-progress", *argv]) == 2
@@ -301,6 +307,15 @@ HOPELESS = ["--scenario", "MA-AT", "--agents", "1", "--species", "1", "--tasks",
     (["generate", *ROW, "--agents", "0"], ["agents (0) must be at least species (2)"]),
     (["generate", *HOPELESS], ["no feasible instance", "more agents"]),
     (["generate", *ROW, "--count", "0"], ["--count: expected a positive integer, got 0"]),
+    # a mission may have no tasks, but a generated set of them measures nothing
+    (["generate", *ROW, "--tasks", "0"], ["--tasks: expected a positive integer, got 0"]),
+    (["generate", *ROW, "--species", "-1"], ["--species: expected a positive integer, got -1"]),
+    (["generate", *ROW, "--skills", "0"], ["--skills: expected a positive integer, got 0"]),
+    (["bench", *ROW, "--tasks", "0"], ["--tasks: expected a positive integer, got 0"]),
+    # option values are checked before the cache is written
+    (["bench", *ROW, "--methods", "greedy,cpsat", "--heuristic-seconds", "3", "--time-limit", "1"],
+     ["option heuristic_seconds (--heuristic-seconds) 3 is more than option time_limit (--time-limit) 1"]),
+    (["bench", *ROW, "--methods", "greedy,cpsat", "--time-limit", "nan"], ["option time_limit: expected a finite"]),
     (["bench", *ROW, "--seed", "-1"], ["--seed: expected an integer in 0..2^63-1"]),
     (["bench", *ROW, "--agents", "0"], ["agents (0) must be at least species (2)"]),
     (["bench", *HOPELESS], ["no feasible instance", "more agents"]),
@@ -319,6 +334,22 @@ def test_bad_counts_seeds_and_teams_leave_nothing(argv, needles, tmp_path, monke
     out = tmp_path / ("s.jsonl" if argv[0] == "schedules" else "out")
     _exit2([*argv, "--out", str(out), *(["--no-progress"] if argv[0] != "generate" else [])], capsys, *needles)
     assert list(tmp_path.iterdir()) == []  # no folder, no schedules header, no cache
+
+
+def test_jobs_above_the_local_cores_are_refused_unless_on_a_cluster(tmp_path, monkeypatch, capsys):
+    """A local Ray with more workers than cores oversubscribes them; a cluster (--ray-address) may have more."""
+    pytest.importorskip("torch")
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    monkeypatch.chdir(tmp_path)
+    for argv in (["train", "--check"], ["bench", *ROW, "--methods", "greedy", "--no-progress", "--out", "res"],
+                 ["schedules", "--count", "1", "--no-progress", "--out", "s.jsonl"]):
+        _exit2([*argv, "--jobs", "3"], capsys, "--jobs 3: expected at most 2, the cores of this machine",
+               "--ray-address HOST:PORT for a cluster")
+    assert list(tmp_path.iterdir()) == []
+    assert main(["train", "--check", "--jobs", "3", "--ray-address", "127.0.0.1:6379"]) == 0
+    helps = build_parser()._subparsers._group_actions[0].choices
+    for cmd in ("bench", "train", "schedules"):
+        assert "N at most this machine's cores unless --ray-address" in " ".join(helps[cmd].format_help().split())
 
 
 @pytest.mark.parametrize("opt, value", [("--frames", "0"), ("--frames", "-5"), ("--fps", "0"), ("--fps", "-1")])

@@ -168,6 +168,15 @@ def test_param_parse_rejects(typ, text):
     ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "1,0", "--duration", "inf"], "--duration"),
     ("hmrta-task", ["add", "--location", "nan,0.2", "--requirements", "1,0", "--duration", "1"], "--location"),
     ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "inf,0", "--duration", "1"], "--requirements"),
+    # a mission file's bounds (hmrta.instance.MAX_VALUE, the unit square), before any ROS
+    ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "1,0", "--duration", "1.5e9"],
+     "--duration: expected a number in [0, 1e+09], got 1.5e+09"),
+    ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "2e9,0", "--duration", "1"],
+     "--requirements: expected numbers in [0, 1e+09]"),
+    ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "0,0", "--duration", "1"],
+     "at least one of them non-zero"),
+    ("hmrta-task", ["add", "--location", "0.1,1.5", "--requirements", "1,0", "--duration", "1"],
+     "--location: expected x,y in the unit square [0, 1], got 0.1,1.5"),
 ])
 def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_path):
     r = subprocess.run([str(BIN / exe), *args], capture_output=True, text=True, timeout=60, cwd=tmp_path,

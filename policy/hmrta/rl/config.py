@@ -204,6 +204,10 @@ class ReinforceConfig:
 
     def __post_init__(self) -> None:
         _validate(self, "train.")
+        if self.iterations > 0 and self.rollouts < 2:
+            raise ValueError(f"train.rollouts: expected at least 2 when train.iterations > 0, got {self.rollouts} "
+                             f"(REINFORCE's baseline is the mean return of a mission's rollouts: with one rollout "
+                             f"every advantage is 0 and nothing is learned)")
 
 
 @dataclass
@@ -431,10 +435,12 @@ def check_config(cfg: dict, where: str = "config") -> None:
     TrainConfig.from_dict(cfg, where)
 
 
-def load_config(path: str | Path) -> dict:
+def load_config(path: str | Path, overrides: dict | None = None, given: str = "") -> dict:
     """Read and validate a training config (YAML): unknown keys, values of the wrong type or range
     and inconsistent options are a ValueError (an InputError for an unreadable file) that names
-    the file and the key. Returns the resolved config (every key, defaults filled in)."""
+    the file and the key. ``overrides`` (a partial config, e.g. from the command line) replace the
+    file's values before the check; ``given`` (e.g. ``--iterations``) then says where they came
+    from in a message. Returns the resolved config (every key, defaults filled in)."""
     p = Path(path)
     raw = read_yaml(p) or {}
     if not isinstance(raw, dict):
@@ -444,8 +450,8 @@ def load_config(path: str | Path) -> dict:
     version = raw.get("version", CONFIG_VERSION)
     if type(version) is not int or version != CONFIG_VERSION:
         raise ValueError(f"{p}: version: expected {CONFIG_VERSION}, got {short(raw['version'])}")
-    cfg = deep_update(ref, raw)
-    check_config(cfg, str(p))
+    cfg = deep_update(deep_update(ref, raw), overrides or {})
+    check_config(cfg, f"{p} (with {given})" if overrides and given else str(p))
     return cfg
 
 

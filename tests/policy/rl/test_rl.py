@@ -768,6 +768,24 @@ def test_config_errors_name_the_key(tmp_path, text, message):
         load_config(f)
 
 
+def test_one_rollout_is_refused_where_reinforce_runs(tmp_path, capsys):
+    """REINFORCE's baseline is the mean return of a mission's rollouts: with one rollout every
+    advantage is 0 and nothing is learned. A config without REINFORCE iterations may keep one."""
+    from hmrta.cli import main
+    from hmrta.rl.train import load_config
+
+    one = tmp_path / "one.yaml"
+    one.write_text("version: 1\ntrain: {rollouts: 1}\n")
+    assert main(["train", "--config", str(one), "--check"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{one}: train.rollouts: expected at least 2 when train.iterations > 0, got 1 " \
+                              f"(REINFORCE's baseline is the mean return" in err[0], err
+    bc = tmp_path / "bc.yaml"
+    bc.write_text("version: 1\ntrain: {rollouts: 1, iterations: 0}\n")
+    assert load_config(bc)["train"]["rollouts"] == 1
+    assert main(["train", "--config", str(bc), "--check"]) == 0
+
+
 def test_shipped_configs_load():
     from pathlib import Path
 

@@ -48,15 +48,18 @@ def _point(text: str) -> list[float]:
 
 def main(argv: list[str] | None = None) -> int:
     from hmrta.cli import Parser  # bad arguments: one line
+    from hmrta.instance import MAX_VALUE
 
     p = Parser(prog="hmrta-task", description=__doc__.split("\n\n")[0])
     p.add_argument("--timeout", type=_number, default=10.0, help="seconds to wait for the board")
     p.add_argument("--domain-id", type=int, default=None, help="ROS domain 0..232 (default: $ROS_DOMAIN_ID)")
     sub = p.add_subparsers(dest="cmd", required=True)
     a = sub.add_parser("add", help="submit a task")
-    a.add_argument("--location", type=_point, required=True, metavar="X,Y")
-    a.add_argument("--requirements", type=_floats, required=True, metavar="R1,R2,...")
-    a.add_argument("--duration", type=_number, required=True, help="the work's duration (mission time units)")
+    a.add_argument("--location", type=_point, required=True, metavar="X,Y", help="in the unit square [0, 1]")
+    a.add_argument("--requirements", type=_floats, required=True, metavar="R1,R2,...",
+                   help=f"one per skill of the mission, each in [0, {MAX_VALUE:g}], not all 0")
+    a.add_argument("--duration", type=_number, required=True,
+                   help=f"the work's duration (mission time units), in [0, {MAX_VALUE:g}] as in a mission file")
     a.add_argument("--id", default=None, help="client task id (default: a random one)")
     c = sub.add_parser("cancel", help="cancel a task by its id")
     c.add_argument("id", help="an operator's task id, or a task of the mission by its index (hmrta-task list)")
@@ -66,8 +69,14 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--timeout: expected a positive number")
     if args.domain_id is not None and not 0 <= args.domain_id <= 232:
         p.error(f"--domain-id: expected a ROS domain id in 0..232, got {args.domain_id}")
-    if args.cmd == "add" and (args.duration < 0 or any(r < 0 for r in args.requirements)):
-        p.error("--duration and --requirements: expected numbers >= 0")
+    if args.cmd == "add":  # a mission file's bounds (hmrta.instance): what the board accepts too
+        if not 0 <= args.duration <= MAX_VALUE:
+            p.error(f"--duration: expected a number in [0, {MAX_VALUE:g}], got {args.duration:g}")
+        if not all(0 <= r <= MAX_VALUE for r in args.requirements) or not any(args.requirements):
+            p.error(f"--requirements: expected numbers in [0, {MAX_VALUE:g}], at least one of them non-zero, got "
+                    f"{','.join(f'{r:g}' for r in args.requirements)}")
+        if not all(0 <= v <= 1 for v in args.location):
+            p.error(f"--location: expected x,y in the unit square [0, 1], got {args.location[0]:g},{args.location[1]:g}")
 
     import rclpy
     from std_msgs.msg import String
