@@ -6,6 +6,7 @@ import io
 import json
 import re
 
+import numpy as np
 import pytest
 
 pytest.importorskip("matplotlib")
@@ -85,6 +86,41 @@ def test_failed_solution_and_mismatch(tmp_path, case):
         render(other, sol, tmp_path / "g.png")
 
 
+def test_a_run_that_stopped_shows_the_work_under_way(tmp_path):
+    """A run stopped by its time limit: the coalitions complete then (``in_progress``) are worked
+    to their planned finish on their members' rows, drawn apart from the work done; robots on
+    their way to a task end with that trip, and nobody is drawn going home after the stop."""
+    from hmrta.baselines import Greedy
+    from hmrta.core import Rules
+    from hmrta.sim import simulate
+
+    inst = ScenarioGenerator("MA-AT", 15, 5, 20, 5).instance(1, 0)
+    sol = simulate(inst, Greedy(), 0, Rules(t_max=12.0, safety=True), "greedy")
+    sol = Solution.from_dict(json.loads(json.dumps(sol.to_dict())))  # as read from its file
+    running = {r["task"]: r for r in sol.extra["in_progress"]}
+    assert running
+    tl = agent_timeline(inst, sol)
+    for a, segs in enumerate(tl):
+        done = [m for m in sol.routes[a] if sol.tasks[m]["finish"] == sol.tasks[m]["finish"]]  # (NaN: not done)
+        planned = [s for s in segs if s.get("planned")]
+        assert [s["task"] for s in segs if s["kind"] == "work" and not s.get("planned")] == done
+        nxt = sol.routes[a][len(done):]
+        if nxt:  # committed to a task not done: the trip there is its last travel, no trip home
+            travel = [s for s in segs if s["kind"] == "travel"]
+            assert travel[-1]["task"] == nxt[0] and all(s["task"] is not None for s in segs)
+            if nxt[0] in running:
+                r = running[nxt[0]]
+                assert [(s["task"], s["t0"], s["t1"]) for s in planned] == [(nxt[0], r["start"], r["finish"])]
+                assert a in r["members"]
+        assert not planned or nxt and nxt[0] in running
+    gantt = _figure_of(inst, sol).ax_g
+    labels = [t.get_text() for t in gantt.get_legend().get_texts()]
+    assert "under way when it stopped (to the planned finish)" in labels
+    hatched = [c for c in gantt.collections if c.get_hatch() == "xx"]
+    assert len(hatched) == 1 and len(hatched[0].get_paths()) == sum(len(r["members"]) for r in running.values())
+    assert render(inst, sol, tmp_path / "stopped.png", gif=True, frames=4)[0].exists()
+
+
 def _foreign(sol, **change):
     d = json.loads(json.dumps(sol.to_dict()))
     for k, v in change.items():
@@ -106,12 +142,20 @@ def _foreign(sol, **change):
 def test_render_refuses_a_solution_of_another_instance(tmp_path, case, change, expect):
     """A solution that does not belong to the instance is refused (one line naming the solution
     file and what differs), by render() and by `hmrta render`, and no image is written."""
+    inst, sol = case
+    p, lines = _refused(tmp_path, inst, _foreign(sol, **change), expect)
+    assert lines[0].startswith(f"hmrta: error: {p}")
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "y.png").exists()
+
+
+def _refused(tmp_path, inst, d: dict, expect: str):
+    """Write solution ``d`` to sol.json and the mission beside it; render() and `hmrta render` both
+    refuse it with ``expect`` (one line, exit 2). Returns (the solution's path, stderr's lines)."""
     from hmrta.cli import main
     from hmrta.solution import SolutionError
 
-    inst, sol = case
     p = tmp_path / "sol.json"
-    p.write_text(json.dumps(_foreign(sol, **change)))
+    p.write_text(json.dumps(d))
     bad = Solution.from_dict(json.loads(p.read_text()), str(p))
     with pytest.raises(SolutionError, match=re.escape(expect)):
         render(inst, bad, tmp_path / "x.png", source=str(p))
@@ -121,8 +165,8 @@ def test_render_refuses_a_solution_of_another_instance(tmp_path, case, change, e
     with contextlib.redirect_stderr(err):
         assert main(["render", str(ip), str(p), "--out", str(tmp_path / "y.png")]) == 2
     lines = err.getvalue().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"hmrta: error: {p}") and expect in lines[0], lines
-    assert not (tmp_path / "x.png").exists() and not (tmp_path / "y.png").exists()
+    assert len(lines) == 1 and expect in lines[0], lines
+    return p, lines
 
 
 def test_an_image_name_without_a_format_suffix_is_refused_before_anything_is_written(tmp_path, case):
@@ -130,3 +174,171 @@ def test_an_image_name_without_a_format_suffix_is_refused_before_anything_is_wri
     with pytest.raises(ValueError, match="format as suffix"):
         render(inst, sol, tmp_path / "fig", gif=True, frames=2)
     assert not list(tmp_path.iterdir())
+
+
+# --- missions that changed while they ran -----------------------------------------------------
+CHANGING = {"format": "hmrta-instance/1", "name": "changes", "requirement_type": "additive", "velocity": 0.2,
+            "skills": 3,
+            "species": [{"traits": [1, 0, 0], "count": 2, "depot": [0.1, 0.1]},
+                        {"traits": [0, 1, 0], "count": 2, "depot": [0.9, 0.9]},
+                        {"traits": [0, 0, 1], "count": 1, "depot": [0.1, 0.9]}],  # robot 4: the only one with skill 2
+            "tasks": [{"location": [0.5, 0.2], "requirements": [1, 0, 0], "duration": 2},
+                      {"location": [0.3, 0.6], "requirements": [1, 1, 0], "duration": 3},
+                      {"location": [0.8, 0.5], "requirements": [0, 2, 0], "duration": 1},
+                      {"location": [0.6, 0.8], "requirements": [0, 0, 1], "duration": 4},
+                      {"location": [0.2, 0.4], "requirements": [0, 0, 1], "duration": 2}]}
+EVENTS = [{"t": 0.5, "type": "add_task", "id": "late", "location": [0.7, 0.2], "requirements": [1, 0, 0],
+           "duration": 1},
+          {"t": 1.0, "type": "cancel_task", "id": 2},                       # by the operator
+          {"t": 1.5, "type": "add_robot", "species": 0, "position": [0.5, 0.5]},
+          {"t": 2.0, "type": "lose_robot", "robot": 4},                     # tasks 3 and 4: unsatisfiable
+          {"t": 5.0, "type": "lose_robot", "robot": 1}]                     # after its task 0 (done at 4.06)
+
+
+@pytest.fixture(scope="module")
+def changed():
+    """A scenario with every kind of change, solved by greedy; the solution read back from its JSON
+    (what a user has) with the mission as it ended."""
+    from hmrta.scenario import scenario_from_dict
+    from hmrta.solution import final_instance
+
+    scen = scenario_from_dict({"format": "hmrta-scenario/1", "instance": CHANGING, "events": EVENTS}, "s.yaml")
+    sol = Solution.from_dict(json.loads(json.dumps(solve(scen, "greedy", seed=0).to_dict())))
+    return final_instance(scen, sol), sol
+
+
+def _figure_of(inst, sol):
+    from hmrta.render import _figure, mission_changes
+
+    return _figure(inst, sol, mission_changes(inst, sol))
+
+
+def test_mission_changes_are_read_from_the_solution(changed, case):
+    from hmrta.render import mission_changes
+
+    inst, sol = changed
+    ch = mission_changes(inst, sol)
+    assert ch.lost == {4: 2.0, 1: 5.0}
+    assert ch.joined == {5: (1.5, (0.5, 0.5))}
+    assert ch.cancelled == {2: (1.0, True), 3: (2.0, False), 4: (2.0, False)}
+    assert sol.routes[1] == [0]  # lost on its way to the next task, which left its route
+    tl = agent_timeline(inst, sol)
+    assert tl[1][-1]["kind"] == "work" and tl[1][-1]["task"] == 0  # no trip home for a lost robot
+    assert (tl[5][0]["t0"], tl[5][0]["p0"]) == (1.5, (0.5, 0.5))  # a joined robot starts where and when it appeared
+    assert mission_changes(*case) == type(ch)()  # a plain mission: nothing happened
+
+
+def test_lost_robots_and_cancelled_tasks_are_marked(changed):
+    """The map has an X per lost robot where it was last known (robot 1: its last task; robot 4:
+    its depot, before any task), the Gantt chart an X at the end of its row at the loss time with
+    the time written beside; cancelled tasks have a cross (grey: operator, dark red: unsatisfiable)
+    over a greyed disc, and the legends say so."""
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection, PatchCollection, PathCollection
+    from matplotlib.colors import to_rgba
+
+    inst, sol = changed
+    f = _figure_of(inst, sol)
+    try:
+        A = inst.n_agents
+        x_map = [c for c in f.ax_map.collections if isinstance(c, PathCollection) and len(c.get_offsets()) == 2]
+        assert len(x_map) == 1
+        assert np.allclose(x_map[0].get_offsets(), [[0.5, 0.2], [0.1, 0.9]])  # robots 1 and 4 (sorted)
+        assert np.allclose(x_map[0].get_facecolor(), [f.colors[0], f.colors[2]])  # species colours
+        x_gantt = [c for c in f.ax_g.collections if isinstance(c, PathCollection) and len(c.get_offsets()) == 2]
+        assert np.allclose(x_gantt[0].get_offsets(), [[5.0, A - 1 - 1], [2.0, A - 1 - 4]])  # (time, row)
+        texts = {t.get_text() for t in f.ax_g.texts}
+        assert {"lost 5.00", "lost 2.00", "joined 1.50"} <= texts
+        crosses = [c for c in f.ax_map.collections if isinstance(c, LineCollection)]
+        assert len(crosses) == 1
+        segs = np.array(crosses[0].get_segments())  # [2C, 2, 2] two strokes per cancelled task 2, 3, 4
+        assert np.allclose(segs.mean(axis=1)[::2], inst.task_locations[[2, 3, 4]])
+        assert [tuple(c) for c in crosses[0].get_colors()[::2]] == [to_rgba("#777777"), to_rgba("#8b0000"),
+                                                                    to_rgba("#8b0000")]
+        discs = [c for c in f.ax_map.collections if isinstance(c, PatchCollection) and len(c.get_paths()) == 3]
+        assert len(discs) == 1
+        legend = {t.get_text() for ax in (f.ax_map, f.ax_g) for t in ax.get_legend().get_texts()}
+        assert {"task cancelled by the operator (\u00d7 when)", "task unsatisfiable after a loss (\u00d7 when)",
+                "robot lost (map: X where last known)", "robot joined", "task released / added"} <= legend
+        assert "2 robots lost, 1 joined, 1 task cancelled, 2 unsatisfiable after a loss" in f.fig._suptitle.get_text()
+        # the GIF shows each marker from its time on: the lost robots' X ...
+        lost_x = f.timed[-1]
+        lost_x.show(3.0)
+        assert list(lost_x.art.get_facecolor()[:, 3]) == [0.0, 1.0]  # robot 4 (lost at 2), not yet robot 1
+        lost_x.show(5.0)
+        assert list(lost_x.art.get_facecolor()[:, 3]) == [1.0, 1.0]
+        f.timed[1].show(1.5)  # ... and the crosses: task 2 cancelled at 1, tasks 3 and 4 at 2
+        assert list(crosses[0].get_colors()[:, 3]) == [1.0, 1.0, 0.0, 0.0, 0.0, 0.0]
+    finally:
+        plt.close(f.fig)
+
+
+def test_a_changed_mission_renders_png_and_gif(tmp_path, changed):
+    import yaml
+    from PIL import Image
+
+    from hmrta.cli import main
+
+    inst, sol = changed
+    out = render(inst, sol, tmp_path / "c.png", gif=True, frames=5)
+    assert [p.name for p in out] == ["c.png", "c.gif"] and out[0].stat().st_size > 20000
+    with Image.open(out[1]) as im:
+        assert (im.n_frames, im.size) == (5, (900, 432))
+    # `hmrta render SCENARIO SOLUTION` draws the mission as it ended
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"format": "hmrta-scenario/1", "instance": CHANGING,
+                                                     "events": EVENTS}))
+    (tmp_path / "sol.json").write_text(json.dumps(sol.to_dict()))
+    assert main(["render", str(tmp_path / "s.yaml"), str(tmp_path / "sol.json"), "--out", str(tmp_path / "d.png")]) == 0
+    assert (tmp_path / "d.png").stat().st_size > 20000
+
+
+@pytest.mark.parametrize("event, expect", [
+    ({"type": "drop_agent", "t": 1.0, "agent": 9, "cancelled": []},
+     "dynamic.events[0].agent: expected an index in 0..5, got 9"),
+    ({"type": "drop_agent", "t": "soon", "agent": 1}, "dynamic.events[0].t: expected a time >= 0, got 'soon'"),
+    ({"type": "drop_agent", "t": 1.0, "agent": 1, "cancelled": [7]},
+     "dynamic.events[0].cancelled[0]: expected an index in 0..5"),
+    ({"type": "cancel_task", "t": 1.0, "name": "nope"}, "dynamic.events[0].name: expected the client id of a task"),
+    ({"type": "add_agent", "t": 1.0, "id": 5, "position": [0.5]},
+     "dynamic.events[0].position: expected a point [x, y]"),
+])
+def test_events_that_do_not_fit_the_mission_are_refused(tmp_path, changed, event, expect):
+    """An event record in the solution naming a robot or task the mission lacks is refused (one line
+    naming the solution file and the field), by render() and by `hmrta render`; no image is written.
+    A rejected event changed nothing and is skipped."""
+    inst, sol = changed
+    d = sol.to_dict()
+    d["dynamic"] = {**d["dynamic"], "events": [event]}
+    _refused(tmp_path, inst, d, f"{tmp_path / 'sol.json'}: {expect}")
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["inst.yaml", "sol.json"]
+    d["dynamic"]["events"] = [{**event, "rejected": "why"}]
+    assert render(inst, Solution.from_dict(d), tmp_path / "ok.png")[0].exists()
+
+
+# --- GIF speed: the static picture is drawn once ------------------------------------------------
+def test_gif_draws_the_figure_once_and_blits_the_same_frames(tmp_path, case, monkeypatch):
+    """The GIF draws the whole figure once, not once per frame, and keeps its frames: count, size
+    (900 x 432), frame time (1/fps); its first frame is the full figure at the GIF's resolution but
+    for the moving artists (robots at their depots, clock, cursor), and the robots move."""
+    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
+    from PIL import Image, ImageSequence
+
+    inst, sol = case
+    draws = []
+    full_draw = Figure.draw
+    monkeypatch.setattr(Figure, "draw", lambda self, renderer: (draws.append(1), full_draw(self, renderer))[1])
+    out = render(inst, sol, tmp_path / "a.gif", frames=12, fps=5)[0]
+    assert len(draws) == 1
+    monkeypatch.undo()
+    with Image.open(out) as im:
+        assert (im.n_frames, im.size, im.info["duration"], im.info["loop"]) == (12, (900, 432), 200, 0)
+        frames = [np.asarray(fr.convert("RGB"), dtype=int) for fr in ImageSequence.Iterator(im)]  # [432, 900, 3] each
+    f = _figure_of(inst, sol)
+    f.fig.savefig(tmp_path / "full.png", dpi=60)
+    plt.close(f.fig)
+    with Image.open(tmp_path / "full.png") as im:
+        full = np.asarray(im.convert("RGB"), dtype=int)  # [432, 900, 3]
+    assert full.shape == frames[0].shape
+    assert (np.abs(frames[0] - full).sum(-1) > 60).mean() < 0.03  # only the moving artists differ
+    assert (np.abs(frames[0] - frames[6]).sum(-1) > 60).mean() > 0.001  # and they move
