@@ -876,15 +876,16 @@ class MissionState:
             self._advance()
         return out
 
-    @staticmethod
-    def _outcome(rec: dict, out: Any) -> dict:
+    def _outcome(self, rec: dict, out: Any) -> dict:
+        """The outcome fields of an applied record (in the log): the id of a task or robot added,
+        the tasks a robot's loss cancelled and where it stopped, the robots a cancellation freed."""
         kind = rec["type"]
         if kind == "add_task":
             return {"id": out}
         if kind == "add_agent":
             return {"id": out}
         if kind == "drop_agent":
-            return {"cancelled": list(out)}
+            return {"cancelled": list(out), "at": [float(x) for x in self.to_pos[rec["agent"]]]}
         if kind == "cancel_task":
             return {"freed": list(out)}
         return {}

@@ -19,10 +19,10 @@
   frame only redraws the moving artists over it (blitting), then Pillow writes the frames.
 
 Times are recomputed from the solution's task starts/finishes and straight-line travel: an agent
-leaves a task at its finish, arrives after the travel time and waits until the task's start. The
-solution does not record the leg a robot was on when it was lost (the task it was heading for is
-no longer in its route), so its X stands where it was last known: its last task, or where it
-started.
+leaves a task at its finish, arrives after the travel time and waits until the task's start. A
+lost robot's X stands where it stopped (the ``at`` of its ``drop_agent`` record), reached by its
+last leg; a solution written before the record carried it shows the robot where it was last
+known: its last task, or where it started.
 """
 from __future__ import annotations
 
@@ -56,6 +56,7 @@ def _species_colors(n: int) -> list:
 class Changes:
     """What happened during a mission that changed while it ran (empty for a plain mission)."""
     lost: dict[int, float] = field(default_factory=dict)  # robot -> when it was lost
+    lost_at: dict[int, tuple[float, float]] = field(default_factory=dict)  # robot -> where it stopped (if recorded)
     joined: dict[int, tuple[float, tuple[float, float]]] = field(default_factory=dict)  # robot -> (when, where)
     cancelled: dict[int, tuple[float, bool]] = field(default_factory=dict)  # task -> (when, by the operator)
 
@@ -88,7 +89,10 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
             raise SolutionError(f"{w}.t: expected a time >= 0, got {short(t)}")
         t = float(t)
         if kind == "drop_agent":
-            out.lost[_index(e.get("agent"), inst.n_agents, f"{w}.agent")] = t
+            a = _index(e.get("agent"), inst.n_agents, f"{w}.agent")
+            out.lost[a] = t
+            if "at" in e:  # where it stopped (recorded since the log carries it)
+                out.lost_at[a] = _point(e["at"], f"{w}.at")
             cancelled = e.get("cancelled", [])
             if not isinstance(cancelled, list):
                 raise SolutionError(f"{w}.cancelled: expected a list of task ids, got {short(cancelled)}")
@@ -96,10 +100,7 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
                 out.cancelled[_index(m, inst.n_tasks, f"{w}.cancelled[{j}]")] = (t, False)
         elif kind == "add_agent":
             a = _index(e.get("id"), inst.n_agents, f"{w}.id")
-            pos = e.get("position", inst.depots[a].tolist())
-            if not (isinstance(pos, list) and len(pos) == 2 and all(finite(x) for x in pos)):
-                raise SolutionError(f"{w}.position: expected a point [x, y], got {short(pos)}")
-            out.joined[a] = (t, (float(pos[0]), float(pos[1])))
+            out.joined[a] = (t, _point(e.get("position", inst.depots[a].tolist()), f"{w}.position"))
         elif "name" in e:
             if not isinstance(names, list) or e["name"] not in names:
                 raise SolutionError(f"{w}.name: expected the client id of a task in dynamic.names, got "
@@ -110,6 +111,12 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
     return out
 
 
+def _point(v: Any, where: str) -> tuple[float, float]:
+    if not (isinstance(v, list) and len(v) == 2 and all(finite(x) for x in v)):
+        raise SolutionError(f"{where}: expected a point [x, y], got {short(v)}")
+    return float(v[0]), float(v[1])
+
+
 def _index(v: Any, n: int, where: str) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < n:
         raise SolutionError(f"{where}: expected an index in 0..{n - 1}, got {short(v)}")
@@ -118,8 +125,9 @@ def _index(v: Any, n: int, where: str) -> int:
 
 def agent_timeline(inst: Instance, sol: Solution, changes: Changes | None = None) -> list[list[dict[str, Any]]]:
     """Per agent, a list of segments {kind: travel|wait|work, t0, t1, task, p0, p1} in time order.
-    ``task`` is the task id (None for the final trip home); p0/p1 are positions [2]. A robot that
-    joined starts where and when it appeared; a lost robot has no trip home (it never got there).
+    ``task`` is the task id (None for the final trip home, or a lost robot's last leg up to where
+    it stopped); p0/p1 are positions [2]. A robot that joined starts where and when it appeared; a
+    lost robot has no trip home (it never got there).
     In a run that stopped (success false) a robot's route ends with its trip to the task it was
     committed to and, where that task's coalition was complete (``extra["in_progress"]``), its work
     there to the planned finish (a segment with ``planned`` true); no trip home follows it.
@@ -157,6 +165,10 @@ def agent_timeline(inst: Instance, sol: Solution, changes: Changes | None = None
                 segs.append({"kind": "wait", "t0": arr, "t1": st, "task": m, "p0": loc, "p1": loc})
             segs.append({"kind": "work", "t0": st, "t1": fin, "task": m, "p0": loc, "p1": loc})
             here, t = loc, fin
+        if a in ch.lost_at and ch.lost_at[a] != here:  # its last leg, up to where it stopped when it was lost
+            p, t_lost = ch.lost_at[a], ch.lost[a]
+            segs.append({"kind": "travel", "t0": min(t_lost, max(t, t_lost - inst.travel_time(here, p))),
+                         "t1": t_lost, "task": None, "p0": here, "p1": p})
         if here != home and a not in ch.lost and not stopped:
             segs.append({"kind": "travel", "t0": t, "t1": t + inst.travel_time(here, home), "task": None,
                          "p0": here, "p1": home})
@@ -312,7 +324,7 @@ def _draw_map(ax, inst: Instance, sol: Solution, colors: list, changes: Changes 
         for m, p in zip(gone, xy):
             ax.text(p[0] + r * 1.1, p[1] - r * 1.1, f"\u00d7{ch.cancelled[m][0]:.1f}", fontsize=6, va="top",
                     color=CROSS_COLORS[ch.cancelled[m][1]], zorder=5)
-    if ch.lost:  # an X in the species colour where the robot was last known
+    if ch.lost:  # an X in the species colour where the robot stopped (or was last known)
         lost = sorted(ch.lost)
         xy = np.array([_position(tl[a], starts[a], ch.lost[a]) for a in lost]) + np.array(
             [offsets[a] for a in lost])[:, None]  # [L, 2]
@@ -391,7 +403,7 @@ def _draw_gantt(ax, inst: Instance, sol: Solution, colors: list, timeline, chang
     if bars["planned"][0]:
         handles.append(Patch(facecolor="grey", edgecolor="black", alpha=0.45, hatch="xx",
                              label="under way when it stopped (to the planned finish)"))
-    for marker, events, label, tag in (("X", ch.lost, "robot lost (map: X where last known)", "lost"),
+    for marker, events, label, tag in (("X", ch.lost, "robot lost (map: X where it stopped)", "lost"),
                                        (">", {a: t for a, (t, _) in ch.joined.items()}, "robot joined", "joined")):
         if not events:
             continue

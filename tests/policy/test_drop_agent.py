@@ -114,3 +114,22 @@ def test_drop_current_decider_and_no_cancel_keeps_success():
     assert state.success
     assert all(d not in state.members[m] for m in range(inst.n_tasks) if m not in state.routes[d])
     assert np.isfinite(state.arrive).all()
+
+
+def test_the_loss_record_says_where_the_robot_stopped():
+    """A robot lost part-way along a leg stops where it is then: the log's drop_agent record carries
+    that point (``at``), the position the state machine holds for it from then on."""
+    inst = ScenarioGenerator("MA-AT", 15, 5, 20, 5).instance(1, 0)
+    state = MissionState(inst, seed=1, rules=GREEDY_RULES)
+    moving: list[int] = []
+    while not moving:  # the first decision with a robot on its way somewhere
+        state.step(Greedy()(state))
+        moving = [a for a in range(inst.n_agents) if state.depart[a] < state.clock < state.arrive[a]]
+    a = moving[0]
+    here = state.position(a)
+    assert not np.allclose(here, state.to_pos[a]) and not np.allclose(here, state.from_pos[a])
+    state.drop_agent(a)
+    rec = state.log[-1]
+    assert rec["type"] == "drop_agent" and rec["agent"] == a and rec["at"] == [float(x) for x in here]
+    assert np.array_equal(state.position(a), here)
+    json.dumps(rec)  # JSON-able like every record

@@ -222,15 +222,27 @@ def test_mission_changes_are_read_from_the_solution(changed, case):
     assert ch.joined == {5: (1.5, (0.5, 0.5))}
     assert ch.cancelled == {2: (1.0, True), 3: (2.0, False), 4: (2.0, False)}
     assert sol.routes[1] == [0]  # lost on its way to the next task, which left its route
+    at = {e["agent"]: tuple(e["at"]) for e in sol.extra["dynamic"]["events"] if e["type"] == "drop_agent"}
+    assert ch.lost_at == at and at[1] != tuple(inst.task_locations[0])  # where they stopped, part-way
     tl = agent_timeline(inst, sol)
-    assert tl[1][-1]["kind"] == "work" and tl[1][-1]["task"] == 0  # no trip home for a lost robot
+    # robot 1: its task, then its last leg up to where it stopped at the loss; no trip home
+    assert [(s["kind"], s["task"]) for s in tl[1][-2:]] == [("work", 0), ("travel", None)]
+    assert tl[1][-1]["t1"] == 5.0 and tl[1][-1]["p1"] == at[1]
+    assert tl[1][-1]["t1"] - tl[1][-1]["t0"] == pytest.approx(inst.travel_time(tl[1][-1]["p0"], at[1]))
+    # robot 4: lost on its first leg, from its depot
+    assert [(s["kind"], s["t0"], s["t1"], s["p1"]) for s in tl[4]] == [("travel", 0.0, 2.0, at[4])]
+    # a record without "at" (written before the log carried it): the robot where it was last known
+    old = json.loads(json.dumps(sol.to_dict()))
+    for e in old["dynamic"]["events"]:
+        e.pop("at", None)
+    old_tl = agent_timeline(inst, Solution.from_dict(old))
+    assert old_tl[1][-1]["kind"] == "work" and old_tl[4] == []
     assert (tl[5][0]["t0"], tl[5][0]["p0"]) == (1.5, (0.5, 0.5))  # a joined robot starts where and when it appeared
     assert mission_changes(*case) == type(ch)()  # a plain mission: nothing happened
 
 
 def test_lost_robots_and_cancelled_tasks_are_marked(changed):
-    """The map has an X per lost robot where it was last known (robot 1: its last task; robot 4:
-    its depot, before any task), the Gantt chart an X at the end of its row at the loss time with
+    """The map has an X per lost robot where it stopped (part-way along its leg), the Gantt chart an X at the end of its row at the loss time with
     the time written beside; cancelled tasks have a cross (grey: operator, dark red: unsatisfiable)
     over a greyed disc, and the legends say so."""
     import matplotlib.pyplot as plt
@@ -243,7 +255,8 @@ def test_lost_robots_and_cancelled_tasks_are_marked(changed):
         A = inst.n_agents
         x_map = [c for c in f.ax_map.collections if isinstance(c, PathCollection) and len(c.get_offsets()) == 2]
         assert len(x_map) == 1
-        assert np.allclose(x_map[0].get_offsets(), [[0.5, 0.2], [0.1, 0.9]])  # robots 1 and 4 (sorted)
+        at = {e["agent"]: e["at"] for e in sol.extra["dynamic"]["events"] if e["type"] == "drop_agent"}
+        assert np.allclose(x_map[0].get_offsets(), [at[1], at[4]])  # robots 1 and 4 (sorted)
         assert np.allclose(x_map[0].get_facecolor(), [f.colors[0], f.colors[2]])  # species colours
         x_gantt = [c for c in f.ax_g.collections if isinstance(c, PathCollection) and len(c.get_offsets()) == 2]
         assert np.allclose(x_gantt[0].get_offsets(), [[5.0, A - 1 - 1], [2.0, A - 1 - 4]])  # (time, row)
@@ -259,7 +272,7 @@ def test_lost_robots_and_cancelled_tasks_are_marked(changed):
         assert len(discs) == 1
         legend = {t.get_text() for ax in (f.ax_map, f.ax_g) for t in ax.get_legend().get_texts()}
         assert {"task cancelled by the operator (\u00d7 when)", "task unsatisfiable after a loss (\u00d7 when)",
-                "robot lost (map: X where last known)", "robot joined", "task released / added"} <= legend
+                "robot lost (map: X where it stopped)", "robot joined", "task released / added"} <= legend
         assert "2 robots lost, 1 joined, 1 task cancelled, 2 unsatisfiable after a loss" in f.fig._suptitle.get_text()
         # the GIF shows each marker from its time on: the lost robots' X ...
         lost_x = f.timed[-1]
