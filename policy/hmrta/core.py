@@ -334,7 +334,7 @@ class MissionState:
         self._externals(0.0)  # events at time 0 come before the first decisions
         order = list(range(self.A))
         self.rng.shuffle(order)
-        self.queue = order[::-1]
+        self.queue = [a for a in order if self.mode[a] != LOST][::-1]  # (a robot lost at 0 never decides)
         self._advance()
 
     # ------------------------------------------------------------------------------------------
@@ -740,7 +740,13 @@ class MissionState:
         if self.mode[a] == LOST:
             return []
         out = self._event({"type": "drop_agent", "t": self._when(now), "agent": int(a)})
-        return [] if out is None else out
+        return [] if out is None else out[0]
+
+    def _here_since(self, a: int) -> float:
+        """Since when robot a has been where it is now: its arrival at the end of its leg, or now
+        while it is on its way (or about to leave)."""
+        t, d0, d1 = float(self.clock), float(self.depart[a]), float(self.arrive[a])
+        return min(d1, t) if t >= d1 or d1 <= d0 else t
 
     def _drop_agent(self, a: int) -> tuple[list[int], list[int]]:
         """drop_agent without the re-queueing: (cancelled tasks, freed agents)."""
@@ -878,14 +884,16 @@ class MissionState:
 
     def _outcome(self, rec: dict, out: Any) -> dict:
         """The outcome fields of an applied record (in the log): the id of a task or robot added,
-        the tasks a robot's loss cancelled and where it stopped, the robots a cancellation freed."""
+        the tasks a robot's loss cancelled, where it stopped (``at``) and since when it was there
+        (``since``: the loss itself when it was on its way), the robots a cancellation freed."""
         kind = rec["type"]
         if kind == "add_task":
             return {"id": out}
         if kind == "add_agent":
             return {"id": out}
         if kind == "drop_agent":
-            return {"cancelled": list(out), "at": [float(x) for x in self.to_pos[rec["agent"]]]}
+            cancelled, since = out
+            return {"cancelled": list(cancelled), "at": [float(x) for x in self.to_pos[rec["agent"]]], "since": since}
         if kind == "cancel_task":
             return {"freed": list(out)}
         return {}
@@ -917,7 +925,9 @@ class MissionState:
                 raise EventRejected(f"robot {a!r}: no such robot (0..{self.A - 1})")
             if self.mode[a] == LOST:
                 raise EventRejected(f"robot {a}: already lost")
-            return self._drop_agent(a)
+            since = self._here_since(a)  # before its leg is cut short
+            cancelled, freed = self._drop_agent(a)
+            return (cancelled, since), freed
         if kind == "release":
             m = rec["task"]
             if self.status[m] != UNRELEASED:

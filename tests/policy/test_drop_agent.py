@@ -131,5 +131,32 @@ def test_the_loss_record_says_where_the_robot_stopped():
     state.drop_agent(a)
     rec = state.log[-1]
     assert rec["type"] == "drop_agent" and rec["agent"] == a and rec["at"] == [float(x) for x in here]
+    assert rec["since"] == state.clock  # on its way: there only from the loss
     assert np.array_equal(state.position(a), here)
     json.dumps(rec)  # JSON-able like every record
+    # a robot that arrived earlier (waiting at its task, or back at its depot): there since its arrival
+    while True:
+        arrived = [b for b in range(inst.n_agents) if state.mode[b] != LOST and state.arrive[b] < state.clock
+                   and state.depart[b] < state.arrive[b]]
+        if arrived:
+            break
+        state.step(Greedy()(state))
+    b = arrived[0]
+    there, since = state.to_pos[b].copy(), float(state.arrive[b])
+    state.drop_agent(b)
+    assert (state.log[-1]["at"], state.log[-1]["since"]) == ([float(x) for x in there], since)
+
+
+@pytest.mark.parametrize("method", ["greedy", "greedy-coalition", "random"])
+def test_a_robot_lost_at_time_0_never_decides(method):
+    """A scenario losing a robot at t = 0: the robot is gone before the first decision (it was
+    queued with the others and took decisions and work), as a loss an instant later would be."""
+    from hmrta.methods import solve
+    from hmrta.scenario import scenario_from_dict
+
+    inst = ScenarioGenerator("MA-AT", 15, 5, 20, 5).instance(1, 0)
+    for t in (0.0, 1e-6):
+        scen = scenario_from_dict({"format": "hmrta-scenario/1", "instance": inst.to_dict(),
+                                   "events": [{"t": t, "type": "lose_robot", "robot": 3}]}, "s.yaml")
+        sol = solve(scen, method, seed=0)
+        assert sol.routes[3] == [] and all(3 not in tk["members"] for tk in sol.tasks), (t, sol.routes[3])
