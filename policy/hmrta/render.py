@@ -56,7 +56,8 @@ def _species_colors(n: int) -> list:
 class Changes:
     """What happened during a mission that changed while it ran (empty for a plain mission)."""
     lost: dict[int, float] = field(default_factory=dict)  # robot -> when it was lost
-    lost_at: dict[int, tuple[float, float]] = field(default_factory=dict)  # robot -> where it stopped (if recorded)
+    # robot -> (where it stopped, since when it was there), where the solution records it
+    lost_at: dict[int, tuple[tuple[float, float], float]] = field(default_factory=dict)
     joined: dict[int, tuple[float, tuple[float, float]]] = field(default_factory=dict)  # robot -> (when, where)
     cancelled: dict[int, tuple[float, bool]] = field(default_factory=dict)  # task -> (when, by the operator)
 
@@ -91,8 +92,11 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
         if kind == "drop_agent":
             a = _index(e.get("agent"), inst.n_agents, f"{w}.agent")
             out.lost[a] = t
-            if "at" in e:  # where it stopped (recorded since the log carries it)
-                out.lost_at[a] = _point(e["at"], f"{w}.at")
+            if "at" in e:  # where it stopped and since when (recorded since the log carries them)
+                since = e.get("since", t)
+                if not finite(since) or not 0 <= since <= t:
+                    raise SolutionError(f"{w}.since: expected a time in [0, {t:g}] (the loss), got {short(since)}")
+                out.lost_at[a] = (_point(e["at"], f"{w}.at"), float(since))
             cancelled = e.get("cancelled", [])
             if not isinstance(cancelled, list):
                 raise SolutionError(f"{w}.cancelled: expected a list of task ids, got {short(cancelled)}")
@@ -165,10 +169,10 @@ def agent_timeline(inst: Instance, sol: Solution, changes: Changes | None = None
                 segs.append({"kind": "wait", "t0": arr, "t1": st, "task": m, "p0": loc, "p1": loc})
             segs.append({"kind": "work", "t0": st, "t1": fin, "task": m, "p0": loc, "p1": loc})
             here, t = loc, fin
-        if a in ch.lost_at and ch.lost_at[a] != here:  # its last leg, up to where it stopped when it was lost
-            p, t_lost = ch.lost_at[a], ch.lost[a]
-            segs.append({"kind": "travel", "t0": min(t_lost, max(t, t_lost - inst.travel_time(here, p))),
-                         "t1": t_lost, "task": None, "p0": here, "p1": p})
+        if a in ch.lost_at and ch.lost_at[a][0] != here:  # its last leg, to where it was when it was lost
+            p, since = ch.lost_at[a]  # (since: its arrival there, or the loss itself if it was on its way)
+            segs.append({"kind": "travel", "t0": min(since, max(t, since - inst.travel_time(here, p))),
+                         "t1": since, "task": None, "p0": here, "p1": p})
         if here != home and a not in ch.lost and not stopped:
             segs.append({"kind": "travel", "t0": t, "t1": t + inst.travel_time(here, home), "task": None,
                          "p0": here, "p1": home})
@@ -259,11 +263,14 @@ def _draw_map(ax, inst: Instance, sol: Solution, colors: list, changes: Changes 
     offsets = [(idx_in_species[a] - (counts[s] - 1) / 2) * 0.006 for a, s in enumerate(inst.agent_species.tolist())]
     starts = _starts(inst, ch)
     for a, route in enumerate(sol.routes):
-        if not route:
-            continue
         s = int(inst.agent_species[a])
-        end = [] if a in ch.lost else [inst.depots[a]]  # a lost robot never came back
+        if a in ch.lost:  # it never came back: its last leg ends where it stopped, where recorded
+            end = [ch.lost_at[a][0]] if a in ch.lost_at else []
+        else:  # home, unless the run stopped (where it went after that is not known)
+            end = [inst.depots[a]] if sol.success else []
         pts = np.array([starts[a]] + [inst.task_locations[m] for m in route] + end)  # [n, 2]
+        if len(pts) < 2:
+            continue
         k, off = idx_in_species[a], offsets[a]
         ax.plot(pts[:, 0] + off, pts[:, 1] + off, color=colors[s], lw=1.4, alpha=0.8,
                 ls=LINESTYLES[k % len(LINESTYLES)], zorder=2)
@@ -424,7 +431,7 @@ def _draw_gantt(ax, inst: Instance, sol: Solution, colors: list, timeline, chang
         ax.scatter(rel[:, 0], rel[:, 2], marker="v", s=22, color="black", zorder=6)
         ax.hlines(rel[:, 2], rel[:, 0], rel[:, 1], colors="black", linestyles=":", lw=0.8, zorder=6)
         handles.append(Line2D([], [], marker="v", ms=5, color="black", ls="", label="task released / added"))
-    ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.08), ncol=len(handles),
+    ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.08), ncol=min(len(handles), 4),
               frameon=False)
 
 

@@ -113,7 +113,12 @@ def test_a_run_that_stopped_shows_the_work_under_way(tmp_path):
                 assert [(s["task"], s["t0"], s["t1"]) for s in planned] == [(nxt[0], r["start"], r["finish"])]
                 assert a in r["members"]
         assert not planned or nxt and nxt[0] in running
-    gantt = _figure_of(inst, sol).ax_g
+    f = _figure_of(inst, sol)
+    gantt = f.ax_g
+    # the map: every route line ends at the task its robot was committed to, none back at a depot
+    ends = np.array([ln.get_xydata()[-1] for ln in f.ax_map.get_lines()])  # [R, 2]
+    assert len(ends) == sum(bool(r) for r in sol.routes)
+    assert np.abs(ends[:, None] - inst.task_locations[None]).max(-1).min(1).max() < 0.02
     labels = [t.get_text() for t in gantt.get_legend().get_texts()]
     assert "under way when it stopped (to the planned finish)" in labels
     hatched = [c for c in gantt.collections if c.get_hatch() == "xx"]
@@ -215,6 +220,7 @@ def _figure_of(inst, sol):
 
 def test_mission_changes_are_read_from_the_solution(changed, case):
     from hmrta.render import mission_changes
+    from hmrta.solution import SolutionError
 
     inst, sol = changed
     ch = mission_changes(inst, sol)
@@ -223,7 +229,8 @@ def test_mission_changes_are_read_from_the_solution(changed, case):
     assert ch.cancelled == {2: (1.0, True), 3: (2.0, False), 4: (2.0, False)}
     assert sol.routes[1] == [0]  # lost on its way to the next task, which left its route
     at = {e["agent"]: tuple(e["at"]) for e in sol.extra["dynamic"]["events"] if e["type"] == "drop_agent"}
-    assert ch.lost_at == at and at[1] != tuple(inst.task_locations[0])  # where they stopped, part-way
+    assert ch.lost_at == {1: (at[1], 5.0), 4: (at[4], 2.0)}  # where they stopped, part-way: there since the loss
+    assert at[1] != tuple(inst.task_locations[0])
     tl = agent_timeline(inst, sol)
     # robot 1: its task, then its last leg up to where it stopped at the loss; no trip home
     assert [(s["kind"], s["task"]) for s in tl[1][-2:]] == [("work", 0), ("travel", None)]
@@ -231,6 +238,15 @@ def test_mission_changes_are_read_from_the_solution(changed, case):
     assert tl[1][-1]["t1"] - tl[1][-1]["t0"] == pytest.approx(inst.travel_time(tl[1][-1]["p0"], at[1]))
     # robot 4: lost on its first leg, from its depot
     assert [(s["kind"], s["t0"], s["t1"], s["p1"]) for s in tl[4]] == [("travel", 0.0, 2.0, at[4])]
+    # a robot lost where it had arrived earlier (``since``): its last leg ends at that arrival
+    moved = json.loads(json.dumps(sol.to_dict()))
+    rec = next(e for e in moved["dynamic"]["events"] if e.get("agent") == 1)
+    rec["since"] = 4.5
+    leg = agent_timeline(inst, Solution.from_dict(moved))[1][-1]
+    assert (leg["t1"], leg["p1"]) == (4.5, at[1]) and leg["t0"] == tl[1][-1]["t0"]
+    rec["since"] = 6.0  # after the loss: refused
+    with pytest.raises(SolutionError, match=r"dynamic.events\[\d\].since: expected a time in \[0, 5\]"):
+        mission_changes(inst, Solution.from_dict(moved))
     # a record without "at" (written before the log carried it): the robot where it was last known
     old = json.loads(json.dumps(sol.to_dict()))
     for e in old["dynamic"]["events"]:
