@@ -42,10 +42,10 @@ def _jobs(args) -> None:
 
 
 def _row_sizes(args) -> None:
-    """--species, --tasks and --skills of a generated row: positive integers (a mission without
-    tasks is readable, but a generated set of them measures nothing; --agents is checked against
-    --species by the generator)."""
-    for flag in ("--species", "--tasks", "--skills"):
+    """--agents, --species, --tasks and --skills of a generated row: positive integers (a mission
+    without tasks is readable, but a generated set of them measures nothing; the generator then
+    checks --agents against --species)."""
+    for flag in ("--agents", "--species", "--tasks", "--skills"):
         _positive(flag, getattr(args, flag[2:]))
 
 
@@ -574,7 +574,7 @@ def cmd_train(args) -> int:
     over = {k: v for k, v in (("max_minutes", args.max_minutes), ("iterations", args.iterations)) if v is not None}
     try:  # the command line's values replace the file's and are checked with them (also by --check)
         cfg = load_config(args.config, {"train": over},
-                          ", ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in over.items()))
+                          ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in over.items()))
     except ValueError as e:
         raise UserError(str(e)) from None
     given = cfg["pretrain"].get("schedules")  # the datasets it reads (a path or a list): before any run folder

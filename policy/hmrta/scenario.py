@@ -136,8 +136,8 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
 
         def vec(k: str, n: int, unit: bool = False) -> list[float]:
             v = e[k]
-            if not isinstance(v, list) or len(v) != n or not all(finite(x) and x >= 0 for x in v):
-                raise err(keys + [k], f"{w}.{k}", f"expected a list of {n} numbers >= 0, got {short(v)}")
+            if not isinstance(v, list) or len(v) != n or not all(finite(x) and 0 <= x <= MAX_VALUE for x in v):
+                raise err(keys + [k], f"{w}.{k}", f"expected a list of {n} numbers in [0, {MAX_VALUE:g}], got {short(v)}")
             if unit and not all(x <= 1 for x in v):
                 raise err(keys + [k], f"{w}.{k}", f"expected a point in the unit square [0, 1], got {short(v)}")
             if not unit and not any(v):
@@ -154,7 +154,7 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
             ids.add(cid)
             dur = e["duration"]
             if not finite(dur) or not 0 <= dur <= MAX_VALUE:
-                raise err(keys + ["duration"], f"{w}.duration", f"expected a number >= 0, got {short(dur)}")
+                raise err(keys + ["duration"], f"{w}.duration", f"expected a number in [0, {MAX_VALUE:g}], got {short(dur)}")
             rec.update(type="add_task", name=cid, task={"location": vec("location", 2, True),
                                                         "requirements": vec("requirements", K),
                                                         "duration": float(dur)})

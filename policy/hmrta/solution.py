@@ -222,7 +222,7 @@ def _solution_from_dict(d: Any, source: str) -> Solution:
     if extra.get("lower_bound") is not None:
         _time(extra["lower_bound"], f"{source}: lower_bound")
     if "in_progress" in extra:
-        extra["in_progress"] = _in_progress(extra["in_progress"], tasks, A, d["success"], f"{source}: in_progress")
+        extra["in_progress"] = _in_progress(extra["in_progress"], tasks, routes, d["success"], f"{source}: in_progress")
     if d["success"]:
         if math.isnan(metrics[0]):
             raise _serr(f"{source}: makespan", "expected a number: the solution succeeded")
@@ -235,10 +235,11 @@ def _solution_from_dict(d: Any, source: str) -> Solution:
                     [list(r) for r in routes], tasks, agents, extra)
 
 
-def _in_progress(raw: Any, tasks: list[dict], A: int, success: bool, where: str) -> list[dict]:
+def _in_progress(raw: Any, tasks: list[dict], routes: list[list[int]], success: bool, where: str) -> list[dict]:
     """The validated ``in_progress`` list of a partial result: tasks not done (no finish in
-    ``tasks``) that had started, each once, with a start, a planned finish not before it, and
-    agent ids."""
+    ``tasks``), each once, with a start, a planned finish not before it, and a coalition of
+    distinct agents whose routes hold the task."""
+    A = len(routes)
     if success:
         raise _serr(where, "expected no tasks in progress: the solution succeeded")
     out, seen = [], set()
@@ -253,7 +254,13 @@ def _in_progress(raw: Any, tasks: list[dict], A: int, success: bool, where: str)
         if not finish >= start:  # (also refuses a missing time)
             raise _serr(f"{w}.finish", f"expected a planned finish >= the start ({short(r['start'])}), "
                                        f"got {short(r['finish'])}")
-        out.append({"task": m, "start": start, "finish": finish, "members": _members(r["members"], A, f"{w}.members")})
+        members = _members(r["members"], A, f"{w}.members")
+        if not members or len(set(members)) < len(members):
+            raise _serr(f"{w}.members", f"expected the distinct agents of a coalition, got {short(members)}")
+        stray = [a for a in members if m not in routes[a]]
+        if stray:
+            raise _serr(f"{w}.members", f"agent {stray[0]} does not have task {m} on its route (routes[{stray[0]}])")
+        out.append({"task": m, "start": start, "finish": finish, "members": members})
     return out
 
 

@@ -304,7 +304,8 @@ HOPELESS = ["--scenario", "MA-AT", "--agents", "1", "--species", "1", "--tasks",
 
 @pytest.mark.parametrize("argv, needles", [
     (["generate", *ROW, "--seed", "-1"], ["--seed: expected an integer in 0..2^63-1, got -1"]),
-    (["generate", *ROW, "--agents", "0"], ["agents (0) must be at least species (2)"]),
+    (["generate", *ROW, "--agents", "0"], ["--agents: expected a positive integer, got 0"]),
+    (["generate", *ROW, "--agents", "1"], ["agents (1) must be at least species (2)"]),
     (["generate", *HOPELESS], ["no feasible instance", "more agents"]),
     (["generate", *ROW, "--count", "0"], ["--count: expected a positive integer, got 0"]),
     # a mission may have no tasks, but a generated set of them measures nothing
@@ -317,7 +318,7 @@ HOPELESS = ["--scenario", "MA-AT", "--agents", "1", "--species", "1", "--tasks",
      ["option heuristic_seconds (--heuristic-seconds) 3 is more than option time_limit (--time-limit) 1"]),
     (["bench", *ROW, "--methods", "greedy,cpsat", "--time-limit", "nan"], ["option time_limit: expected a finite"]),
     (["bench", *ROW, "--seed", "-1"], ["--seed: expected an integer in 0..2^63-1"]),
-    (["bench", *ROW, "--agents", "0"], ["agents (0) must be at least species (2)"]),
+    (["bench", *ROW, "--agents", "0"], ["--agents: expected a positive integer, got 0"]),
     (["bench", *HOPELESS], ["no feasible instance", "more agents"]),
     (["bench", *ROW, "--count", "0"], ["--count: expected a positive integer, got 0"]),
     (["bench", *ROW, "--count", "-2"], ["--count: expected a positive integer, got -2"]),

@@ -130,6 +130,11 @@ def test_cli_solve_and_bad_file(scenario, tmp_path):
      "events[0].requirements"),
     ({"t": 1, "type": "add_task", "id": "a", "location": [0, 0], "requirements": [1, 0], "duration": 10 ** 400},
      "events[0].duration"),
+    # and values a mission file could not hold (they were rejected only when the event came)
+    ({"t": 1, "type": "add_task", "id": "a", "location": [0, 0], "requirements": [1e300, 1], "duration": 1},
+     "events[0].requirements: expected a list of 2 numbers in [0, 1e+09]"),
+    ({"t": 1, "type": "add_robot", "traits": [10 ** 29, 1], "position": [0, 0]},
+     "events[0].traits: expected a list of 2 numbers in [0, 1e+09]"),
 ])
 def test_scenario_errors_name_the_field(event, message):
     import yaml

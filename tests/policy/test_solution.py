@@ -287,6 +287,10 @@ def test_a_finished_run_has_no_tasks_in_progress():
     (lambda d, r: r.update(finish=r["start"] / 2), "in_progress[0].finish: expected a planned finish >= the start"),
     (lambda d, r: r.update(start=None), "in_progress[0].finish: expected a planned finish >= the start"),
     (lambda d, r: r.update(members=[99]), "in_progress[0].members[0]: unknown agent id 99"),
+    (lambda d, r: r.update(members=[]), "in_progress[0].members: expected the distinct agents of a coalition"),
+    (lambda d, r: r.update(members=r["members"][:1] * 2), "in_progress[0].members: expected the distinct agents"),
+    (lambda d, r: r.update(members=r["members"] + [next(a for a, rt in enumerate(d["routes"]) if r["task"] not in rt)]),
+     "does not have task 4 on its route"),
     (lambda d, r: r.pop("members"), "in_progress[0]: missing key 'members'"),
     (lambda d, r: d.update(in_progress={}), "in_progress: expected a list"),
 ])

@@ -784,6 +784,11 @@ def test_one_rollout_is_refused_where_reinforce_runs(tmp_path, capsys):
     bc.write_text("version: 1\ntrain: {rollouts: 1, iterations: 0}\n")
     assert load_config(bc)["train"]["rollouts"] == 1
     assert main(["train", "--config", str(bc), "--check"]) == 0
+    # the command line's values are checked with the file's, and the message says which were given
+    assert main(["train", "--config", str(bc), "--check", "--iterations", "1234567"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{bc} (with --iterations 1234567): train.rollouts: expected at least 2" in err[0], err
+    assert main(["train", "--config", str(one), "--check", "--iterations", "0", "--max-minutes", "1.5"]) == 0
 
 
 def test_shipped_configs_load():
