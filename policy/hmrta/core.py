@@ -911,6 +911,8 @@ class MissionState:
                 continue
             if rec["type"] != "release":
                 self.log.append({**rec, **self._outcome(rec, out)})
+            elif out is not None and self.status[out] == CANCELLED:  # released unsatisfiable: say so
+                self.log.append({**rec, "cancelled": [int(out)]})
             freed += sorted(f)
         return freed
 

@@ -83,13 +83,16 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
         if not isinstance(e, dict):
             raise SolutionError(f"{w}: expected an event record {{type, t, ...}}, got {short(e)}")
         kind = e.get("type")
-        if "rejected" in e or kind not in ("drop_agent", "add_agent", "cancel_task"):
+        if "rejected" in e or kind not in ("drop_agent", "add_agent", "cancel_task", "release"):
             continue  # added tasks are drawn from the instance (their release time)
         t = e.get("t")
         if not finite(t) or t < 0:
             raise SolutionError(f"{w}.t: expected a time >= 0, got {short(t)}")
         t = float(t)
-        if kind == "drop_agent":
+        if kind == "release":  # only logged when the task came unsatisfiable (no robot left with a skill)
+            for j, m in enumerate(_list_of(e.get("cancelled", []), f"{w}.cancelled")):
+                out.cancelled[_index(m, inst.n_tasks, f"{w}.cancelled[{j}]")] = (t, False)
+        elif kind == "drop_agent":
             a = _index(e.get("agent"), inst.n_agents, f"{w}.agent")
             out.lost[a] = t
             if "at" in e:  # where it stopped and since when (recorded since the log carries them)
@@ -97,10 +100,7 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
                 if not finite(since) or not 0 <= since <= t:
                     raise SolutionError(f"{w}.since: expected a time in [0, {t:g}] (the loss), got {short(since)}")
                 out.lost_at[a] = (_point(e["at"], f"{w}.at"), float(since))
-            cancelled = e.get("cancelled", [])
-            if not isinstance(cancelled, list):
-                raise SolutionError(f"{w}.cancelled: expected a list of task ids, got {short(cancelled)}")
-            for j, m in enumerate(cancelled):
+            for j, m in enumerate(_list_of(e.get("cancelled", []), f"{w}.cancelled")):
                 out.cancelled[_index(m, inst.n_tasks, f"{w}.cancelled[{j}]")] = (t, False)
         elif kind == "add_agent":
             a = _index(e.get("id"), inst.n_agents, f"{w}.id")
@@ -113,6 +113,12 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
         else:
             out.cancelled[_index(e.get("task"), inst.n_tasks, f"{w}.task")] = (t, True)
     return out
+
+
+def _list_of(v: Any, where: str) -> list:
+    if not isinstance(v, list):
+        raise SolutionError(f"{where}: expected a list of task ids, got {short(v)}")
+    return v
 
 
 def _point(v: Any, where: str) -> tuple[float, float]:

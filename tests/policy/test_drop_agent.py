@@ -160,3 +160,30 @@ def test_a_robot_lost_at_time_0_never_decides(method):
                                    "events": [{"t": t, "type": "lose_robot", "robot": 3}]}, "s.yaml")
         sol = solve(scen, method, seed=0)
         assert sol.routes[3] == [] and all(3 not in tk["members"] for tk in sol.tasks), (t, sol.routes[3])
+
+
+def test_a_task_released_when_nobody_can_do_it_is_cancelled_and_logged():
+    """The robots with skill 1 are lost before a task needing it is released: at its release the
+    task is cancelled as unsatisfiable, and the log says so (a release record with the task
+    ``cancelled``), so that a solution tells it; the render draws it as cancelled."""
+    import json
+
+    from hmrta.instance import instance_from_dict
+    from hmrta.methods import solve
+    from hmrta.render import mission_changes
+    from hmrta.scenario import scenario_from_dict
+    from hmrta.solution import Solution
+
+    mission = {"format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2, "skills": 2,
+               "species": [{"traits": [1, 0], "count": 2, "depot": [0.0, 0.0]},
+                           {"traits": [0, 1], "count": 2, "depot": [1.0, 1.0]}],
+               "tasks": [{"location": [0.5, 0.1], "requirements": [1, 0], "duration": 20},
+                         {"location": [0.2, 0.8], "requirements": [0, 1], "duration": 1, "release": 5.0}]}
+    scen = scenario_from_dict({"format": "hmrta-scenario/1", "instance": mission,
+                               "events": [{"t": 1.0, "type": "lose_robot", "robot": 2},
+                                          {"t": 2.0, "type": "lose_robot", "robot": 3}]}, "s.yaml")
+    sol = Solution.from_dict(json.loads(json.dumps(solve(scen, "greedy", seed=0).to_dict())))
+    assert not sol.success and sol.extra["dynamic"]["tasks_lost"]["unsatisfiable"] == 1
+    rel = [e for e in sol.extra["dynamic"]["events"] if e["type"] == "release"]
+    assert rel == [{"t": 5.0, "type": "release", "task": 1, "cancelled": [1]}]
+    assert mission_changes(instance_from_dict(mission), sol).cancelled == {1: (5.0, False)}
