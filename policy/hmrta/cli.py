@@ -467,6 +467,10 @@ def cmd_bench(args) -> int:
     _seed(args.seed)
     if args.max_tasks is not None and not args.suite:
         raise UserError("--max-tasks: only applies with --suite (it skips the suite's larger rows)")
+    if given and given[0] != "--scenario":  # the sizes of a generated row, beside missions or a suite
+        row = next((f"--{k}" for k in ("agents", "species", "tasks", "skills") if getattr(args, k) is not None), None)
+        if row:
+            raise UserError(f"{row}: only applies with --scenario (a generated row), not with {given[0]}")
     if args.out and Path(args.out).suffix.lower() in (".json", ".md", ".csv"):
         raise UserError(f"--out {args.out}: expected a folder (results.md, results.json and results.csv go in it)")
     try:

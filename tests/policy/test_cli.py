@@ -313,6 +313,11 @@ HOPELESS = ["--scenario", "MA-AT", "--agents", "1", "--species", "1", "--tasks",
     (["generate", *ROW, "--species", "-1"], ["--species: expected a positive integer, got -1"]),
     (["generate", *ROW, "--skills", "0"], ["--skills: expected a positive integer, got 0"]),
     (["bench", *ROW, "--tasks", "0"], ["--tasks: expected a positive integer, got 0"]),
+    # a generated row's sizes beside a suite (or your missions) would be ignored
+    (["bench", "--suite", "paper", "--skills", "0"], ["--skills: only applies with --scenario (a generated row), not "
+                                                      "with --suite"]),
+    (["bench", str(EXAMPLE), "--tasks", "5"], ["--tasks: only applies with --scenario (a generated row), not with "
+                                               "INSTANCE"]),
     # option values are checked before the cache is written
     (["bench", *ROW, "--methods", "greedy,cpsat", "--heuristic-seconds", "3", "--time-limit", "1"],
      ["option heuristic_seconds (--heuristic-seconds) 3 is more than option time_limit (--time-limit) 1"]),
