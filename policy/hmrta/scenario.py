@@ -114,7 +114,7 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
     K, M, A, S = inst.skills, inst.n_tasks, inst.n_agents, inst.n_species
     records: list[tuple[float, int, dict]] = []
     ids: set[str] = set()
-    robots = A
+    robots = A + sum(isinstance(x, dict) and x.get("type") == "add_robot" for x in evs)  # at the end (below: in time)
     for i, e in enumerate(evs):
         w, keys = f"events[{i}]", ["events", i]
         if not isinstance(e, dict):
@@ -184,7 +184,6 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
                 rec["traits"] = vec("traits", K)
             if "position" in e:
                 rec["position"] = vec("position", 2, True)
-            robots += 1
         else:
             r = e["robot"]
             if isinstance(r, bool) or not isinstance(r, int) or not 0 <= r < robots:
@@ -192,6 +191,18 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
             rec.update(type="drop_agent", agent=r)
         records.append((rec["t"], i, rec))
     records.sort(key=lambda x: x[:2])
+    robots, lost = A, set()  # in the order the mission applies them: a robot is lost once, after it joined
+    for t, i, rec in records:
+        if rec["type"] == "add_agent":
+            robots += 1
+        elif rec["type"] == "drop_agent":
+            r, keys = rec["agent"], ["events", i, "robot"]
+            if r >= robots:
+                raise err(keys, f"events[{i}].robot", f"expected a robot of the mission at t={t:g} (0..{robots - 1}), "
+                                                      f"got {r}: it is added later")
+            if r in lost:
+                raise err(keys, f"events[{i}].robot", f"robot {r} is lost twice (expected each robot lost once)")
+            lost.add(r)
     name = d.get("name", inst.name)
     if not isinstance(name, str):
         raise err(["name"], "name", f"expected a string, got {short(name)}")

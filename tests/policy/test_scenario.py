@@ -146,6 +146,24 @@ def test_scenario_errors_name_the_field(event, message):
     assert isinstance(e.value, InstanceError)
 
 
+@pytest.mark.parametrize("events, message", [
+    # the file lists the robot's arrival first, but it joins after the time of its loss
+    ([{"t": 1, "type": "add_robot", "species": 0}, {"t": 0.5, "type": "lose_robot", "robot": 4}],
+     "events[1].robot: expected a robot of the mission at t=0.5 (0..3), got 4: it is added later"),
+    ([{"t": 1, "type": "lose_robot", "robot": 0}, {"t": 2, "type": "lose_robot", "robot": 0}],
+     "events[1].robot: robot 0 is lost twice"),
+])
+def test_robot_losses_are_checked_in_time_order(events, message):
+    """Events apply in time order, whatever their order in the file: a robot can be lost only once
+    it is in the mission, and only once (both were accepted and then logged as rejected)."""
+    import yaml
+
+    d = {"format": "hmrta-scenario/1", "instance": yaml.safe_load(MISSION), "events": events}
+    with pytest.raises(ScenarioError) as e:
+        scenario_from_dict(d, "s.yaml")
+    assert str(e.value).startswith("s.yaml") and message in str(e.value), str(e.value)
+
+
 def test_release_field_on_instance_tasks(tmp_path):
     p = tmp_path / "m.yaml"
     p.write_text(MISSION.replace("duration: 1}", "duration: 1, release: 2.5}"))
