@@ -41,12 +41,15 @@ def _jobs(args) -> None:
                         f"more workers than cores oversubscribes them; --ray-address HOST:PORT for a cluster)")
 
 
+ROW_SIZES = ("agents", "species", "tasks", "skills")  # the options of a generated row's size (_row_args)
+
+
 def _row_sizes(args) -> None:
     """--agents, --species, --tasks and --skills of a generated row: positive integers (a mission
     without tasks is readable, but a generated set of them measures nothing; the generator then
     checks --agents against --species)."""
-    for flag in ("--agents", "--species", "--tasks", "--skills"):
-        _positive(flag, getattr(args, flag[2:]))
+    for k in ROW_SIZES:
+        _positive(f"--{k}", getattr(args, k))
 
 
 def _writable(flag: str, path: str | Path, folder: bool = False) -> Path:
@@ -468,7 +471,7 @@ def cmd_bench(args) -> int:
     if args.max_tasks is not None and not args.suite:
         raise UserError("--max-tasks: only applies with --suite (it skips the suite's larger rows)")
     if given and given[0] != "--scenario":  # the sizes of a generated row, beside missions or a suite
-        row = next((f"--{k}" for k in ("agents", "species", "tasks", "skills") if getattr(args, k) is not None), None)
+        row = next((f"--{k}" for k in ROW_SIZES if getattr(args, k) is not None), None)
         if row:
             raise UserError(f"{row}: only applies with --scenario (a generated row), not with {given[0]}")
     if args.out and Path(args.out).suffix.lower() in (".json", ".md", ".csv"):
@@ -497,7 +500,7 @@ def cmd_bench(args) -> int:
         if args.max_tasks is not None:
             rows = [r for r in rows if r.tasks <= args.max_tasks]
     else:
-        missing = [k for k in ("scenario", "agents", "species", "tasks", "skills") if getattr(args, k) is None]
+        missing = [k for k in ("scenario", *ROW_SIZES) if getattr(args, k) is None]
         if missing:
             raise UserError(f"bench: give your missions (INSTANCE...), --suite paper, or all of --scenario --agents "
                             f"--species --tasks --skills (missing --{missing[0]})")

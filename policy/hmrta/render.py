@@ -65,7 +65,8 @@ class Changes:
 def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> Changes:
     """The robots lost and joined and the tasks cancelled, read from the solution itself: the
     applied event records of ``extra["dynamic"]["events"]`` (:attr:`hmrta.core.MissionState.log`:
-    ``drop_agent`` with the tasks it ``cancelled`` as unsatisfiable, ``add_agent`` with its ``id``
+    ``drop_agent`` with the tasks it ``cancelled`` as unsatisfiable and where it stopped (``at``,
+    ``since``), ``release`` of a task found unsatisfiable, ``add_agent`` with its ``id``
     and optional ``position``, ``cancel_task`` by ``task`` id or client ``name``, looked up in
     ``dynamic["names"]``). Rejected events changed nothing and are skipped. A record that does not
     fit the instance raises :class:`~hmrta.solution.SolutionError` (one line naming ``source`` and
@@ -89,10 +90,13 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
         if not finite(t) or t < 0:
             raise SolutionError(f"{w}.t: expected a time >= 0, got {short(t)}")
         t = float(t)
-        if kind == "release":  # only logged when the task came unsatisfiable (no robot left with a skill)
-            for j, m in enumerate(_list_of(e.get("cancelled", []), f"{w}.cancelled")):
+        if kind in ("release", "drop_agent"):  # the tasks a loss (or a release) found unsatisfiable
+            cancelled = e.get("cancelled", [])
+            if not isinstance(cancelled, list):
+                raise SolutionError(f"{w}.cancelled: expected a list of task ids, got {short(cancelled)}")
+            for j, m in enumerate(cancelled):
                 out.cancelled[_index(m, inst.n_tasks, f"{w}.cancelled[{j}]")] = (t, False)
-        elif kind == "drop_agent":
+        if kind == "drop_agent":
             a = _index(e.get("agent"), inst.n_agents, f"{w}.agent")
             out.lost[a] = t
             if "at" in e:  # where it stopped and since when (recorded since the log carries them)
@@ -100,25 +104,19 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
                 if not finite(since) or not 0 <= since <= t:
                     raise SolutionError(f"{w}.since: expected a time in [0, {t:g}] (the loss), got {short(since)}")
                 out.lost_at[a] = (_point(e["at"], f"{w}.at"), float(since))
-            for j, m in enumerate(_list_of(e.get("cancelled", []), f"{w}.cancelled")):
-                out.cancelled[_index(m, inst.n_tasks, f"{w}.cancelled[{j}]")] = (t, False)
         elif kind == "add_agent":
             a = _index(e.get("id"), inst.n_agents, f"{w}.id")
             out.joined[a] = (t, _point(e.get("position", inst.depots[a].tolist()), f"{w}.position"))
-        elif "name" in e:
-            if not isinstance(names, list) or e["name"] not in names:
-                raise SolutionError(f"{w}.name: expected the client id of a task in dynamic.names, got "
-                                    f"{short(e['name'])}")
-            out.cancelled[_index(names.index(e["name"]), inst.n_tasks, f"{w}.name")] = (t, True)
-        else:
-            out.cancelled[_index(e.get("task"), inst.n_tasks, f"{w}.task")] = (t, True)
+        elif kind == "cancel_task":  # by the operator: the task by id, or its client name
+            if "name" in e:
+                if not isinstance(names, list) or e["name"] not in names:
+                    raise SolutionError(f"{w}.name: expected the client id of a task in dynamic.names, got "
+                                        f"{short(e['name'])}")
+                m = _index(names.index(e["name"]), inst.n_tasks, f"{w}.name")
+            else:
+                m = _index(e.get("task"), inst.n_tasks, f"{w}.task")
+            out.cancelled[m] = (t, True)
     return out
-
-
-def _list_of(v: Any, where: str) -> list:
-    if not isinstance(v, list):
-        raise SolutionError(f"{where}: expected a list of task ids, got {short(v)}")
-    return v
 
 
 def _point(v: Any, where: str) -> tuple[float, float]:
