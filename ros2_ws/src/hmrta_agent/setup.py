@@ -19,5 +19,5 @@ setup(
     maintainer_email="hmrta@example.com",
     description="HMRTA agent node: one decentralised decision maker per robot",
     license="Apache-2.0",
-    entry_points={"console_scripts": ["agent_node = hmrta_agent.agent_node:main"]},
+    entry_points={"console_scripts": ["agent_node = hmrta_agent.entry:agent_node"]},
 )

@@ -21,11 +21,11 @@ setup(
     description="HMRTA task board, simulated robots and mission launcher",
     license="Apache-2.0",
     entry_points={"console_scripts": [
-        "task_board = hmrta_coordinator.task_board:main",
-        "sim_robot = hmrta_coordinator.sim_robot:main",
-        "mission = hmrta_coordinator.mission:entry",
-        "hmrta-mission = hmrta_coordinator.mission:entry",
-        "hmrta-task = hmrta_coordinator.task_cli:entry",
-        "recorder = hmrta_coordinator.recorder:main",
+        "task_board = hmrta_coordinator.entry:task_board",
+        "sim_robot = hmrta_coordinator.entry:sim_robot",
+        "mission = hmrta_coordinator.entry:mission",
+        "hmrta-mission = hmrta_coordinator.entry:mission",
+        "hmrta-task = hmrta_coordinator.entry:task_cli",
+        "recorder = hmrta_coordinator.entry:recorder",
     ]},
 )

@@ -675,9 +675,5 @@ def _main(argv: list[str] | None = None) -> int:
     return 3 if not sol.success else 4 if differs else 0
 
 
-def entry() -> None:
-    sys.exit(main())
-
-
 if __name__ == "__main__":
-    entry()
+    sys.exit(main())

@@ -165,9 +165,5 @@ def main(argv: list[str] | None = None) -> int:
         rclpy.try_shutdown()
 
 
-def entry() -> None:
-    sys.exit(main())
-
-
 if __name__ == "__main__":
-    entry()
+    sys.exit(main())

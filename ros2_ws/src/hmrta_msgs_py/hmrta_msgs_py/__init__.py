@@ -1,3 +1,5 @@
 """HMRTA message layer: payload codecs (``codec``), topic names and QoS profiles (``topics``),
-and shared process plumbing (``runtime``)."""
-from .codec import DecodeError  # noqa: F401
+shared process plumbing (``runtime``) and the console scripts' body (``console``).
+
+Importing the package itself loads nothing (every console script passes through it before its
+Ctrl-C handling is in place: ``console``)."""

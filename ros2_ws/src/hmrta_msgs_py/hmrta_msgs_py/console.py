@@ -1,0 +1,23 @@
+"""The body of every HMRTA console script (``ros2 run`` and a pip install run the same ones).
+
+A console script imports the module it names before it calls anything, and the node modules load
+rclpy, numpy and, for the learned policy, torch at the top: a Ctrl-C in that first second would
+end the process with a ``KeyboardInterrupt`` traceback. So the scripts name the light ``entry``
+module of their package, whose functions import the node module here, inside :func:`run`: a
+Ctrl-C at any moment of start-up is then one line on stderr and exit status 130, like a Ctrl-C
+while a node loads its mission or policy (:func:`hmrta_msgs_py.runtime.starting`). A node that
+is running handles Ctrl-C itself (:func:`hmrta_msgs_py.runtime.spin_nodes`)."""
+from __future__ import annotations
+
+import importlib
+import sys
+
+
+def run(prog: str, module: str, func: str = "main") -> None:
+    """Import ``module`` and exit with what its ``func()`` returns (None: 0)."""
+    try:
+        code = getattr(importlib.import_module(module), func)()
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
+    raise SystemExit(code)

@@ -1,0 +1,65 @@
+"""hmrta_msgs_py.console: the body of every console script. A Ctrl-C while a node module loads
+rclpy, numpy or torch ends the process with one line and status 130, never a traceback."""
+from __future__ import annotations
+
+import ast
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+SRC = Path(__file__).resolve().parents[2] / "ros2_ws" / "src"
+HEAVY = ("rclpy", "numpy", "torch", "std_msgs", "hmrta")  # what a node module loads at the top
+
+
+def declared_scripts() -> list[tuple[str, str, str, str]]:
+    """(package, script, module, function) of every console script in the packages' setup.py."""
+    out = []
+    for setup in sorted(SRC.glob("*/setup.py")):
+        for n in ast.walk(ast.parse(setup.read_text())):
+            if isinstance(n, ast.Constant) and isinstance(n.value, str) and " = " in n.value and ":" in n.value:
+                name, target = (s.strip() for s in n.value.split(" = "))
+                module, func = target.split(":")
+                out.append((setup.parent.name, name, module, func))
+    return out
+
+
+def run_python(code: str, **env: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          env=dict(os.environ, **env))
+
+
+def test_every_console_script_goes_through_a_light_entry_module():
+    scripts = declared_scripts()
+    assert {s[1] for s in scripts} >= {"agent_node", "task_board", "sim_robot", "recorder", "hmrta-mission",
+                                        "mission", "hmrta-task"}
+    for pkg, name, module, func in scripts:
+        assert module == f"{pkg}.entry", f"{name}: {module} (expected {pkg}.entry)"
+        # what the generated script imports before it calls anything: nothing heavy
+        probe = (f"import sys; from {module} import {func}; "
+                 f"print(sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r}))")
+        out = run_python(probe)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip() == "[]", f"{name}: importing {module} loads {out.stdout.strip()}"
+
+
+def test_ctrl_c_while_the_node_module_loads_is_one_line_and_130(tmp_path):
+    # a node module whose imports are interrupted (deterministic: it raises what Ctrl-C raises)
+    (tmp_path / "interrupted_node.py").write_text("raise KeyboardInterrupt\n")
+    out = run_python("from hmrta_msgs_py.console import run; run('some_node', 'interrupted_node')",
+                     PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    assert out.returncode == 130
+    assert out.stderr == "some_node: interrupted\n" and "Traceback" not in out.stdout
+
+
+def test_run_exits_with_what_main_returns(tmp_path):
+    (tmp_path / "node_a.py").write_text("def main():\n    return 3\n")
+    (tmp_path / "node_b.py").write_text("def main():\n    print('ran')\n")
+    env = {"PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    assert run_python("from hmrta_msgs_py.console import run; run('a', 'node_a')", **env).returncode == 3
+    b = run_python("from hmrta_msgs_py.console import run; run('b', 'node_b')", **env)
+    assert b.returncode == 0 and b.stdout == "ran\n"
