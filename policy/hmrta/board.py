@@ -77,6 +77,7 @@ LEG_WINDOW = 4  # legs per robot repeated on every board (a reader that skipped 
 HOLD = -1  # leg node: stay where you are (0 = own depot, 1 + m = task m)
 RESEND = -2  # leg node: publish this goal again now (it repeats a leg the robot has not reached)
 JOURNAL_FORMAT = "hmrta-journal/1"
+JOURNAL_START = b'{"format":"' + JOURNAL_FORMAT.encode() + b'"'  # how every journal file begins (MissionBoard._mission_header)
 BOARD_FORMAT = "hmrta-board/2"
 PHASES = ("starting", "wait", "decide", "closing", "done")
 KEYFRAME_INTERVAL = 0.25  # seconds: keyframes asked for by replicas, at most one per interval
@@ -325,7 +326,9 @@ def instance_digest(inst: Instance) -> str:
 def read_journal(path: str | os.PathLike) -> tuple[dict[str, Any] | None, list[dict[str, Any]], int, str | None]:
     """-> (header or None, version lines, byte length of the intact part, why the tail was dropped
     or None). A last line that is cut short (no newline) or is not a JSON object is torn: it is
-    left out; any earlier line that is not a JSON object is a :class:`JournalError`."""
+    left out; any earlier line that is not a JSON object is a :class:`JournalError`, and so is a
+    file with no intact header that is not a header cut short (another file: the board would
+    truncate it)."""
     p = Path(path)
     data = p.read_bytes() if p.exists() else b""
     lines = data.split(b"\n")
@@ -346,6 +349,10 @@ def read_journal(path: str | os.PathLike) -> tuple[dict[str, Any] | None, list[d
             raise JournalError(f"{p}: line {i + 1} is not a JSON object (the journal is corrupt)") from None
         records.append(rec)
     header = None
+    if not records and data and not data.startswith(JOURNAL_START[:len(data)]):
+        # nothing intact and not the start of a header cut short: some other file, never truncated
+        raise JournalError(f"{p}: not an hmrta journal (line 1 is not an {JOURNAL_FORMAT} header); "
+                           f"refusing to overwrite it: name another journal file")
     if records:
         header = records.pop(0)
         if header.get("format") != JOURNAL_FORMAT:

@@ -398,6 +398,25 @@ def test_a_torn_last_line_is_dropped_never_applied_in_part(tmp_path):
         started_board(journal=j)
 
 
+def test_a_file_that_is_not_a_journal_is_refused_and_left_untouched(tmp_path):
+    j = tmp_path / "notes.txt"
+    for text in (b"important notes\n", b"garbage", b"[1, 2]\n", b'{"v": 1}\n'):
+        j.write_bytes(text)
+        with pytest.raises(JournalError, match="not an hmrta journal|expected format"):
+            started_board(journal=j)
+        assert j.read_bytes() == text
+    # a header cut short (the board died while writing it) is a torn journal, started afresh
+    full = tmp_path / "full.jsonl"
+    started_board(journal=full).poll()
+    header_line = full.read_bytes().split(b"\n")[0]
+    for cut in (5, len(header_line) // 2, len(header_line) - 1):
+        j.write_bytes(header_line[:cut])
+        b = started_board(journal=j)
+        b.poll()
+        b.close()
+        assert read_journal(j)[0]["format"] == "hmrta-journal/1"
+
+
 def test_a_journal_of_another_mission_is_refused(tmp_path):
     j = tmp_path / "journal.jsonl"
     started_board(journal=j).poll()
