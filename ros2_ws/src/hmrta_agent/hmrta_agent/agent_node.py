@@ -334,7 +334,7 @@ class AgentNode(Node):
         robot = self.declare_parameter("robot", "").value
         self.robot = robot or self.get_namespace().strip("/").split("/")[-1]
         if not self.robot:
-            raise SystemExit("agent_node: set the robot name (-p robot:=NAME or a namespace, -r __ns:=/NAME)")
+            raise ValueError("set the robot name (-p robot:=NAME or a namespace, -r __ns:=/NAME)")
         self.index_param = self.declare_parameter("index", -1).value
         self.species_param = self.declare_parameter("species", -1).value
         self.method, options = declare_method_parameters(self)

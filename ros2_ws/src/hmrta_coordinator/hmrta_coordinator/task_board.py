@@ -132,7 +132,7 @@ class TaskBoard(Node):
         keyframe_period = int(P("keyframe_period", 0).value)  # versions between keyframes (0: by size)
 
         if not path:
-            raise ValueError("task_board: set the mission file: -p instance:=PATH")
+            raise ValueError("set the mission file: -p instance:=PATH")
         if not scale > 0:
             raise ValueError(f"scale: expected a positive number of metres per mission unit, got {scale!r}")
         for k, v in (("arrival_tolerance", tolerance), ("leg_timeout_factor", leg_timeout_factor),
