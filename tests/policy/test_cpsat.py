@@ -213,3 +213,41 @@ def test_routes_are_valid_for_evaluate():
         evaluate_routes(inst, sol.routes)
     except RouteError as e:  # pragma: no cover - reported with the message
         pytest.fail(str(e))
+
+
+def test_ctrl_c_during_the_cp_sat_search_stops_the_command(tmp_path):
+    """CP-SAT's own SIGINT handler would end the search and hand back the incumbent as a normal
+    result (the command went on and exited 0; bench cached it). A Ctrl-C in the CP-SAT phase
+    stops `hmrta solve` at once: "interrupted", exit 130, no result printed or written."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    path = tmp_path / "m.yaml"
+    ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(3, 0).save(path)
+    out = tmp_path / "out.json"
+    err = open(tmp_path / "err.txt", "w+")
+    p = subprocess.Popen([sys.executable, "-m", "hmrta.cli", "solve", "--method", "cpsat", "--time-limit", "120",
+                          "--heuristic-seconds", "0.5", "--out", str(out), str(path)],
+                         stdout=subprocess.PIPE, stderr=err, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while "CP-SAT" not in (tmp_path / "err.txt").read_text() and time.monotonic() < deadline:
+            assert p.poll() is None, (tmp_path / "err.txt").read_text()
+            time.sleep(0.1)
+        assert "CP-SAT" in (tmp_path / "err.txt").read_text(), "the CP-SAT phase never started"
+        time.sleep(1.0)  # inside the search
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGINT)
+        stdout, _ = p.communicate(timeout=20)
+        stopped = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    text = (tmp_path / "err.txt").read_text()
+    assert p.returncode == 130, text
+    assert text.rstrip().endswith("interrupted") and "Traceback" not in text
+    assert stdout == "" and not out.exists()
+    assert stopped < 10.0  # not the 120 s time limit

@@ -447,6 +447,39 @@ def _ProgressCallback(report: Callable[[str], None]):
     return _CB()
 
 
+def _interruptible_solve(solver, model, callback):
+    """``solver.Solve(model, callback)`` in a worker thread, so that a Ctrl-C reaches the caller.
+
+    CP-SAT's own SIGINT handler ends the search and returns the incumbent as if the time limit
+    had passed: the caller could not tell a cut-short solve from a finished one. Here the solver
+    leaves SIGINT alone; the calling thread waits, and on KeyboardInterrupt stops the search, waits
+    for the worker (it stops within ~0.2 s) and re-raises."""
+    import threading
+
+    solver.parameters.catch_sigint_signal = False
+    done, out = threading.Event(), {}
+
+    def work() -> None:
+        try:
+            out["code"] = solver.Solve(model, callback)
+        except BaseException as e:  # noqa: BLE001 - handed to the caller below
+            out["error"] = e
+        finally:
+            done.set()
+
+    threading.Thread(target=work, name="cpsat", daemon=True).start()
+    try:
+        while not done.wait(0.1):  # an Event, not Thread.join: an interrupted join can lose the thread
+            pass
+    except KeyboardInterrupt:
+        solver.StopSearch()
+        done.wait(30.0)
+        raise
+    if "error" in out:
+        raise out["error"]
+    return out["code"]
+
+
 def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_start: str | None = None,
                 workers: int = 2, heuristic_seconds: float | None = None,
                 progress: Callable[..., None] | None = None) -> Solution:
@@ -531,7 +564,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     solver.parameters.log_search_progress = LOG_SEARCH
     report(f"CP-SAT, best {min(c.makespan for c in cands):.3f}" if cands else "CP-SAT")
     t1 = time.perf_counter()
-    code = solver.Solve(md, _ProgressCallback(report) if progress is not None else None)
+    code = _interruptible_solve(solver, md, _ProgressCallback(report) if progress is not None else None)
     solve_wall = time.perf_counter() - t1
     status = {cp_model.OPTIMAL: "optimal", cp_model.FEASIBLE: "feasible"}.get(code, "none")
     slack = D.slack()
