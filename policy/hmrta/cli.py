@@ -688,9 +688,18 @@ def cmd_checkpoint(args) -> int:
     require("torch", "hmrta checkpoint")
     from .rl.checkpoint import average
 
+    from .rl.checkpoint_info import checkpoint_path
+
     out = _writable("--out", args.out)
     if not out.parent.is_dir():
         raise UserError(f"--out {out}: no such folder {out.parent}")
+    if out.exists():
+        for src in map(checkpoint_path, args.checkpoints):
+            if src.exists() and out.samefile(src):
+                raise UserError(f"--out {out}: is one of the checkpoints being averaged ({src}); write to a new "
+                                f"file and move it into place")
+        if not args.force:
+            raise UserError(f"--out {out}: exists (pass --force to replace it)")
     entry = average(args.checkpoints, out, window=args.window, greedy_depot=args.greedy_depot)
     print(json.dumps({"out": str(out), **entry}))
     print(f"averaged {len(entry['sources'])} checkpoint(s) into {out}", file=sys.stderr)
@@ -1036,7 +1045,8 @@ def build_parser() -> argparse.ArgumentParser:
                                           "of the same network and rules; writes the config and the lineage "
                                           "(sources with sha256)", formatter_class=F)
     ca.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT", help="checkpoint files (.pt)")
-    ca.add_argument("--out", required=True, help="checkpoint to write (atomically)")
+    ca.add_argument("--out", required=True, help="checkpoint to write (atomically); never one of the sources")
+    ca.add_argument("--force", action="store_true", help="replace an existing --out file")
     ca.add_argument("--window", nargs=2, type=int, metavar=("TASKS", "ROBOTS"),
                     help="observation window of the written checkpoint: a mission with more tasks or robots "
                          "is observed through the decider's nearest TASKS tasks and ROBOTS robots (default: "

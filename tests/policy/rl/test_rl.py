@@ -930,6 +930,29 @@ def test_checkpoint_average_of_itself_and_of_two(tmp_path, capsys):
     assert not list(tmp_path.glob("*.tmp"))
 
 
+def test_checkpoint_average_never_overwrites_a_source_and_replaces_a_file_only_with_force(tmp_path, capsys):
+    import hashlib
+
+    from hmrta.cli import main
+
+    a, _ = _exported(tmp_path, "a", seed=1)
+    b, _ = _exported(tmp_path, "b", seed=2)
+    sha = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in (a, b)}
+    other = tmp_path / "notes.pt"
+    other.write_text("not a checkpoint\n")
+    for out, extra, what in ((a, [], "one of the checkpoints"), (b, ["--force"], "one of the checkpoints"),
+                             (tmp_path / "." / "b.pt", ["--force"], "one of the checkpoints"),
+                             (other, [], "pass --force")):
+        assert main(["checkpoint", "average", str(a), str(b), "--out", str(out), *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and what in err, err
+    assert {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in (a, b)} == sha
+    assert other.read_text() == "not a checkpoint\n"
+    assert main(["checkpoint", "average", str(a), str(b), "--out", str(other), "--force"]) == 0
+    capsys.readouterr()
+    assert load_policy(other) is not None
+
+
 def test_checkpoint_average_uses_the_moving_average_and_refuses_other_networks(tmp_path, capsys):
     from hmrta.cli import main
     from hmrta.rl.checkpoint import average, load
@@ -1279,10 +1302,11 @@ def test_checkpoint_average_takes_inference_settings_from_the_first_file(tmp_pat
                  "--window", "8", "3"]) == 0
     for first, second, want in ((a, bm, ("argmax", 50)), (bm, a, ("majority", 8))):
         out = tmp_path / "ab.pt"
-        assert main(["checkpoint", "average", str(first), str(second), "--out", str(out)]) == 0
+        assert main(["checkpoint", "average", str(first), str(second), "--out", str(out), "--force"]) == 0
         m = load(out)["config"]["model"]
         assert (m["greedy_depot"], m["window_tasks"]) == want
-    assert main(["checkpoint", "average", str(a), str(bm), "--out", str(out), "--greedy-depot", "majority"]) == 0
+    assert main(["checkpoint", "average", str(a), str(bm), "--out", str(out), "--greedy-depot", "majority",
+                 "--force"]) == 0
     assert load(out)["config"]["model"]["greedy_depot"] == "majority"
     capsys.readouterr()
 
