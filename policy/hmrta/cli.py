@@ -1136,7 +1136,7 @@ def build_parser() -> argparse.ArgumentParser:
     who.add_argument("--robots", default=None, help="comma-separated robot names, e.g. robot_0,robot_1")
     who.add_argument("--instance", default=None, help="instance file: robots robot_0..robot_{A-1}")
     kc.add_argument("--out", required=True, help="keystore folder to create")
-    kc.add_argument("--force", action="store_true", help="replace an existing keystore at --out")
+    kc.add_argument("--force", action="store_true", help="replace an existing keystore at --out (never a folder that is not a keystore)")
     kc.set_defaults(fn=cmd_keys)
     return p
 

@@ -82,12 +82,35 @@ def _write_private(path: Path, data: dict[str, Any]) -> None:
         os.fsync(fh.fileno())
 
 
+def _not_keystore(folder: Path) -> str:
+    """Why ``folder`` is not a keystore this module wrote ('' when it is one): what it holds
+    beyond ``keys.json`` (format hmrta-keystore) and ``robots/*.key.json``."""
+    extra = sorted(p.name for p in folder.iterdir() if p.name not in (KEYS_FILE, ROBOTS_DIR))
+    if extra:
+        return f"it holds {', '.join(extra[:3])}{', ...' if len(extra) > 3 else ''}"
+    try:
+        fmt = json.loads((folder / KEYS_FILE).read_text()).get("format")
+    except (OSError, ValueError, AttributeError):
+        fmt = None
+    if fmt != KEYSTORE_FORMAT:
+        return f"no {KEYS_FILE} of format {KEYSTORE_FORMAT}"
+    robots = folder / ROBOTS_DIR
+    if robots.exists():
+        if not robots.is_dir() or robots.is_symlink():
+            return f"{ROBOTS_DIR} is not a folder"
+        other = sorted(p.name for p in robots.iterdir() if not (p.name.endswith(".key.json") and p.is_file()))
+        if other:
+            return f"{ROBOTS_DIR}/ holds {', '.join(other[:3])}{', ...' if len(other) > 3 else ''}"
+    return ""
+
+
 def create_keystore(path: str | os.PathLike, robots: Iterable[str], *, force: bool = False) -> dict[str, bytes]:
     """Write a new keystore for ``robots`` at ``path`` (a folder) and return ``{robot: key}``.
 
     Atomic: the folder is assembled beside ``path`` and renamed into place, so ``path`` holds
     either the complete new keystore or what was there before. An existing non-empty ``path`` is
-    replaced only with ``force``."""
+    replaced only with ``force``, and only when it is a keystore (``keys.json`` and ``robots/``,
+    nothing else)."""
     names = [check_robot_name(r) for r in robots]
     if not names:
         raise KeystoreError("robots: expected at least one robot name")
@@ -98,8 +121,13 @@ def create_keystore(path: str | os.PathLike, robots: Iterable[str], *, force: bo
     if out.exists() or out.is_symlink():
         if not out.is_dir() or out.is_symlink():
             raise KeystoreError(f"{out}: exists and is not a folder")
-        if any(out.iterdir()) and not force:
-            raise KeystoreError(f"{out}: folder is not empty (a keystore already? pass --force to replace it)")
+        if any(out.iterdir()):
+            if not force:
+                raise KeystoreError(f"{out}: folder is not empty (a keystore already? pass --force to replace it)")
+            foreign = _not_keystore(out)
+            if foreign:
+                raise KeystoreError(f"{out}: is not a keystore ({foreign}); --force replaces only a keystore, "
+                                    f"so give the new one a folder of its own")
     target = Path(os.path.abspath(out))  # "." and ".." resolved: the folder is renamed by its own name
     cwd = Path.cwd()
     if target == cwd or target in cwd.parents:

@@ -266,6 +266,26 @@ def test_create_is_atomic_and_never_overwrites_by_accident(store, monkeypatch):
         K.create_keystore(path.parent / "file", ["a"])
 
 
+def test_force_replaces_only_a_keystore(tmp_path, store):
+    """--force replaces a keystore, never some other folder: one with other files, a keys.json of
+    another format, or foreign files among the robot keys is refused and left as it was."""
+    path, keys = store
+    cases = {"photos": {"a.jpg": "jpg", "b.txt": "b"},
+             "other-json": {"keys.json": '{"format": "something-else"}'},
+             "extra": {"keys.json": (path / "keys.json").read_text(), "notes.md": "mine"},
+             "robots-extra": {"keys.json": (path / "keys.json").read_text(), "robots/readme.txt": "x"}}
+    for name, files in cases.items():
+        d = tmp_path / name
+        for rel, text in files.items():
+            (d / rel).parent.mkdir(parents=True, exist_ok=True)
+            (d / rel).write_text(text)
+        with pytest.raises(K.KeystoreError, match="is not a keystore.*--force replaces only a keystore"):
+            K.create_keystore(d, ["robot_0"], force=True)
+        assert {str(p.relative_to(d)): p.read_text() for p in d.rglob("*") if p.is_file()} == files, name
+    new = K.create_keystore(path, ["robot_5"], force=True)  # a keystore is replaced
+    assert K.load_keystore(path) == new != keys
+
+
 # ---------------------------------------------------------------------------------------------
 # CLI
 # ---------------------------------------------------------------------------------------------
