@@ -813,15 +813,16 @@ def cmd_render_recording(args) -> int:
 
 
 def cmd_render(args) -> int:
-    from .render import render
+    from .render import MAX_FPS, MAX_FRAMES, render
     from .solution import SolutionError, final_instance
 
     if args.from_ is not None:
         return cmd_render_recording(args)
     if args.instance is None or args.solution is None:
         raise UserError("render: give INSTANCE and SOLUTION (or --from FILE.mcap, a recorded mission)")
-    _positive("--frames", args.frames)
-    _positive("--fps", args.fps)
+    for flag, value, most in (("--frames", args.frames, MAX_FRAMES), ("--fps", args.fps, MAX_FPS)):
+        if not 1 <= value <= most:
+            raise UserError(f"{flag}: expected an integer in 1..{most}, got {value}")
     _writable("--out", args.out)
     inst = _load(args.instance)
     sol = _read_solution(args.solution)
@@ -1113,8 +1114,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="draw a recorded mission (hmrta-mission --record): planned vs actual arrival times")
     r.add_argument("--out", required=True, help="output image (.png); an --out ending in .gif writes only the animation")
     r.add_argument("--gif", action="store_true", help="also write an animated GIF beside the PNG")
-    r.add_argument("--frames", type=int, default=80, help="GIF frames")
-    r.add_argument("--fps", type=int, default=10, help="GIF frames per second")
+    r.add_argument("--frames", type=int, default=80, help="GIF frames (1..1000)")
+    r.add_argument("--fps", type=int, default=10, help="GIF frames per second (1..50)")
     r.add_argument("--no-progress", action="store_true", help="no progress bar while the GIF is drawn")
     r.set_defaults(fn=cmd_render)
 

@@ -493,9 +493,9 @@ def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool =
     if not out.suffix:  # matplotlib would take the format from the temporary file's name
         raise ValueError(f"expected an image file name with its format as suffix (.png, .svg, .pdf, .gif), got {out}")
     if gif or out.suffix.lower() == ".gif":  # before anything is written
-        for name, v in (("frames", frames), ("fps", fps)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {v!r}")
+        for name, v, most in (("frames", frames, MAX_FRAMES), ("fps", fps, MAX_FPS)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= most:
+                raise ValueError(f"{name}: expected an integer in 1..{most}, got {v!r}")
     if out.parent and not out.parent.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
     written = []
@@ -524,6 +524,8 @@ def _atomic(path: Path):
         tmp.unlink(missing_ok=True)
 
 
+MAX_FRAMES = 1000  # the frames are held in memory until written: 1.2 MB each at GIF_DPI
+MAX_FPS = 50  # GIF delays are in 1/100 s, and viewers slow anything faster than 1/50 s down
 GIF_DPI = 60  # 15 x 7.2 in -> 900 x 432 px frames
 
 

@@ -358,7 +358,8 @@ def test_jobs_above_the_local_cores_are_refused_unless_on_a_cluster(tmp_path, mo
         assert "N at most this machine's cores unless --ray-address" in " ".join(helps[cmd].format_help().split())
 
 
-@pytest.mark.parametrize("opt, value", [("--frames", "0"), ("--frames", "-5"), ("--fps", "0"), ("--fps", "-1")])
+@pytest.mark.parametrize("opt, value", [("--frames", "0"), ("--frames", "-5"), ("--fps", "0"), ("--fps", "-1"),
+                                        ("--frames", "100000000"), ("--fps", "51")])
 def test_render_frames_and_fps(opt, value, tmp_path, capsys):
     pytest.importorskip("matplotlib")
     sol = tmp_path / "sol.json"
@@ -366,7 +367,7 @@ def test_render_frames_and_fps(opt, value, tmp_path, capsys):
     capsys.readouterr()
     for out in ("r.png", "r.gif"):
         _exit2(["render", str(EXAMPLE), str(sol), "--out", str(tmp_path / out), "--gif", opt, value], capsys,
-               f"{opt}: expected a positive integer, got {value}")
+               f"{opt}: expected an integer in 1..{1000 if opt == '--frames' else 50}, got {value}")
     assert [p.name for p in tmp_path.iterdir()] == ["sol.json"]  # no png written before failing
 
 

@@ -46,11 +46,12 @@ def test_gif(tmp_path, case):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["anim.gif", "fig.gif", "fig.png"]  # no temp files
 
 
-@pytest.mark.parametrize("frames, fps, bad", [(0, 10, "frames"), (-5, 10, "frames"), (8, 0, "fps"), (8, -1, "fps")])
+@pytest.mark.parametrize("frames, fps, bad", [(0, 10, "frames"), (-5, 10, "frames"), (8, 0, "fps"), (8, -1, "fps"),
+                                              (1001, 10, "frames"), (10 ** 8, 10, "frames"), (8, 51, "fps")])
 def test_gif_frames_and_fps_are_checked_before_any_image(tmp_path, case, frames, fps, bad):
     inst, sol = case
     for out in (tmp_path / "sub" / "fig.png", tmp_path / "anim.gif"):
-        with pytest.raises(ValueError, match=f"{bad}: expected a positive integer"):
+        with pytest.raises(ValueError, match=f"{bad}: expected an integer in 1.."):
             render(inst, sol, out, gif=True, frames=frames, fps=fps)
     assert list(tmp_path.iterdir()) == []  # no png, no folder, no temp file
 
