@@ -571,7 +571,8 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
                     b = max([b] + [res[i].get("solver_bound") or 0.0 for res in per_method.values()])
                     for res in per_method.values():
                         if res[i]["success"]:
-                            res[i]["gap"] = (res[i]["makespan"] - b) / b if b > 0 else 0.0
+                            m = res[i]["makespan"]  # the gap as hmrta bound and CP-SAT give it
+                            res[i]["gap"] = (m - b) / m if m > 0 else 0.0
             entry: dict[str, Any] = {
                 "row": row.key, "table": row.table, "kind": kind, "size": _row_size(row),
                 "results": {m: summarise(r) for m, r in per_method.items()},

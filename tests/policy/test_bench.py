@@ -177,6 +177,21 @@ events:
 """
 
 
+def test_gap_to_bound_is_the_one_hmrta_bound_reports():
+    """bench --bounds and hmrta bound give each solution the same gap: (makespan - best lower
+    bound) / makespan, the share of the makespan that the bound does not yet prove."""
+    from hmrta.bounds import bound_report
+    from hmrta.methods import solve
+
+    s = _bench(None, count=3, with_bounds=True)
+    gaps = []
+    for _, inst in ROW.instances(3, 5):
+        (rep,) = bound_report(inst, [solve(inst, "greedy", seed=0)])["solutions"]  # bench solves with seed 0
+        gaps.append(rep["gap"])
+    assert s["rows"][0]["results"]["greedy"]["gap_to_bound"][0] == pytest.approx(sum(gaps) / 3)
+    assert all(0 < g < 1 for g in gaps)
+
+
 def test_given_missions_claim_no_test_set_and_no_paper_counterpart(tmp_path):
     """A user's missions are given, not drawn: their summary holds no test-set seed or count, and
     CP-SAT is not labelled against the paper's CTAS-D where no paper numbers stand beside it. A
