@@ -181,12 +181,15 @@ class Trainer:
         """Restore a checkpoint (model, optimiser, averaged weights, counters, RNG streams, best
         validation). ``reseed``: keep this trainer's fresh RNG streams (from the config's seed) and
         its unset validation scores instead, for a second, independent continuation of the same
-        checkpoint (possibly under other rules or another validation set).
+        checkpoint (possibly under other rules or another validation set). Without ``reseed`` the
+        checkpoint's validation set and rules must be this config's (:meth:`_check_same_yardstick`).
 
         The file is unpickled weights-only (it cannot run code); anything missing, mistyped or not
         fitting this network is a CheckpointError naming the file and the field, raised before the
         trainer is changed."""
         ck = checkpoint.load(path, map_location=self.device)
+        if not reseed:
+            self._check_same_yardstick(ck, path)
         sd = weights(ck, "model", path)
         widened = widen_task_inputs(self.model, sd)  # e.g. a "mission" checkpoint into "mission+coalition"
         check_shapes(self.model, sd, path, "model", optional=ZERO_INIT_PARAMS)
@@ -233,6 +236,25 @@ class Trainer:
                 self.torch_gen.set_state(rng[1])
                 torch.set_rng_state(rng[2])
                 random.setstate(rng[3])
+
+    # what a validation score depends on, besides the weights (validation.every only says when)
+    YARDSTICK = (("validation", ("every",)), ("rules", ()))
+
+    def _check_same_yardstick(self, ck: dict, path: Path) -> None:
+        """A continuation keeps the checkpoint's best validation score, so it must be scored as
+        the checkpoint was: same validation set and rules. Otherwise a CheckpointError naming
+        the first key that differs (keys only one side has are not compared)."""
+        theirs, mine = ck.get("config"), self.cfg.to_dict()
+        for section, skip in self.YARDSTICK:
+            a, b = (theirs or {}).get(section) if isinstance(theirs, dict) else None, mine[section]
+            if not isinstance(a, dict):
+                continue
+            for k in sorted(set(a) & set(b)):
+                if k not in skip and a[k] != b[k]:
+                    raise CheckpointError(
+                        f"{path}: was trained with {section}.{k} = {short(a[k])}, this config has {short(b[k])}: "
+                        f"its best validation score does not compare; pass --reseed to continue its weights with "
+                        f"fresh validation scores and random streams")
 
     def export(self, path: Path, summary: dict | None = None) -> None:
         """Small inference checkpoint: weights + resolved config + code version + summary."""

@@ -589,6 +589,30 @@ def test_train_finds_the_shipped_configs_by_name_from_any_directory(tmp_path, mo
     assert not (tmp_path / "run").exists()
 
 
+def test_a_continuation_under_another_validation_set_or_rules_needs_reseed(tmp_path, capsys):
+    """A resumed run keeps the checkpoint's best validation score, so it is refused (naming the
+    key, the state untouched) when the config scores it on another validation set or under other
+    rules; --reseed forgets the score and goes on. How often validation runs may change."""
+    FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
+    t1 = FixedTrainer(_tiny_cfg(), tmp_path / "a", device="cpu", log=lambda s: None)
+    t1.train_step()
+    t1.best_val = 12.5
+    t1.save(tmp_path / "a" / "last.pt")
+    for over, key in (({"validation": {"rows": [[4, 2, 6, 2, 2]]}}, "validation.rows"),
+                      ({"validation": {"seed": 5}}, "validation.seed"),
+                      ({"rules": {"max_open": None}}, "rules.max_open")):
+        t2 = FixedTrainer(_tiny_cfg(**over), tmp_path / "b", device="cpu", log=lambda s: None)
+        before = {k: v.clone() for k, v in t2.model.state_dict().items()}
+        with pytest.raises(CheckpointError, match=re.escape(key) + ".*pass --reseed"):
+            t2.load(tmp_path / "a" / "last.pt")
+        assert t2.iteration == 0 and all(torch.equal(v, before[k]) for k, v in t2.model.state_dict().items())
+        t2.load(tmp_path / "a" / "last.pt", reseed=True)
+        assert t2.iteration == 1 and t2.best_val == math.inf
+    t3 = FixedTrainer(_tiny_cfg(validation={"every": 7}), tmp_path / "c", device="cpu", log=lambda s: None)
+    t3.load(tmp_path / "a" / "last.pt")
+    assert t3.best_val == 12.5
+
+
 def test_reseeded_resume_keeps_weights_but_not_the_random_streams(tmp_path):
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 4, 2, 5, 2).instance(5, 4)
     t1 = FixedTrainer(_tiny_cfg(), tmp_path / "a", device="cpu", log=lambda s: None)
