@@ -287,9 +287,10 @@ def cmd_solve(args) -> int:
     method = args.method
     out = Path(args.out) if args.out else None
     many = len(files) > 1
-    if many and out and out.suffix == ".json":
+    if many and out and out.suffix and not out.is_dir():
         raise UserError(f"--out {out}: with several instances, --out must be a folder")
-    to_folder = bool(out) and (many or out.is_dir() or out.suffix != ".json")
+    # one mission: a file unless --out is a folder or a name without a suffix (out.json, out.txt: files)
+    to_folder = bool(out) and (many or out.is_dir() or not out.suffix or args.out.endswith(("/", "\\")))
     if out:
         _writable("--out", out, folder=to_folder)
     if to_folder:  # DIR/<stem>.json: two inputs of one stem would overwrite each other
@@ -951,7 +952,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("instances", nargs="+", metavar="INSTANCE", help=INSTANCE_HELP)
     add_method_arguments(s, default="portfolio")
     s.add_argument("--seed", type=int, default=0, help="episode seed (decision order, sampling)")
-    s.add_argument("--out", default=None, help="solution file (one instance) or folder (DIR/<stem>.json)")
+    s.add_argument("--out", default=None, help="solution file (one instance, a name with a suffix: sol.json) or "
+                                               "folder (DIR/<stem>.json; a name without a suffix, an existing "
+                                               "folder, or several instances)")
     s.add_argument("--json", action="store_true", help="print the solution JSON instead of a summary")
     s.add_argument("--schedule", action="store_true", help="also print the per-task schedule and routes")
     s.add_argument("--no-progress", action="store_true",

@@ -121,18 +121,18 @@ def create_keystore(path: str | os.PathLike, robots: Iterable[str], *, force: bo
     if out.exists() or out.is_symlink():
         if not out.is_dir() or out.is_symlink():
             raise KeystoreError(f"{out}: exists and is not a folder")
-        if any(out.iterdir()):
-            if not force:
-                raise KeystoreError(f"{out}: folder is not empty (a keystore already? pass --force to replace it)")
-            foreign = _not_keystore(out)
-            if foreign:
-                raise KeystoreError(f"{out}: is not a keystore ({foreign}); --force replaces only a keystore, "
-                                    f"so give the new one a folder of its own")
+        if any(out.iterdir()) and not force:
+            raise KeystoreError(f"{out}: folder is not empty (a keystore already? pass --force to replace it)")
     target = Path(os.path.abspath(out))  # "." and ".." resolved: the folder is renamed by its own name
     cwd = Path.cwd()
     if target == cwd or target in cwd.parents:
         raise KeystoreError(f"{out}: is the current folder or holds it (it cannot be replaced); give the keystore "
                             f"a folder of its own")
+    if out.is_dir() and any(out.iterdir()):
+        foreign = _not_keystore(out)
+        if foreign:
+            raise KeystoreError(f"{out}: is not a keystore ({foreign}); --force replaces only a keystore, "
+                                f"so give the new one a folder of its own")
     parent = target.parent
     if not parent.is_dir():
         raise KeystoreError(f"{out}: parent folder {parent} does not exist")

@@ -494,3 +494,20 @@ def test_an_empty_instance_file_says_so(text, tmp_path, capsys):
     assert [p.name for p in tmp_path.iterdir()] == ["empty.yaml"]
     f.write_text(re.sub(r"^species:.*\n", "species:\n  -\n", EXAMPLE.read_text(), count=1, flags=re.M))
     assert "NoneType" not in _exit2(["solve", str(f)], capsys, "species[0]: expected a mapping", "got nothing")
+
+
+def test_solve_out_is_a_file_for_one_mission_with_a_suffixed_name(tmp_path, capsys):
+    """One mission: --out NAME.SUFFIX is the solution file whatever the suffix; a name without a
+    suffix, a trailing slash or an existing folder is a folder of <stem>.json. Several missions
+    need a folder."""
+    for name, want in (("sol.json", "sol.json"), ("out.txt", "out.txt"), ("sols", "sols/example.json"),
+                       ("dir.d/", "dir.d/example.json")):
+        assert main(["solve", str(EXAMPLE), "--method", "greedy", "--out", f"{tmp_path}/{name}"]) == 0, name
+        capsys.readouterr()
+        assert json.loads((tmp_path / want).read_text())["method"] == "greedy", name
+    (tmp_path / "old.v2").mkdir()
+    assert main(["solve", str(EXAMPLE), "--method", "greedy", "--out", str(tmp_path / "old.v2")]) == 0
+    capsys.readouterr()
+    assert (tmp_path / "old.v2" / "example.json").is_file()
+    _exit2(["solve", str(EXAMPLE), str(CTAS), "--method", "greedy", "--out", str(tmp_path / "two.txt")], capsys,
+           "with several instances, --out must be a folder")
