@@ -42,6 +42,7 @@ def _jobs(args) -> None:
 
 
 ROW_SIZES = ("agents", "species", "tasks", "skills")  # the options of a generated row's size (_row_args)
+MAX_SET_TASKS = 1_000_000  # tasks in all of a generated set (hmrta generate draws it in memory, ~0.5 KB a task)
 
 
 def _row_sizes(args) -> None:
@@ -363,6 +364,9 @@ def cmd_generate(args) -> int:
 
     _positive("--count", args.count)
     _row_sizes(args)
+    if args.count * args.tasks > MAX_SET_TASKS:  # the whole set is drawn in memory before it is written
+        raise UserError(f"--count {args.count} x --tasks {args.tasks}: at most {MAX_SET_TASKS:,} tasks in one set "
+                        f"(write several sets with other --seed values)")
     _seed(args.seed)
     _writable("--out", args.out, folder=True)
     try:  # every instance is drawn before the folder is made: a row no team can do leaves nothing

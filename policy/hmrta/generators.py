@@ -11,7 +11,7 @@ from typing import Iterator
 
 import numpy as np
 
-from .instance import DEFAULT_VELOCITY, MAX_AGENTS, Instance, Species, Task
+from .instance import DEFAULT_VELOCITY, MAX_AGENTS, MAX_TASKS, Instance, Species, Task
 
 SCENARIOS = ("SA-BT", "SA-AT", "MA-AT", "MA-BT")
 
@@ -55,6 +55,8 @@ class ScenarioGenerator:
             raise ValueError(f"agents ({self.agents}) must be a multiple of species ({self.species})")
         if self.agents > MAX_AGENTS:  # what a mission file may hold: the set must read back
             raise ValueError(f"agents ({self.agents}): a mission holds at most {MAX_AGENTS}")
+        if self.tasks > MAX_TASKS:
+            raise ValueError(f"tasks ({self.tasks}): a mission holds at most {MAX_TASKS}")
         if self.multi_skill and self.species > 2**self.skills - 1:
             raise ValueError(f"MA needs distinct non-zero trait vectors: at most {2**self.skills - 1} species")
         if not self.multi_skill and self.species < self.skills:

@@ -25,6 +25,7 @@ FORMAT = "hmrta-instance/1"
 REQUIREMENT_TYPES = ("additive", "binary")
 DEFAULT_VELOCITY = 0.2
 MAX_AGENTS = 10_000  # most agents a mission may have (all species together)
+MAX_TASKS = 100_000  # most tasks a mission may have (added ones included)
 # traits, requirements and durations at most MAX_VALUE, velocity in [MIN_VELOCITY, MAX_VALUE]: every
 # time and capability sum of a mission then stays finite (and far from float overflow)
 MAX_VALUE = 1e9
@@ -322,6 +323,8 @@ def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
         raise _err(f"{source}: species", "expected a non-empty list of species")
     if not isinstance(d["tasks"], list):
         raise _err(f"{source}: tasks", "expected a list of tasks")
+    if len(d["tasks"]) > MAX_TASKS:
+        raise _err(f"{source}: tasks", f"{len(d['tasks'])} tasks; at most {MAX_TASKS}")
     added = d.get("added_agents", [])  # robots added during a mission: the species of each
     if not isinstance(added, list) or not all(isinstance(a, int) and not isinstance(a, bool) and a >= 0
                                               for a in added):

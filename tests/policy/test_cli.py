@@ -511,3 +511,14 @@ def test_solve_out_is_a_file_for_one_mission_with_a_suffixed_name(tmp_path, caps
     assert (tmp_path / "old.v2" / "example.json").is_file()
     _exit2(["solve", str(EXAMPLE), str(CTAS), "--method", "greedy", "--out", str(tmp_path / "two.txt")], capsys,
            "with several instances, --out must be a folder")
+
+
+def test_generate_caps_the_mission_and_the_set(tmp_path, capsys):
+    """A set is drawn in memory before it is written: at most 100,000 tasks a mission and
+    1,000,000 in the set, refused before anything is drawn."""
+    row = ["generate", "--scenario", "MA-AT", "--agents", "4", "--species", "2", "--skills", "2"]
+    _exit2([*row, "--tasks", "100001", "--count", "1", "--out", str(tmp_path / "a")], capsys,
+           "tasks (100001): a mission holds at most 100000")
+    _exit2([*row, "--tasks", "2000", "--count", "100000000", "--out", str(tmp_path / "b")], capsys,
+           "at most 1,000,000 tasks in one set")
+    assert list(tmp_path.iterdir()) == []

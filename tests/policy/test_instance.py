@@ -294,6 +294,12 @@ def test_value_limits_keep_every_time_finite(valid_dict):
         _set(path, value)(d)
         with pytest.raises(InstanceError, match=re.escape(expect)):
             instance_from_dict(d, "m.yaml")
+    from hmrta.instance import MAX_TASKS
+
+    d = yaml.safe_load(yaml.safe_dump(valid_dict))
+    d["tasks"] = d["tasks"][:1] * (MAX_TASKS + 1)
+    with pytest.raises(InstanceError, match=re.escape(f"tasks: {MAX_TASKS + 1} tasks; at most {MAX_TASKS}")):
+        instance_from_dict(d, "m.yaml")
 
 
 def test_numbers_with_an_exponent_and_no_decimal_point_are_numbers(write_yaml):
