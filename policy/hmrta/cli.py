@@ -594,12 +594,12 @@ def cmd_train(args) -> int:
         if not Path(f).is_file():
             raise UserError(f"{args.config}: pretrain.schedules: {f}: no such file (a config's paths are relative "
                             f"to the working folder, {Path.cwd()}; the shipped configs' to the repository root)")
+    _train_device(torch, args.device)
     if args.check:
         print(f"{args.config}: a valid training config (name {cfg['name']!r})")
         return 0
     if (args.init or args.reseed) and not args.resume:
         raise UserError("--init and --reseed only apply with --resume")
-    _train_device(torch, args.device)
     run_dir = _writable("--run-dir", args.run_dir or f"runs/{cfg['name']}", folder=True)
     if args.export:
         _writable("--export", args.export)

@@ -25,7 +25,7 @@ FORMAT = "hmrta-instance/1"
 REQUIREMENT_TYPES = ("additive", "binary")
 DEFAULT_VELOCITY = 0.2
 MAX_AGENTS = 10_000  # most agents a mission may have (all species together)
-MAX_TASKS = 100_000  # most tasks a mission may have (added ones included)
+MAX_TASKS = 100_000  # most tasks a mission file may hold
 # traits, requirements and durations at most MAX_VALUE, velocity in [MIN_VELOCITY, MAX_VALUE]: every
 # time and capability sum of a mission then stays finite (and far from float overflow)
 MAX_VALUE = 1e9

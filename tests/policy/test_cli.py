@@ -381,6 +381,8 @@ def test_train_device_and_missing_checkpoints(tmp_path, monkeypatch, capsys):
     _exit2([*train, "--device", "tpu"], capsys, "--device tpu: expected cpu, cuda or cuda:N")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     _exit2([*train, "--device", "cuda"], capsys, "--device cuda: CUDA is not available", "--device cpu")
+    for device, needle in (("tpu", "expected cpu, cuda or cuda:N"), ("cuda", "CUDA is not available")):
+        _exit2([*train, "--check", "--device", device], capsys, f"--device {device}: {needle}")  # --check too
     missing = tmp_path / "nosuch.pt"
     _exit2([*train, "--resume", "--init", str(missing)], capsys, f"--init {missing}: no such checkpoint file")
     _exit2([*train, "--resume", "--init", str(tmp_path)], capsys, f"--init {tmp_path}: no such checkpoint file")
