@@ -159,7 +159,8 @@ def read_recording(path: str | Path) -> Recording:
     MCAP, holds no mission message or a malformed one."""
     path = Path(path)
     if not path.is_file():
-        raise ReplayError(f"{path}: no such file (expected an MCAP recording)")
+        what = ("is a folder" if path.is_dir() else "not a regular file" if path.exists() else "no such file")
+        raise ReplayError(f"{path}: {what} (expected an MCAP recording)")
     counts: dict[str, int] = {}
     types: dict[str, str] = {}
     mission_text = result_text = keyframe_text = None

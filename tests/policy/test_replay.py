@@ -215,3 +215,15 @@ def test_malformed_mission_payload(tmp_path):
     with pytest.raises(ReplayError, match="is not hmrta-mission/1"):
         read_recording(tmp_path / "c.mcap")
     assert math.isfinite(T0)
+
+
+def test_a_recording_path_that_is_no_file_says_what_it_is(tmp_path):
+    import os
+
+    from hmrta.replay import ReplayError, read_recording
+
+    os.mkfifo(tmp_path / "fifo.mcap")
+    (tmp_path / "dir.mcap").mkdir()
+    for name, what in (("fifo.mcap", "not a regular file"), ("dir.mcap", "is a folder"), ("none.mcap", "no such file")):
+        with pytest.raises(ReplayError, match=f"{name}: {what} .expected an MCAP recording.$"):
+            read_recording(tmp_path / name)

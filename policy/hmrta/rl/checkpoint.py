@@ -39,6 +39,20 @@ from .checkpoint_info import CheckpointError, checkpoint_path, missing, sha256
 FORMAT_VERSION = 1
 
 
+def _torch_reason(e: Exception) -> str:
+    """What torch's error on reading a file says, in one line and in the file's terms (its C++
+    reader's messages name internal records and ask for bug reports)."""
+    text = re.sub(r"\s*\(Could this error message be improved\?.*?\)", "", str(e), flags=re.S)
+    if isinstance(e, (UnicodeDecodeError, KeyError)) or "invalid load key" in text:
+        return "not a torch checkpoint file"  # torch's reader of its legacy format, on other bytes
+    if isinstance(e, EOFError):
+        return "empty, or cut short"
+    if "hasRecord" in text or "PytorchStreamReader" in text:
+        return "a zip archive without a torch checkpoint's records, or a damaged one"
+    first = (text.strip().splitlines() or [""])[0][:200]
+    return f"{type(e).__name__}: {first}"
+
+
 def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
     """The checkpoint's top-level dict, unpickled weights-only (no code runs), of a format this
     version reads (``checkpoint_format`` 0 or 1). A bare shipped name (``broad``) is read too."""
@@ -59,12 +73,13 @@ def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
         if g:  # a pickle that would call or build something beyond weights: never executed
             raise CheckpointError(f"{p}: refused: its pickle asks for {g.group(1)} (a checkpoint may hold only "
                                   f"tensors and plain data)") from None
-        inner = re.search(r"WeightsUnpickler error: (.*?)(?:\n\n|$)", text, re.S)
+        inner = re.search(r"WeightsUnpickler error:\s*(.*?)(?:\n\n|$)", text, re.S)
         why = " ".join((inner.group(1) if inner else text).split())[:200] or "a weights-only read failed"
+        if why.startswith(("Unsupported operand", "invalid load key")):  # bytes that are no pickle at all
+            raise CheckpointError(f"{p}: not a readable hmrta checkpoint (not a torch checkpoint file)") from None
         raise CheckpointError(f"{p}: not a readable hmrta checkpoint (UnpicklingError: {why})") from None
     except Exception as e:  # noqa: BLE001 - corrupt, truncated, not a torch file, ...
-        first = (str(e).strip().splitlines() or [""])[0][:200]
-        raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({type(e).__name__}: {first})") from None
+        raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({_torch_reason(e)})") from None
     if not isinstance(ck, dict):
         raise CheckpointError(f"{p}: not an hmrta checkpoint (expected a dict, got {type(ck).__name__})")
     format_version(ck, p)

@@ -1344,3 +1344,29 @@ def test_the_cli_offers_every_greedy_decoding():
     for rule in GREEDY_DEPOT:
         args = build_parser().parse_args(["checkpoint", "average", "a.pt", "--out", "b.pt", "--greedy-depot", rule])
         assert args.greedy_depot == rule
+
+
+def test_an_unreadable_checkpoint_is_named_in_the_files_terms(tmp_path):
+    """A file torch cannot read is one line saying what it is (no torch internals, no request to
+    report a bug), for a zip without torch's records, a cut-short checkpoint, text, random bytes and
+    an empty file."""
+    import random
+    import zipfile
+
+    from hmrta.rl.checkpoint import load
+
+    with zipfile.ZipFile(tmp_path / "zip.pt", "w") as z:
+        z.writestr("a/data.pkl", b"garbage")
+    (tmp_path / "cut.pt").write_bytes(DEFAULT_CHECKPOINT.read_bytes()[:3000])
+    (tmp_path / "text.pt").write_text("hello\n")
+    (tmp_path / "random.pt").write_bytes(random.Random(3).randbytes(100))
+    (tmp_path / "empty.pt").write_bytes(b"")
+    for name, want in (("zip", "a zip archive without a torch checkpoint's records"),
+                       ("cut", "a zip archive without a torch checkpoint's records"),
+                       ("text", "not a torch checkpoint file"), ("random", "not a torch checkpoint file"),
+                       ("empty", "empty, or cut short")):
+        with pytest.raises(CheckpointError) as e:
+            load(tmp_path / f"{name}.pt")
+        msg = str(e.value)
+        assert msg == f"{tmp_path / name}.pt: not a readable hmrta checkpoint ({want}" + (
+            ", or a damaged one)" if "zip" in want else ")"), msg
