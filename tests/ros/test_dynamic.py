@@ -91,9 +91,9 @@ def test_a_robot_joins_a_running_mission_by_starting_its_agent(tmp_path, domain,
                              stdout=alien_log, stderr=subprocess.STDOUT, env=env)
     try:
         wait_board_exit(graph, procs, 150)
-        new.wait(timeout=30)  # it exits with the mission, like every agent
-        odd.wait(timeout=30)  # ... and so do the ones never added
-        alien.wait(timeout=30)
+        assert new.wait(timeout=30) == 0  # it exits with the mission, like every agent
+        assert odd.wait(timeout=30) == 2  # those that refuse to take part exit 2
+        assert alien.wait(timeout=30) == 2
     finally:
         for p in (new, odd, alien):
             if p.poll() is None:

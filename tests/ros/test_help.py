@@ -186,7 +186,17 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
 
 
 @pytest.mark.parametrize("exe,args,says", [
-    ("task_board", ["-p", "heartbeat_timeout:=10"], "needs a decimal point"),
+    ("task_board", ["-p", "heartbeat_timeout:=10"], "write it with a decimal point: -p heartbeat_timeout:=10.0"),
+    ("task_board", ["-p", "robot_names:=[" + ",".join([f"r{i}" for i in range(14)] + ["r3"]) + "]"],
+     "robot_names: expected 15 distinct names, got 'r3' more than once"),
+    ("task_board", ["-p", "robot_names:=[a,b]"], "robot_names: expected 15 names (one per robot of the mission), got 2"),
+    # a method option is checked even for a method that does not take it: the board and the agents agree
+    ("task_board", ["-p", "temperature:=-1.0"], "temperature: expected a number >= 0.01, got -1.0"),
+    ("agent_node", ["-p", "robot:=robot_0", "-p", "temperature:=-1.0"], "temperature: expected a number >= 0.01"),
+    ("agent_node", ["-p", "robot:=robot_0", "-p", "method:=rl-sample", "-p", "temperature:=0.0001"],
+     "temperature: expected a number >= 0.01, got 0.0001"),
+    ("agent_node", ["-p", "robot:=robot_0", "-p", "board_silence_warning:=-1.0"], "board_silence_warning: expected"),
+    ("sim_robot", ["-p", "board_silence_warning:=-1.0"], "board_silence_warning: expected"),
     ("task_board", ["-p", "heartbeat_timeout:=-1.0"], "heartbeat_timeout: expected a finite number >= 0"),
     ("task_board", ["-p", "queue_depth:=0"], "queue_depth: expected"),
     ("sim_robot", ["-p", "rate:=0.0", "-p", "time_scale:=1.0"], "rate: expected"),

@@ -38,6 +38,7 @@ robot's ``robots/<robot>.key.json``); the process then signs every choice and he
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import socket
 import sys
@@ -49,7 +50,6 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.task import Future
-from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
@@ -60,7 +60,7 @@ from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (Choice, DecodeError, Join, KeyframeRequest, Mission, Status, board_from_msg,
                                  choice_to_msg, clock_from_msg, keyframe_request_to_msg, mission_from_msg,
                                  pose_from_msg, pose_to_msg, rejection_from_msg, status_to_msg)
-from hmrta_msgs_py.runtime import LEAN_NODE, declare_method_parameters, spin_nodes, starting
+from hmrta_msgs_py.runtime import BoardSilence, LEAN_NODE, declare_method_parameters, spin_nodes, starting
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 
@@ -100,6 +100,11 @@ class Host:
         self._early: list[tuple[String, bool]] = []  # keyframes that came before the mission
         self.ignore: set[int] = set()  # testing (--ignore-board-version): versions dropped once, as if lost
         self._ignored: set[tuple[int, bool]] = set()
+        self.silence: BoardSilence | None = None  # when to warn that no board is heard
+
+    def exit_status(self) -> int:
+        """2 when an agent of the process refused to take part (its configuration or the mission's), else 0."""
+        return 2 if any(a.refusal is not None for a in self.agents) else 0
 
     def add_key(self, robot: str, keystore: str, key_file: str) -> None:
         """Load ``robot``'s key from a keystore folder or from its own key file (KeystoreError:
@@ -138,8 +143,22 @@ class Host:
         self._status_pub = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
         self._request_pub = node.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
         self._host = f"{socket.gethostname()}:{os.getpid()}"
+        self.silence = BoardSilence(getattr(node, "board_silence_warning", 10.0))
         node.create_timer(period, self._beat)
+        node.create_timer(1.0, self._check_silence)
         self._beat()
+
+    def _heard(self) -> None:
+        if self.silence is not None:
+            self.silence.heard()
+
+    def _check_silence(self) -> None:
+        head = self.replica.head
+        if self.silence is None or self.all_done.done() or (head is not None and head.phase == "done"):
+            return
+        text = self.silence.check(self.replica.version if head is not None else None)
+        if text is not None:
+            self._node.get_logger().warning(text)
 
     def _on_rejection(self, msg: String) -> None:
         """The board refused to add a robot of this process that asked to join: it stops asking."""
@@ -153,6 +172,7 @@ class Host:
                     a.refused(r.detail)
 
     def _on_mission(self, msg: String) -> None:
+        self._heard()
         if msg.data == self._mission_text:
             return
         try:
@@ -172,6 +192,7 @@ class Host:
     # ------------------------------------------------------------------------------------------
     def _on_board(self, msg: String) -> None:
         t_recv = time.perf_counter()
+        self._heard()
         try:
             b = board_from_msg(msg, legs=False, state=False)
         except DecodeError as e:
@@ -182,6 +203,7 @@ class Host:
 
     def _on_keyframe(self, msg: String, latched: bool | None = None) -> None:
         t_recv = time.perf_counter()
+        self._heard()
         try:
             b = board_from_msg(msg, legs=False, state=False)
         except DecodeError as e:
@@ -346,6 +368,10 @@ class AgentNode(Node):
         self.clock_topic = self.declare_parameter("clock_topic", "/hmrta/clock").value
         if not self.clock_topic.startswith("/") or self.clock_topic.rstrip("/") == "/clock":
             raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {self.clock_topic!r}")
+        self.board_silence_warning = self.declare_parameter("board_silence_warning", 10.0).value
+        if not (self.board_silence_warning >= 0 and math.isfinite(self.board_silence_warning)):
+            raise ValueError(f"board_silence_warning: expected a number of seconds >= 0 (0: never), "
+                             f"got {self.board_silence_warning!r}")
         if keystore or key_file:
             host.add_key(self.robot, keystore, key_file)
 
@@ -360,7 +386,7 @@ class AgentNode(Node):
         self._sent: tuple[int, int, float, float] | None = None  # (board version, node, compute ms, monotonic time)
         self._warned: set[str] = set()
         self._fit: dict[str, bool] = {}  # mission session -> whether its rules are this method's (joining)
-        self._refused: str | None = None  # why the board refused to add this robot (joining)
+        self.refusal: str | None = None  # why this robot does not take part (it then stops)
         self.choice_pub = host.choice_publisher(self)
         self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
         self._pose: PoseStamped | None = None  # its driver's latest pose (a robot asking to join reports it)
@@ -386,14 +412,20 @@ class AgentNode(Node):
         """Not in the mission heard, with a species: it asks the board to add it (heartbeat)."""
         m = self.host.mission
         return (self.mission is None and not self.finished and self.species_param >= 0 and m is not None
-                and m.index(self.robot) is None and self._fits(m) and self._refused is None)
+                and m.index(self.robot) is None and self._fits(m))
 
     def refused(self, why: str) -> None:
-        """The board refused to add this robot (hmrta-rejection/1 ``join_refused``): stop asking, and
-        end with the mission like every agent."""
-        if self._refused is None:
-            self._refused = why
-            self.get_logger().error(f"{self.robot}: the board refuses to add this robot: {why}; not asking again")
+        """The board refused to add this robot (hmrta-rejection/1 ``join_refused``): stop asking."""
+        self.refuse(f"{self.robot}: the board refuses to add this robot: {why}; not asking again")
+
+    def refuse(self, text: str) -> None:
+        """This robot does not take part (``text``: why): log it and stop; the process exits with
+        status 2 once its other agents are done."""
+        if self.refusal is None:
+            self.refusal = text
+            self.get_logger().error(f"{text}; stopping (exit status 2)")
+            self.finished = True
+            self.host.agent_finished()
 
     def _fits(self, mission: Mission) -> bool:
         """A robot asks to join only a mission whose rules its method runs under: the board would
@@ -429,22 +461,22 @@ class AgentNode(Node):
             self.mission = mission  # the same mission, grown: nothing to redo
             return
         if idx is None and self.index_param < 0:
+            if self.species_param >= 0 and not self._fits(mission):
+                return self.refuse(self._mismatch(mission))
             self._warn_once(f"join {mission.session}",
                             f"robot {self.robot!r} is not in mission {mission.instance.name}: "
                             + (f"asking the board to add it (species {self.species_param})" if self.species_param >= 0
                                else "waiting until the board adds it (start the agent with -p species:=S to join)"))
             return
         if idx is None or not 0 <= idx < mission.instance.n_agents or mission.robots[idx] != self.robot:
-            self.get_logger().error(f"robot {self.robot!r} (index {self.index_param}) is not in mission "
-                                    f"{mission.instance.name} (robots {', '.join(mission.robots[:5])}...)")
-            return
+            return self.refuse(f"robot {self.robot!r} (index {self.index_param}) is not in mission "
+                               f"{mission.instance.name} (robots {', '.join(mission.robots[:5])}...): not taking part")
         if not self.compatible(mission):
-            return
+            return self.refuse(self._mismatch(mission))
         species = int(mission.instance.agent_species[idx])
         if self.species_param >= 0 and self.species_param != species:
-            self.get_logger().error(f"robot {self.robot!r} is species {self.species_param} but the mission "
-                                    f"lists it as species {species}: not taking part")
-            return
+            return self.refuse(f"robot {self.robot!r} is species {self.species_param} but the mission lists it as "
+                               f"species {species}: not taking part")
         self.mission, self.index = mission, idx
         self.answered, self.leg_seq, self.pending = -1, None, []
         self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "
@@ -453,13 +485,17 @@ class AgentNode(Node):
     def compatible(self, mission: Mission) -> bool:
         """Whether this robot's method runs under the mission's rules (checked once, on joining).
         The board decides ``backdate`` (real-time departures); everything else must match."""
+        return self._mismatch(mission) is None
+
+    def _mismatch(self, mission: Mission) -> str | None:
+        """Why this robot's method cannot run under the mission's rules, or None."""
         theirs, mine = mission.rules.to_dict(), self.rules.to_dict()  # the codec requires and checks them
         theirs.pop("backdate", None), mine.pop("backdate", None)
-        if theirs != mine:
-            self.get_logger().error(f"{self.robot}: method {self.method} runs under rules {mine} but mission "
-                                    f"{mission.instance.name} runs under {theirs} (method {mission.method}): "
-                                    "not taking part; start this agent with the mission's method and checkpoint")
-        return theirs == mine
+        if theirs == mine:
+            return None
+        return (f"{self.robot}: method {self.method} runs under rules {mine} but mission {mission.instance.name} "
+                f"runs under {theirs} (method {mission.method}): not taking part; start this agent with the "
+                "mission's method and checkpoint")
 
     def act(self, board, t_recv: float) -> None:
         """Follow the board (the header of the replica's version): queue this robot's new legs,
@@ -561,10 +597,11 @@ def _set_torch_threads(n: int) -> None:
         torch.set_num_threads(n)
 
 
-def main(args: list[str] | None = None) -> None:
+def main(args: list[str] | None = None) -> int:
+    """Exit status: 0, 2 a user error or an agent that refused to take part, 130 Ctrl-C at start-up."""
     argv = sys.argv if args is None else args
     from hmrta_msgs_py.params import node_parameters
-    from hmrta_msgs_py.runtime import parameters_help
+    from hmrta_msgs_py.runtime import parameters_help, without_ros_args
 
     p = argparse.ArgumentParser(prog="agent_node", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -580,25 +617,25 @@ def main(args: list[str] | None = None) -> None:
     p.add_argument("--ignore-board-version", type=int, action="append", default=[], metavar="V",
                    help="testing: drop the board messages of version V once, as if they were lost (the process's "
                         "replica recovers from a keyframe); repeatable")
-    cli = p.parse_args(remove_ros_args(argv)[1:])
+    cli = p.parse_args(without_ros_args("agent_node", argv)[1:])
     if cli.torch_threads < 1:
         p.error("--torch-threads: expected a positive integer")
     if not 0 < cli.heartbeat_period < float("inf"):
         p.error(f"--heartbeat-period: expected a number of seconds > 0, got {cli.heartbeat_period}")
-    rclpy.init(args=argv)
     host = Host()
     host.ignore.update(cli.ignore_board_version)
-    with starting("agent_node", (MethodError, ValueError)):  # bad policy / checkpoint: a user error
+    with starting("agent_node", (MethodError, ValueError), args=argv):  # bad policy / checkpoint: a user error
         if cli.robots:
             lean = LEAN_NODE if len(cli.robots) > 1 else {}
             nodes = [AgentNode(host, namespace="/" + r, parameter_overrides=[Parameter("robot", value=r)], **lean)
                      for r in cli.robots]
         else:
             nodes = [AgentNode(host)]
-    _set_torch_threads(cli.torch_threads)  # the deciders are built: torch is loaded if they use it
-    host.attach(nodes[0], cli.heartbeat_period)
+        _set_torch_threads(cli.torch_threads)  # the deciders are built: torch is loaded if they use it
+        host.attach(nodes[0], cli.heartbeat_period)
     spin_nodes(nodes, until=host.all_done)
+    return host.exit_status()
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -219,6 +219,13 @@ class MissionProcesses:
             rc = c.proc.poll()
             if rc is None or rc == 0 or c.given_up:  # running, or finished its part (done, or its robots lost)
                 continue
+            if rc == 2:  # it refused its configuration or the mission (see its log): a restart would refuse again
+                c.given_up = True
+                self.incidents.append(f"{c.name} exited with status 2{at}: it refused its parameters or the "
+                                      f"mission (see {c.log}); not restarted")
+                if c is self.sim:
+                    return self.incidents[-1]
+                continue
             what = f"{c.name} process died ({exit_text(rc)}){at}"
             if c.restarts >= self.max_restarts:
                 self.incidents.append(f"{what}; not restarted (already restarted {c.restarts} times)")
@@ -359,8 +366,9 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
         while time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.1)
             rc = procs.board.proc.poll()
-            # exit code 2: the board refused its parameters (a user error): a restart would refuse them again
-            if (rc is not None and rc not in (0, 2) and procs.journal is not None
+            # exit code 2: the board refused its parameters (a user error): a restart would refuse them again;
+            # 3: the mission finished and failed (the result is written)
+            if (rc is not None and rc not in (0, 2, 3) and procs.journal is not None
                     and procs.board.restarts < procs.max_restarts):
                 procs.board.restarts += 1
                 procs.incidents.append(f"board process died ({exit_text(rc)}){when()}; restarted on its journal "
@@ -371,8 +379,8 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
             if rc is not None:
                 for _ in range(10):  # boards already received but not yet taken
                     executor.spin_once(timeout_sec=0.02)
-                status = "ok" if rc == 0 else f"board process died ({exit_text(rc)}){when()}"
-                if rc != 0:
+                status = "ok" if rc in (0, 3) else f"board process died ({exit_text(rc)}){when()}"
+                if status != "ok":
                     procs.incidents.append(status + ("; not restarted (the board's state lives in that process)"
                                                      if procs.journal is None else
                                                      "; not restarted: it refused its parameters (see its log)"

@@ -27,14 +27,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-import rclpy
 from mcap.writer import CompressionType, Writer
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from hmrta_msgs_py import topics
-from hmrta_msgs_py.runtime import spin_nodes
+from hmrta_msgs_py.runtime import spin_nodes, starting
 
 RECORDING_FORMAT = "hmrta-recording/1"  # the MCAP metadata record "hmrta" names it
 PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32", "uint32",
@@ -298,17 +297,12 @@ def main(args: list[str] | None = None) -> None:
     from hmrta_msgs_py.runtime import help_requested
 
     help_requested(argv, "recorder", __doc__.split("\n\n")[0], node_parameters("recorder"))
-    rclpy.init(args=argv)
-    try:
+    with starting("recorder", (ValueError, OSError), args=argv):  # a bad parameter or output path: a user error
         node = Recorder()
-    except (ValueError, OSError) as e:
-        print(f"recorder: {e}", file=sys.stderr)
-        rclpy.try_shutdown()
-        raise SystemExit(2) from None
     # the single-threaded executor: the experimental events executor does not deliver raw messages
     os.environ["HMRTA_EXECUTOR"] = "single"
     spin_nodes([node], on_exit=node.close)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

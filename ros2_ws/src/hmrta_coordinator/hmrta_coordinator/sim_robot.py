@@ -35,7 +35,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-import rclpy
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -47,7 +46,7 @@ from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (DecodeError, KeyframeRequest, Mission, board_from_msg, clock_to_msg,
                                  keyframe_request_to_msg, mission_from_msg, pose_from_msg, pose_to_msg)
-from hmrta_msgs_py.runtime import spin_nodes, starting
+from hmrta_msgs_py.runtime import BoardSilence, spin_nodes, starting
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 EPS = 1e-6
@@ -99,10 +98,12 @@ class SimRobot(Node):
         heartbeat = P("heartbeat_period", 1.0).value
         self.exit_on_done = P("exit_on_done", True).value
         clock_topic = P("clock_topic", "/hmrta/clock").value
+        silence = P("board_silence_warning", 10.0).value
         for k, v, ok, want in (("time_scale", self.time_scale, self.time_scale >= 0, "a number >= 0 (0: as fast "
                                                                                     "as possible)"),
                                ("rate", rate, rate > 0, "a number of ticks per second > 0"),
-                               ("heartbeat_period", heartbeat, heartbeat > 0, "a number of seconds > 0")):
+                               ("heartbeat_period", heartbeat, heartbeat > 0, "a number of seconds > 0"),
+                               ("board_silence_warning", silence, silence >= 0, "a number of seconds >= 0 (0: never)")):
             if not ok or not math.isfinite(v):
                 raise ValueError(f"{k}: expected {want}, got {v!r}")
         if not clock_topic.startswith("/") or clock_topic.rstrip("/") == "/clock":
@@ -122,6 +123,8 @@ class SimRobot(Node):
         self._due: list[tuple[float, int, SimulatedRobot]] = []
         self._seq = itertools.count()
         self.done = Future()
+        self.silence = BoardSilence(silence)
+        self._version: int | None = None  # the latest board version heard
         self.pub_clock = self.create_publisher(Clock, clock_topic, topics.CLOCK_QOS)
         self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
         self.create_subscription(String, topics.BOARD, self.on_board, topics.BOARD_SIM_QOS)
@@ -129,12 +132,20 @@ class SimRobot(Node):
         self.pub_request = self.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
         self._who = f"{socket.gethostname()}:{os.getpid()} sim_robot"
         self.create_timer(heartbeat, self.on_heartbeat)
+        self.create_timer(1.0, self.on_silence)
         if self.time_scale > 0:
             self._wall = time.monotonic()
             self.create_timer(1.0 / rate, self.on_tick)
 
     # ------------------------------------------------------------------------------------------
+    def on_silence(self) -> None:
+        if not self.done.done():
+            text = self.silence.check(self._version)
+            if text is not None:
+                self.get_logger().warning(text)
+
     def on_mission(self, msg: String) -> None:
+        self.silence.heard()
         try:
             m = mission_from_msg(msg)
         except DecodeError as e:
@@ -203,6 +214,7 @@ class SimRobot(Node):
     def on_board(self, msg: String) -> None:
         """A version of the board stream: its horizon moves the clock; before the node is in sync
         its events go to the replica."""
+        self.silence.heard()
         if self.mission is None:
             self._early.append((msg, False))
             del self._early[:-1000]
@@ -219,6 +231,7 @@ class SimRobot(Node):
         self._follow(b)
 
     def on_keyframe(self, msg: String) -> None:
+        self.silence.heard()
         if self.mission is None:
             self._early = [e for e in self._early if not e[1]] + [(msg, True)]
             return
@@ -258,6 +271,7 @@ class SimRobot(Node):
                                                                           self._who)))
 
     def _follow(self, b) -> None:
+        self._version = b.version
         self.horizon = max(self.horizon, b.horizon)
         if b.phase == "done":
             self.advance(max(self.now, b.clock))
@@ -391,11 +405,10 @@ def main(args: list[str] | None = None) -> None:
     from hmrta_msgs_py.runtime import help_requested
 
     help_requested(argv, "sim_robot", __doc__.split("\n\n")[0], node_parameters("sim_robot"))
-    rclpy.init(args=argv)
-    with starting("sim_robot"):  # a bad parameter: a user error
+    with starting("sim_robot", args=argv):  # a bad parameter: a user error
         node = SimRobot()
     spin_nodes([node], until=node.done if node.exit_on_done else None)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

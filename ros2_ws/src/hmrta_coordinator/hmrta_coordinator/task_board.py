@@ -67,7 +67,6 @@ import time
 from functools import partial
 from typing import Any
 
-import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
@@ -89,7 +88,7 @@ from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mis
                                  choice_from_msg, clock_from_msg, keyframe_request_from_msg, markers_to_msg,
                                  mission_to_msg, pose_from_msg, rejection_to_msg, request_id_of, result_to_msg,
                                  status_from_msg, task_event_to_msg, task_request_from_msg)
-from hmrta_msgs_py.runtime import declare_method_parameters, spin_nodes, starting
+from hmrta_msgs_py.runtime import closest, declare_method_parameters, spin_nodes, starting
 
 
 class TaskBoard(Node):
@@ -152,8 +151,19 @@ class TaskBoard(Node):
             rules = dataclasses.replace(rules, backdate=False)
         A = inst.n_agents
         names = names or [f"robot_{a}" for a in range(A)]
-        if len(names) != A or len(set(names)) != A:
-            raise ValueError(f"robot_names: expected {A} distinct names, got {len(names)}")
+        if len(names) != A:
+            raise ValueError(f"robot_names: expected {A} names (one per robot of the mission), got {len(names)}")
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"robot_names: expected {A} distinct names, got {', '.join(map(repr, twice))} more than once")
+        strangers = sorted(set(self.pose_types) - set(names))
+        if strangers:  # an entry for a robot that may join later is allowed; a typo is far likelier
+            close = {r: closest(r, names) for r in strangers}
+            self.get_logger().warning(
+                "pose_types: " + "; ".join(f"{r!r} is not a robot of the mission"
+                                           + (f" (did you mean {close[r]!r}?)" if close[r] else "")
+                                           for r in strangers)
+                + f"; its robots are {_names(names)}. The entry applies only if a robot of that name joins")
         if not clock_topic.startswith("/") or clock_topic.rstrip("/") == "/clock":
             raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {clock_topic!r}")
         # KeystoreError (a ValueError, one line naming the file and field) is a user error
@@ -169,6 +179,7 @@ class TaskBoard(Node):
                                rules=rules)
 
         self.t_created = time.monotonic()
+        self.failure: str | None = None  # why the finished mission failed
         self._rej_tokens = self.rejection_rate  # token bucket of logged/published rejections
         self._rej_time = time.monotonic()
         self._rej_quiet = 0  # rejections counted but neither logged nor published since the last summary
@@ -423,6 +434,7 @@ class TaskBoard(Node):
 
     def _finish(self) -> None:
         sol = self.board.result()
+        self.failure = None if sol.success else str(sol.extra.get("failure") or "the mission did not succeed")
         if self.output:
             sol.save(self.output)
         self.pub_result.publish(result_to_msg(sol.to_dict()))
@@ -430,6 +442,20 @@ class TaskBoard(Node):
         self.get_logger().info(sol.summary() + (f"; lost {sol.extra['lost_robots']}, undone tasks "
                                                 f"{sol.extra['undone_tasks']}" if lost else "")
                                + (f"; wrote {self.output}" if self.output else ""))
+        if self.failure is not None:
+            self.get_logger().error(f"mission failed: {self.failure} (exit status 3)")
+
+    def exit_status(self) -> int:
+        """0, or 3 when the mission finished and failed (as ``hmrta solve`` and ``hmrta-mission``)."""
+        return 3 if self.failure is not None else 0
+
+    def stopped(self, sig: str) -> str:
+        """The log line of a board stopped by a signal."""
+        b = self.board
+        if b.finished:
+            return f"stopped by {sig} (the mission had finished)"
+        return (f"stopped by {sig} before the mission finished: t={b.clock:.3f}, {b.state.n_done}/{b.state.M} tasks "
+                f"done, phase {b.phase}" + (f"; the journal {b.journal.path} resumes it" if b.journal else ""))
 
     def _exit(self) -> None:
         self._exit_timer.cancel()
@@ -459,18 +485,23 @@ def _deeper(qos: QoSProfile, depth: int) -> QoSProfile:
                       durability=qos.durability)
 
 
-def main(args: list[str] | None = None) -> None:
+def _names(names: list[str]) -> str:
+    return ", ".join(names) if len(names) <= 8 else f"{', '.join(names[:6])}, ..., {names[-1]}"
+
+
+def main(args: list[str] | None = None) -> int:
+    """Exit status: 0, 2 a user error, 3 the mission finished and failed, 130 Ctrl-C at start-up."""
     argv = sys.argv if args is None else args
     from hmrta_msgs_py.params import node_parameters
     from hmrta_msgs_py.runtime import help_requested
 
     help_requested(argv, "task_board", __doc__.split("\n\n")[0], node_parameters("task_board"))
-    rclpy.init(args=argv)
     # a bad mission file, policy or parameter is a user error
-    with starting("task_board", (InstanceError, MethodError, JournalError, ValueError)):
+    with starting("task_board", (InstanceError, MethodError, JournalError, ValueError), args=argv):
         board = TaskBoard()
-    spin_nodes([board], until=board.done if board.exit_on_done else None)
+    spin_nodes([board], until=board.done if board.exit_on_done else None, stopped=board.stopped)
+    return board.exit_status()
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -93,6 +93,8 @@ SIM_ROBOT: tuple[Param, ...] = (
     Param("heartbeat_period", DOUBLE, 1.0, "wall seconds between pose and clock heartbeats"),
     Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic to publish (rosgraph_msgs/Clock); never /clock"),
     Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
+    Param("board_silence_warning", DOUBLE, 10.0,
+          "wall seconds without hearing the task board before a warning (repeated every 3 x as long; 0: never)"),
 )
 
 AGENT_NODE: tuple[Param, ...] = (
@@ -104,6 +106,8 @@ AGENT_NODE: tuple[Param, ...] = (
     Param("keystore", STRING, "", "mission keystore folder: sign with the hosted robots' keys (empty: unsigned)"),
     Param("key_file", STRING, "", "one robot's key file (robots/<robot>.key.json) to sign with"),
     Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic (goals are sent when it passes their departure)"),
+    Param("board_silence_warning", DOUBLE, 10.0,
+          "wall seconds without hearing the task board before a warning (repeated every 3 x as long; 0: never)"),
 )
 
 RECORDER: tuple[Param, ...] = (

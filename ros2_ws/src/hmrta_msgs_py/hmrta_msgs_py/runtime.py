@@ -2,9 +2,16 @@
 from __future__ import annotations
 
 import contextlib
+import difflib
 import os
 import random
+import re
+import signal
 import sys
+import threading
+import time
+import warnings
+from pathlib import Path
 from typing import Callable
 
 import rclpy
@@ -32,24 +39,164 @@ def local_env(env: dict[str, str] | None = None, domain_id: int | None = None) -
 
 
 @contextlib.contextmanager
-def starting(prog: str, user_errors: tuple[type[BaseException], ...] = (ValueError,)):
-    """Around a node's construction (rclpy initialised): a user error (one of ``user_errors``, or
-    a parameter of the wrong type) is one line on stderr and exit 2; Ctrl-C while it loads the
-    mission or the policy is one line and exit 130. Either way rclpy is shut down."""
-    from rclpy.exceptions import InvalidParameterTypeException
+def starting(prog: str, user_errors: tuple[type[BaseException], ...] = (ValueError,), args: list[str] | None = None):
+    """Around a node process's start-up: rclpy initialised on the command line ``args`` (None:
+    the caller initialised it), then the body (the nodes' construction). A user error (one of
+    ``user_errors``, a malformed ``--ros-args`` argument, a parameter of the wrong type) is one
+    line on stderr and exit 2; Ctrl-C is one line and exit 130. Either way rclpy is shut down.
+
+    rclpy's own SIGINT / SIGTERM handlers are not installed: a Ctrl-C here is a plain
+    KeyboardInterrupt, never a context shut down under a node being built (an RCLError, or a C++
+    abort); :func:`spin_nodes` handles the signals once the nodes spin."""
+    from rclpy.exceptions import InvalidParameterTypeException, NameValidationException
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+    from rclpy.signals import SignalHandlerOptions
 
     try:
-        yield
-    except (InvalidParameterTypeException, *user_errors) as e:
-        hint = (" (a number parameter needs a decimal point: -p NAME:=10.0, not 10)"  # ROS reads 10 as an integer
-                if isinstance(e, InvalidParameterTypeException) else "")
-        print(f"{prog}: {e}{hint}", file=sys.stderr)
-        rclpy.try_shutdown()
-        raise SystemExit(2) from None
+        try:
+            if args is not None:
+                check_ros_args(args)
+                rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+            yield
+        except _rclpy.RCLError as e:
+            text = ros_error_text(str(e), args or [])
+            if text is None:
+                raise
+            raise RosArgsError(text) from None
+        except NameValidationException as e:  # a bad name or namespace (rclpy validates after rcl refused it)
+            raise RosArgsError(f"--ros-args: {e}") from None
     except KeyboardInterrupt:
         print(f"{prog}: interrupted during start-up", file=sys.stderr)
         rclpy.try_shutdown()
         raise SystemExit(130) from None
+    except (InvalidParameterTypeException, RosArgsError, *user_errors) as e:
+        text = parameter_type_text(str(e)) if isinstance(e, InvalidParameterTypeException) else str(e)
+        print(f"{prog}: {text}", file=sys.stderr)
+        rclpy.try_shutdown()
+        warnings.simplefilter("ignore")  # rclpy's warnings about the node it failed to build
+        raise SystemExit(2) from None
+
+
+class RosArgsError(ValueError):
+    """A malformed ``--ros-args`` argument (one line naming it)."""
+
+
+# what each kind of --ros-args argument rcl failed to parse should look like
+_ROS_ARG_FORMS = {
+    "parameter override rule": "expected -p NAME:=VALUE (VALUE in YAML: 10, 10.0, true, text, '[a, b]')",
+    "remap rule": "expected -r FROM:=TO (a namespace is absolute: -r __ns:=/robot_1)",
+    "params file": "expected --params-file FILE, a readable YAML file of NODE: {ros__parameters: {NAME: VALUE}}",
+    "log level": "expected --log-level LEVEL or NAME:=LEVEL (LEVEL: debug, info, warn, error, fatal)",
+    "enclave": "expected -e /ENCLAVE (an absolute name)",
+}
+
+
+def check_ros_args(args: list[str]) -> None:
+    """RosArgsError (one line naming the argument) if ``args`` has a ``--ros-args`` argument rcl
+    cannot parse, or a node namespace that is not absolute; else nothing. Starts nothing."""
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+    from rclpy.utilities import remove_ros_args
+
+    from rclpy.exceptions import NameValidationException
+    from rclpy.validate_namespace import validate_namespace
+    from rclpy.validate_node_name import validate_node_name
+
+    for kind, name in _name_remaps(args):  # before rcl, which logs a warning of its own for a bad one
+        if kind == "__ns" and not name.startswith("/"):
+            raise RosArgsError(f"--ros-args: -r __ns:={name}: expected an absolute namespace such as "
+                               f"/{name or 'robot_1'}")
+        try:
+            (validate_namespace if kind == "__ns" else validate_node_name)(name)
+        except NameValidationException as e:
+            why = re.sub(r"^Invalid [\w ]+: ", "", str(e).splitlines()[0]).rstrip(":")
+            example = "a namespace such as /robot_1" if kind == "__ns" else "a node name such as agent"
+            raise RosArgsError(f"--ros-args: -r {kind}:={name}: expected {example} ({why})") from None
+    try:
+        remove_ros_args(args)
+    except _rclpy.RCLError as e:
+        raise RosArgsError(ros_error_text(str(e), args) or f"--ros-args: {_first_error(str(e))}") from None
+
+
+def without_ros_args(prog: str, argv: list[str]) -> list[str]:
+    """``argv`` without its ROS arguments (for a node's own argparse, before rclpy starts); a
+    malformed one is one line on stderr and exit 2."""
+    from rclpy.utilities import remove_ros_args
+
+    try:
+        check_ros_args(argv)
+    except RosArgsError as e:
+        print(f"{prog}: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    return remove_ros_args(argv)
+
+
+def _name_remaps(args: list[str]) -> list[tuple[str, str]]:
+    """(``__ns`` or ``__node``, value) of the ``-r [NODE:]__ns:=NS`` and ``-r [NODE:]__node:=NAME``
+    remappings in the ``--ros-args`` sections of ``args``."""
+    out, ros, i = [], False, 0
+    while i < len(args):
+        a = args[i]
+        if a == "--ros-args":
+            ros = True
+        elif a == "--":
+            ros = False
+        elif ros and a in ("-r", "--remap") and i + 1 < len(args):
+            i += 1
+            src, sep, dst = args[i].partition(":=")
+            kind = src.rpartition(":")[2]
+            if sep and kind in ("__ns", "__node"):
+                out.append((kind, dst))
+        i += 1
+    return out
+
+
+def _first_error(text: str) -> str:
+    """rcl's error text without the source locations (', at FILE:LINE')."""
+    return re.split(r", at /\S+:\d+", text)[0]
+
+
+def ros_error_text(text: str, args: list[str]) -> str | None:
+    """One line for an rcl error about the command line (an argument it cannot parse, a node
+    name or namespace it refuses), or None for any other rcl error."""
+    m = re.search(r"Couldn't parse (.+?): '(.*?)'\. Error: (.*)", text)
+    if m:
+        kind, arg, why = m.groups()
+        why = _first_error(why)
+        form = _ROS_ARG_FORMS.get(kind, f"rcl: {why}")
+        detail = f" ({why})" if kind == "params file" and "error not set" not in why else ""
+        return f"--ros-args: cannot parse {arg!r}: {form}{detail}"
+    if "error creating node" in text and ("namespace" in text or "node name" in text):
+        why = _first_error(text.split("error creating node: ", 1)[1]).replace("node name must", "a name must")
+        ns = [v for k, v in _name_remaps(args) if k == "__ns"]
+        return f"--ros-args: -r __ns:={ns[-1]}: {why}" if ns else f"--ros-args: {why}"
+    return None
+
+
+_PARAM_TYPES = {"BOOL": "a boolean", "INTEGER": "an integer", "DOUBLE": "a decimal number",
+                "STRING": "a string", "BYTE_ARRAY": "a list of bytes", "BOOL_ARRAY": "a list of booleans",
+                "INTEGER_ARRAY": "a list of integers", "DOUBLE_ARRAY": "a list of decimal numbers",
+                "STRING_ARRAY": "a list of strings", "NOT_SET": "nothing"}
+
+
+def parameter_type_text(text: str) -> str:
+    """rclpy's InvalidParameterTypeException text as one line naming the parameter, the type it
+    expects and what it got; a double given as an integer is told to add the decimal point."""
+    m = re.match(r"Trying to set parameter '(.+?)' to '(.*)' of type '(\w+)', expecting type '(?:Type\.)?(\w+)'",
+                 text, re.S)
+    if not m:
+        return text
+    name, value, got, want = m.groups()
+    if got == "BOOL":
+        value = value.lower()  # as it was written
+    wanted = "a boolean (true or false)" if want == "BOOL" else _PARAM_TYPES.get(want, want.lower())
+    out = f"{name}: expected {wanted}, got {value} ({_PARAM_TYPES.get(got, got.lower())})"
+    if want == "DOUBLE" and got == "INTEGER":  # ROS reads 10 as an integer
+        out += f"; write it with a decimal point: -p {name}:={value}.0"
+    elif want == "STRING":  # YAML typed it
+        out += f"; quote it to pass it as text: -p '{name}:=\"{value}\"'"
+    elif want == "STRING_ARRAY" and got.endswith("_ARRAY"):
+        out += f"; quote the items: -p '{name}:=[\"a\", \"b\"]'"
+    return out
 
 
 def declare_method_parameters(node) -> tuple[str, dict]:
@@ -61,13 +208,19 @@ def declare_method_parameters(node) -> tuple[str, dict]:
 
     from .params import method_parameters
 
+    from hmrta.methods import MethodError, live_options
+
     method_param, *option_params = method_parameters()
     method = node.declare_parameter(method_param.name, method_param.default).value
     opts = {}
     for p in option_params:
         value = node.declare_parameter(p.name, p.default).value
         if value != p.default:  # ROS has no None: the default stands for "not given"
-            opts[p.name] = value
+            # checked even when the method does not take it, so that every node refuses the same values
+            try:
+                opts[p.name] = live_options()[p.name].coerce(method, value)
+            except MethodError as e:
+                raise MethodError(str(e).replace(f"{method}: option ", "", 1)) from None
     # the spec's shorthand and own checkpoint (rl-s5: sampled decisions, live one per turn; rl@broad)
     name, options = live_spec(method, opts)
     return name, options
@@ -107,25 +260,128 @@ def make_executor():
     return SingleThreadedExecutor()
 
 
-def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], None] | None = None) -> None:
+def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], None] | None = None,
+               stopped: Callable[[str], str] | None = None) -> str | None:
     """Spin nodes on one executor until ``until`` completes, Ctrl-C / SIGTERM or external
-    shutdown; then destroy the nodes and shut rclpy down (ros2/demos style).
+    shutdown; then destroy the nodes and shut rclpy down (ros2/demos style). Returns the name of
+    the signal that stopped it (SIGINT, SIGTERM), or None.
 
-    Spins in bounded slices: the experimental events executor busy-waits and ignores signals
-    when asked to spin without a timeout."""
+    First warns about parameters given that no node declares. A signal before ``until`` is done
+    is logged as one line (``stopped(signal)``, if given, says what was left undone).
+    Spins in bounded slices (a signal is acted on within 0.5 s): the experimental events
+    executor busy-waits and ignores signals when asked to spin without a timeout."""
+    warn_unknown_parameters(nodes)
     executor = make_executor()
     for n in nodes:
         executor.add_node(n)
     until = until if until is not None else Future()
+    signals = _stop_on_signals()
     try:
-        while rclpy.ok() and not until.done():
+        while rclpy.ok() and not until.done() and "signal" not in signals:
             executor.spin_until_future_complete(until, timeout_sec=0.5)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        sig = signals.get("signal")
+        if sig is not None and not until.done() and nodes:
+            text = stopped(sig) if stopped is not None else f"stopped by {sig}"
+            nodes[0].get_logger().info(text)
         if on_exit is not None:
             on_exit()
         for n in nodes:
             n.destroy_node()
         executor.shutdown()
         rclpy.try_shutdown()
+    return sig
+
+
+def _stop_on_signals() -> dict[str, str]:
+    """Handle SIGINT and SIGTERM while the nodes spin: the first one is noted (``signal``: its
+    name) and ends the spin after the callback running now, the context still valid (the stop is
+    logged and the nodes are destroyed cleanly); a second one raises KeyboardInterrupt at once.
+    Returns the dict that gets ``signal``. In a thread other than the main one: nothing."""
+    from rclpy.signals import SignalHandlerOptions, get_current_signal_handlers_options, uninstall_signal_handlers
+
+    got: dict[str, str] = {}
+    if threading.current_thread() is not threading.main_thread():
+        return got
+    if get_current_signal_handlers_options() != SignalHandlerOptions.NO:
+        uninstall_signal_handlers()  # rclpy's would shut the context down under the nodes
+
+    def noted(sig: int, frame) -> None:
+        if "signal" in got:
+            raise KeyboardInterrupt
+        got["signal"] = signal.Signals(sig).name
+
+    signal.signal(signal.SIGINT, noted)
+    signal.signal(signal.SIGTERM, noted)
+    return got
+
+
+def unknown_parameters(node) -> list[tuple[str, str | None]]:
+    """(name, closest declared name or None) of every parameter given to ``node`` (``-p``, a
+    parameters file, overrides) that it does not declare."""
+    given = set(getattr(node, "_parameter_overrides", {}) or {})  # rclpy keeps no public list of them
+    declared = set(node._parameters) if hasattr(node, "_parameters") else set()
+    return [(name, closest(name, declared)) for name in sorted(given - declared)]
+
+
+def closest(name: str, names) -> str | None:
+    """The one name of ``names`` most like ``name`` (a likely misspelling), or None: none is
+    close, or several are equally close."""
+    scored = sorted(((difflib.SequenceMatcher(None, name, n).ratio(), n) for n in set(names)), reverse=True)
+    if not scored or scored[0][0] < 0.6 or (len(scored) > 1 and scored[1][0] == scored[0][0]):
+        return None
+    return scored[0][1]
+
+
+def warn_unknown_parameters(nodes: list) -> None:
+    """Warn once per process about each parameter given that its nodes do not declare (rclpy
+    ignores them silently), naming the closest declared one and the node that has it, if any."""
+    from .params import NODES, node_parameters
+
+    seen: set[str] = set()
+    for n in nodes:
+        for name, close in unknown_parameters(n):
+            if name in seen:
+                continue
+            seen.add(name)
+            others = [k for k in NODES if any(p.name == name for p in node_parameters(k))]
+            hint = (f"; did you mean {close}?" if close else "") + (f" ({name} is a parameter of {', '.join(others)})"
+                                                                     if others else "")
+            n.get_logger().warning(f"unknown parameter {name!r} ignored: {n.get_fully_qualified_name()} has no such "
+                                   f"parameter{hint} (see {Path(sys.argv[0]).stem or n.get_name()} --help)")
+
+
+class BoardSilence:
+    """When to warn that no task board is heard: ``after`` wall seconds without a message from
+    it, then every 3 x ``after`` while the silence lasts (``after`` 0: never)."""
+
+    def __init__(self, after: float, now: Callable[[], float] = time.monotonic):
+        self.after, self.now = after, now
+        self.since = now()  # the start, or the latest message heard
+        self.ever = False  # whether a board was heard at all
+        self.due = after
+
+    def heard(self) -> None:
+        self.since, self.ever, self.due = self.now(), True, self.after
+
+    def check(self, version: int | None = None) -> str | None:
+        """The warning to log now, or None."""
+        quiet = self.now() - self.since
+        if self.after <= 0 or quiet < self.due:
+            return None
+        self.due += 3 * self.after
+        if not self.ever:
+            env = os.environ
+            from .topics import BOARD, MISSION
+
+            return (f"no task board heard for {quiet:.0f} s (nothing on {MISSION} or {BOARD}): is task_board "
+                    f"running, with the same "
+                    f"ROS_DOMAIN_ID ({env.get('ROS_DOMAIN_ID') or 'unset: 0'}) and {DISCOVERY_VAR} "
+                    f"({env.get(DISCOVERY_VAR) or 'unset: SUBNET'}) as this process? Still waiting")
+        return (f"the task board has not been heard for {quiet:.0f} s"
+                + (f" (its latest version {version})" if version is not None else "")
+                + ": it stopped, or the network to it is down; still waiting (a board restarted on its journal "
+                  "resumes the mission)")
+

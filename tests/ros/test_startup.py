@@ -1,0 +1,258 @@
+"""How the node executables start and stop for a ROS user: Ctrl-C at any moment of start-up,
+malformed ``--ros-args``, parameters of the wrong type or unknown ones, exit statuses (a refusing
+agent, a failed mission, a stopped board) and the warning when no board is heard. Real
+executables over real DDS, each test on its own ROS domain."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import save_instance
+from hmrta.generators import ScenarioGenerator
+
+pytest.importorskip("rclpy")
+
+ROOT = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+EXAMPLE = ROOT / "policy" / "hmrta" / "data" / "example.yaml"
+NODES = ("task_board", "agent_node", "sim_robot", "recorder")
+
+
+def _env(domain: int, tmp_path: Path) -> dict[str, str]:
+    return dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain),
+                ROS_LOG_DIR=str(tmp_path / "ros_logs"))
+
+
+class Proc:
+    """One executable, its stdout and stderr in a log file."""
+
+    def __init__(self, exe: str, args: list[str], env: dict[str, str], log: Path):
+        self.exe, self.log = exe, log
+        self._fh = open(log, "w")
+        self.proc = subprocess.Popen([str(BIN / exe), *args], stdout=self._fh, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, env=env)
+
+    def text(self) -> str:
+        return self.log.read_text(errors="replace")
+
+    def wait_for(self, text: str, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while text not in self.text():
+            if self.proc.poll() is not None and text not in self.text():
+                raise AssertionError(f"{self.exe} exited ({self.proc.returncode}) without {text!r}:\n{self.text()}")
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{self.exe}: no {text!r} after {timeout:g} s:\n{self.text()}")
+            time.sleep(0.1)
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        rc = self.proc.wait(timeout=timeout)
+        self._fh.close()
+        return rc
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        self._fh.close()
+
+
+@pytest.fixture
+def start(tmp_path, domain):
+    """start(exe, *args) -> a running Proc on this test's domain; every one is killed at teardown."""
+    made: list[Proc] = []
+
+    def make(exe: str, *args: str, name: str | None = None) -> Proc:
+        p = Proc(exe, list(args), _env(domain, tmp_path), tmp_path / f"{name or exe}.log")
+        made.append(p)
+        return p
+
+    yield make
+    for p in made:
+        p.kill()
+
+
+# ---- 1. Ctrl-C during start-up ----------------------------------------------------------------
+def test_a_signal_before_the_nodes_spin_leaves_the_context_valid(tmp_path, domain):
+    """Between rclpy.init and spinning, rclpy's own handlers (which shut the context down under
+    the node being built: an RCLError, or a C++ abort) are not installed: SIGINT is a plain
+    KeyboardInterrupt, and starting() turns it into one line and exit 130."""
+    code = ("import os, signal, rclpy\n"
+            "from std_msgs.msg import String\n"
+            "from hmrta_msgs_py.runtime import starting\n"
+            "with starting('some_node', args=['some_node']):\n"
+            "    node = rclpy.create_node('n')\n"
+            "    try:\n"
+            "        os.kill(os.getpid(), signal.SIGINT)\n"
+            "    except KeyboardInterrupt:\n"
+            "        print('context ok:', rclpy.ok())\n"
+            "    node.create_publisher(String, 't', 10)\n"
+            "    os.kill(os.getpid(), signal.SIGINT)\n"
+            "    node.create_publisher(String, 'u', 10)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                       env=_env(domain, tmp_path))
+    assert r.stdout == "context ok: True\n", r.stdout + r.stderr
+    assert r.returncode == 130 and r.stderr == "some_node: interrupted during start-up\n", r.stderr
+
+
+@pytest.mark.parametrize("exe,args", [
+    ("task_board", ["--ros-args", "-p", f"instance:={EXAMPLE}"]),
+    ("agent_node", ["--ros-args", "-p", "robot:=robot_0"]),
+])
+def test_ctrl_c_at_any_moment_of_start_up_is_one_line(exe, args, tmp_path, domain):
+    """SIGINT from 0.15 s to 1.3 s after start: while the modules load, while the node is built
+    (rc 130, one line), or once it spins (rc 0, 'stopped by SIGINT'); never a traceback or an abort."""
+    outcomes = []
+    for k, delay in enumerate((0.15, 0.3, 0.4, 0.5, 0.6, 0.75, 0.9, 1.1, 1.3)):
+        log = tmp_path / f"{exe}_{k}.log"
+        with open(log, "w") as fh:
+            p = subprocess.Popen([str(BIN / exe), *args], stdout=fh, stderr=subprocess.STDOUT,
+                                 env=_env(domain, tmp_path))
+            time.sleep(delay)
+            p.send_signal(signal.SIGINT)
+            rc = p.wait(timeout=30)
+        out = log.read_text()
+        outcomes.append(rc)
+        assert "Traceback" not in out and "terminate called" not in out, f"SIGINT after {delay} s:\n{out}"
+        if rc == 130:
+            assert out.splitlines()[-1] in (f"{exe}: interrupted", f"{exe}: interrupted during start-up"), out
+        else:
+            assert rc == 0 and "stopped by SIGINT" in out, f"SIGINT after {delay} s: rc {rc}\n{out}"
+    print(f"{exe}: exit statuses {outcomes}")
+
+
+# ---- 2. malformed --ros-args ------------------------------------------------------------------
+@pytest.mark.parametrize("exe", NODES)
+@pytest.mark.parametrize("args,says", [
+    (["-p", "seed"], "cannot parse '-p seed': expected -p NAME:=VALUE"),
+    (["-p", "seed:="], "cannot parse '-p seed:=': expected -p NAME:=VALUE"),
+    (["-r", "__ns:=robot_1"], "-r __ns:=robot_1: expected an absolute namespace such as /robot_1"),
+    (["-r", "__ns:=/robot_1/"], "-r __ns:=/robot_1/: expected a namespace such as /robot_1"),
+    (["--params-file", "/no/such/params.yaml"], "cannot parse '--params-file /no/such/params.yaml': expected"),
+    (["-r", "goal_pose"], "cannot parse '-r goal_pose': expected -r FROM:=TO"),
+])
+def test_malformed_ros_args_are_one_line_user_errors(exe, args, says, tmp_path, domain):
+    r = subprocess.run([str(BIN / exe), "--ros-args", *args], capture_output=True, text=True, timeout=60,
+                       env=_env(domain, tmp_path))
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith(f"{exe}: --ros-args: ") and says in r.stderr, r.stderr
+    assert r.stdout == ""
+
+
+# ---- 4. parameters of the wrong type ----------------------------------------------------------
+@pytest.mark.parametrize("exe,arg,says", [
+    ("task_board", "scale:=2", "scale: expected a decimal number, got 2 (an integer); write it with a decimal "
+                               "point: -p scale:=2.0"),
+    ("task_board", "seed:=1.5", "seed: expected an integer, got 1.5 (a decimal number)"),
+    ("task_board", "queue_depth:=lots", "queue_depth: expected an integer, got lots (a string)"),
+    ("task_board", "wait_for_robots:=3", "wait_for_robots: expected a boolean (true or false), got 3 (an integer)"),
+    ("task_board", "frame_id:=true", "frame_id: expected a string, got true (a boolean); quote it"),
+    ("agent_node", "robot:=7", "robot: expected a string, got 7 (an integer); quote it"),
+    ("sim_robot", "time_scale:=1", "time_scale: expected a decimal number, got 1 (an integer); write it"),
+])
+def test_a_parameter_of_the_wrong_type_says_what_was_expected(exe, arg, says, tmp_path, domain):
+    extra = ["-p", f"instance:={EXAMPLE}"] if exe == "task_board" else []
+    r = subprocess.run([str(BIN / exe), "--ros-args", *extra, "-p", arg], capture_output=True, text=True,
+                       timeout=60, env=_env(domain, tmp_path))
+    assert r.returncode == 2 and r.stderr.startswith(f"{exe}: {says}"), r.stderr
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+    # the decimal-point hint only where it helps: a double parameter given an integer
+    assert ("decimal point" in r.stderr) == ("expected a decimal number, got" in says and "(an integer)" in says)
+
+
+# ---- 3. unknown parameters, 5. pose_types of strangers, 6. a board stopped by SIGTERM --------
+def test_unknown_parameters_are_warned_with_the_closest_name(tmp_path, start):
+    params = tmp_path / "params.yaml"
+    params.write_text("task_board:\n  ros__parameters:\n    progres_period: 1.0\n")
+    board = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "methd:=rl",
+                  "-p", 'pose_types:=["robot_99:Odometry", "robot_1:Odometry"]', "--params-file", str(params))
+    agent = start("agent_node", "--ros-args", "-p", "robot:=robot_0", "-p", "temprature:=0.2",
+                  "-p", "instance:=x.yaml")
+    board.wait_for("unknown parameter 'progres_period'", 60)
+    agent.wait_for("unknown parameter 'temprature'", 60)
+    assert board.stop(signal.SIGTERM) == 0 and agent.stop(signal.SIGINT) == 0
+    b, a = board.text(), agent.text()
+    assert "unknown parameter 'methd' ignored: /task_board has no such parameter; did you mean method?" in b, b
+    assert "unknown parameter 'progres_period' ignored" in b and "did you mean progress_period?" in b, b
+    assert "pose_types: 'robot_99' is not a robot of the mission" in b and "'robot_1' is not" not in b, b
+    assert "its robots are robot_0, robot_1" in b
+    assert "stopped by SIGTERM before the mission finished: t=0.000, 0/20 tasks done" in b, b
+    assert "did you mean temperature?" in a and "unknown parameter 'instance' ignored" in a, a
+    assert "(instance is a parameter of task_board)" in a and "stopped by SIGINT" in a, a
+    assert "Traceback" not in a + b
+
+
+# ---- 6. exit statuses -------------------------------------------------------------------------
+def test_a_board_whose_mission_failed_exits_3(tmp_path, start):
+    """No agent ever answers: every robot is dropped, no task can be done, the mission fails."""
+    inst = save_instance(ScenarioGenerator("SA-AT", 4, 2, 4, 2).instance(0, 0), tmp_path / "small.yaml")
+    out = tmp_path / "result.json"
+    board = start("task_board", "--ros-args", "-p", f"instance:={inst}", "-p", "wait_for_robots:=false",
+                  "-p", "heartbeat_timeout:=0.5", "-p", f"output:={out}")
+    assert board.proc.wait(timeout=60) == 3, board.text()
+    assert "mission failed: 4 task(s) cancelled" in board.text() and "(exit status 3)" in board.text()
+    assert out.exists()
+
+
+def test_agents_that_refuse_to_take_part_exit_2(tmp_path, start):
+    board = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}")
+    agents = {"species": start("agent_node", "--ros-args", "-p", "robot:=robot_0", "-p", "species:=1",
+                               name="species"),
+              "rules": start("agent_node", "--ros-args", "-p", "robot:=robot_1", "-p", "method:=random", name="rules"),
+              "joining": start("agent_node", "--ros-args", "-r", "__ns:=/robot_new", "-p", "species:=1",
+                               "-p", "method:=random", name="joining"),
+              "index": start("agent_node", "--ros-args", "-p", "robot:=robot_3", "-p", "index:=5", name="index")}
+    says = {"species": "robot 'robot_0' is species 1 but the mission lists it as species 0: not taking part",
+            "rules": "robot_1: method random runs under rules", "joining": "robot_new: method random runs under",
+            "index": "robot 'robot_3' (index 5) is not in mission example"}
+    for k, p in agents.items():
+        assert p.proc.wait(timeout=60) == 2, (k, p.text())
+        assert says[k] in p.text() and "stopping (exit status 2)" in p.text(), (k, p.text())
+    assert board.proc.poll() is None
+    assert board.stop(signal.SIGTERM) == 0
+
+
+# ---- 7. no board heard ------------------------------------------------------------------------
+def test_no_board_heard_and_a_board_gone_silent_are_warned(tmp_path, start):
+    agent = start("agent_node", "--ros-args", "-p", "robot:=robot_0", "-p", "board_silence_warning:=1.0")
+    sim = start("sim_robot", "--ros-args", "-p", "board_silence_warning:=1.0")
+    for p in (agent, sim):
+        p.wait_for("no task board heard for 1 s", 60)
+    assert "ROS_DOMAIN_ID" in agent.text() and "ROS_AUTOMATIC_DISCOVERY_RANGE (LOCALHOST)" in agent.text()
+    board = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "wait_for_robots:=true")
+    agent.wait_for("robot_0: agent 0 (species 0) of mission example", 60)
+    sim.wait_for("simulating 15 robot(s)", 60)
+    time.sleep(2.0)  # heard all along: no warning
+    for p in (agent, sim):
+        assert "has not been heard" not in p.text(), p.text()
+    board.kill()  # as if it crashed
+    for p in (agent, sim):
+        p.wait_for("the task board has not been heard for ", 30)
+        assert p.stop() == 0 and "Traceback" not in p.text()
+
+
+def test_hmrta_mission_takes_a_failed_mission_from_the_board_without_restarting_it(tmp_path, domain):
+    """A scenario loses every robot: the board finishes, fails and exits 3; the launcher reports
+    the failed mission (exit 3) and restarts nothing (the journal is on)."""
+    inst = save_instance(ScenarioGenerator("SA-AT", 4, 2, 4, 2).instance(0, 0), tmp_path / "small.yaml")
+    sc = tmp_path / "scenario.yaml"
+    sc.write_text("format: hmrta-scenario/1\n"
+                  f"instance: {str(inst)!r}\n"
+                  "events:\n" + "".join(f"  - {{t: 0.01, type: lose_robot, robot: {a}}}\n" for a in range(4)))
+    out = tmp_path / "mission.json"
+    r = subprocess.run([str(BIN / "hmrta-mission"), "--scenario", str(sc), "--method", "greedy", "--out", str(out),
+                        "--quiet", "--no-plot", "--domain-id", str(domain), "--agents-per-process", "4",
+                        "--timeout", "120"], capture_output=True, text=True, timeout=180,
+                       env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert r.returncode == 3, r.stdout + r.stderr
+    assert "restarted" not in r.stdout + r.stderr and "board process died" not in r.stdout + r.stderr
+    board_log = (tmp_path / "mission_logs" / "task_board.log").read_text()
+    assert "mission failed: " in board_log and "exit status 3" in board_log, board_log[-2000:]
+    assert out.exists()
