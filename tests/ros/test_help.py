@@ -103,6 +103,7 @@ def test_help_lists_parameters_and_exits_0(exe, node):
         assert "--method" in text and "--out" in text
         return
     assert "ROS parameters" in text
+    assert "[--ros-args -p NAME:=VALUE" in text.split("\n\n")[0], f"{exe} --help usage omits --ros-args"
     for p in P.node_parameters(node):
         assert f"\n  {p.name} ({p.type}, default {p.default!r}): " in text, f"{exe} --help lacks {p.name}"
 

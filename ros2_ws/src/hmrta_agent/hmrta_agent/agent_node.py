@@ -604,14 +604,17 @@ def main(args: list[str] | None = None) -> int:
     from hmrta_msgs_py.runtime import parameters_help, without_ros_args
 
     p = argparse.ArgumentParser(prog="agent_node", description=__doc__.split("\n\n")[0],
+                                usage="agent_node [-h] [--robots ROBOTS] [--heartbeat-period S] [--torch-threads N] "
+                                      "[--ignore-board-version V] [--ros-args -p NAME:=VALUE ... -r FROM:=TO ...]",
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="ROS parameters (--ros-args -p NAME:=VALUE):\n"
                                        + parameters_help(node_parameters("agent_node")))
     p.add_argument("--robots", type=robots_arg, default=None,
                    help="host several robots in this process (node /<robot>/agent each); default: one "
                         "robot named by -p robot:=NAME or by the namespace")
-    p.add_argument("--heartbeat-period", type=float, default=0.5, help="seconds between status messages")
-    p.add_argument("--torch-threads", type=int, default=1,
+    p.add_argument("--heartbeat-period", type=float, default=0.5, metavar="S",
+                   help="seconds between status messages")
+    p.add_argument("--torch-threads", type=int, default=1, metavar="N",
                    help="intra-op threads of the learned policy (decisions are small batches: one thread is "
                         "fastest, and several agent processes on one machine must not oversubscribe its cores)")
     p.add_argument("--ignore-board-version", type=int, action="append", default=[], metavar="V",
