@@ -530,6 +530,7 @@ class MissionBoard(BoardCore):
         self.finished = False
         self.restarts = 0  # times this mission's board was restarted on its journal
         self._started_wall: float | None = None  # a replayed mission: the wall clock (epoch) at its start
+        self._final_wall: float | None = None  # wall seconds from start to end, fixed when the mission is done
         self._key: tuple | None = None
         # the incremental arrival gate (see gate): the state it was computed on, each robot's
         # part, robots whose pose changed since, robots waiting for their leg's departure
@@ -639,6 +640,8 @@ class MissionBoard(BoardCore):
         self.version = int(rec["v"])
         self.clock = max(self.clock, float(rec.get("clock", 0.0)))
         self.finished = self.finished or rec.get("phase") == "done"
+        if rec.get("phase") == "done" and isinstance(rec.get("wall_seconds"), (int, float)):
+            self._final_wall = float(rec["wall_seconds"])  # resumed after the end: the mission's own time
         if "rev" in rec and int(rec["rev"]) != self.rev:
             raise ValueError(f"state revision {self.rev} after replay, the journal says {rec['rev']}")
         if "n_done" in rec and int(rec["n_done"]) != self.state.n_done:
@@ -1272,6 +1275,8 @@ class MissionBoard(BoardCore):
                                    "clock": float(self.clock)}
             if events:
                 rec["ev"] = events
+            if phase == "done":
+                rec["wall_seconds"] = self.wall_seconds()
             self.journal.append(rec, sync=bool(events) or phase == "done")
         if phase == "decide":
             self.released_at = self.now()  # latency: board update -> choice received
@@ -1324,12 +1329,23 @@ class MissionBoard(BoardCore):
                                    legs=self._legs, state_json=self._state_json)
 
     # ------------------------------------------------------------------------------------------
-    def result(self) -> Solution:
-        """The mission's hmrta-solution/1 (final once ``finished``)."""
-        st = self.state
+    def wall_seconds(self) -> float:
+        """Wall seconds of the mission: from its start (by the first board process, across
+        restarts) to now, or to its end once it is done (then fixed, also for a board resumed
+        on the finished journal later)."""
+        if self._final_wall is not None:
+            return self._final_wall
         wall = self.now() - (self.t_start or self.t_created)
         if self.restarts and isinstance(self._started_wall, (int, float)):  # since the first board process started it
             wall = max(wall, time.time() - self._started_wall)
+        if self.finished:
+            self._final_wall = wall = round(wall, 6)  # as the journal's done version keeps it
+        return wall
+
+    def result(self) -> Solution:
+        """The mission's hmrta-solution/1 (final once ``finished``)."""
+        st = self.state
+        wall = self.wall_seconds()
         sol = solution_from_state(st, self.method, self.seed, wall)
         alive = [a for a in range(st.A) if a not in self.lost]
         sol.extra.update({

@@ -348,10 +348,17 @@ def test_a_board_replayed_from_its_journal_continues_like_the_uninterrupted_miss
     assert [r["v"] for r in recs] == list(range(1, b2.version + 1))  # one line per version, none twice
     kinds = {e["type"] for r in recs for e in r.get("ev", ())}
     assert {"start", "choice", "arrival", "resume"} <= kinds
-    # a board that replays the finished mission ends at once with the same result
+    assert recs[-1]["phase"] == "done" and recs[-1]["wall_seconds"] == pytest.approx(sol.extra["mission_wall_seconds"],
+                                                                                      abs=1e-3)
+    # a board that replays the finished mission ends at once with the same result, ten minutes on:
+    # the mission's own wall time, not the time since it started
+    epoch[0] += 600.0
     b3 = started_board(journal=j)
     assert b3.finished and b3.state.done
-    same(b3.result(), sol)
+    again = b3.result()
+    same(again, sol)
+    assert again.extra["mission_wall_seconds"] == sol.extra["mission_wall_seconds"]
+    assert again.compute_seconds == sol.compute_seconds and again.extra["lost_robots"] == []
 
 
 def test_losses_are_journaled_and_replayed(tmp_path):
