@@ -626,6 +626,8 @@ class MissionState:
             while self.queue:
                 a = self.queue.pop()
                 mode = self.mode[a]
+                if mode == LOST:  # lost after it was queued (an event of the same instant): it never decides
+                    continue
                 if self._nothing_to_join():
                     # nothing left to join: go home for good
                     if mode in (FREE, WAIT):
@@ -647,7 +649,7 @@ class MissionState:
                 self.mode[a] = WAIT
             # no decider left at this instant
             self._deferred.clear()
-            if self.n_done + self.n_cancelled == self.M and not self.pending:
+            if self.n_done + self.n_cancelled == self.M and not self._events_ahead():
                 self._finish_episode()
                 return
             te = self.pending[0][0] if self.pending else math.inf  # next external event
@@ -694,7 +696,27 @@ class MissionState:
         self._requeue(freed)
         return True
 
+    def _events_ahead(self) -> bool:
+        """With every known task done or cancelled: whether scheduled events still belong to the
+        mission. Tasks to come (added, released) always do; robots joining or lost only until the
+        last robot is home. Those after it are dropped, logged as rejected: they would only push
+        the end (the makespan) to their own time."""
+        if not self.pending:
+            return False
+        if any(rec["type"] in ("add_task", "release") for _, _, rec in self.pending):
+            return True
+        alive = self.mode != LOST  # [A]
+        end = float(self.arrive[alive].max()) if alive.any() else -math.inf  # every robot is on its way home
+        if self.pending[0][0] <= end:
+            return True
+        for _, _, rec in sorted(self.pending):
+            self.log.append({**rec, "rejected": f"after the mission's end at {end:g} (every task done or cancelled, "
+                                                f"every robot home)"})
+        self.pending = []
+        return False
+
     def _requeue(self, freed: list[int]) -> None:
+        freed = [b for b in freed if self.mode[b] != LOST]  # freed, then lost at the same instant
         self.rng.shuffle(freed)
         waiting = np.flatnonzero(self.mode == WAIT)  # [W]
         waiting = waiting[np.lexsort((waiting, self.free_since[waiting]))].tolist()  # by (free_since, id)
@@ -876,7 +898,7 @@ class MissionState:
             waiting = [b for b in np.flatnonzero(self.mode == WAIT).tolist() if b not in queued]
             parked = [] if self._all_claimed() else [b for b in np.flatnonzero(self.mode == HOME).tolist()
                                                      if b not in queued]
-            order = [b for b in sorted(set(freed)) if b not in queued] + waiting + parked
+            order = [b for b in sorted(set(freed)) if b not in queued and self.mode[b] != LOST] + waiting + parked
             self.queue = order[::-1] + self.queue  # after the deciders already queued
             self._stall = False
             self._advance()

@@ -264,3 +264,60 @@ def test_apply_event_replays_a_journal():
     assert json.dumps(r.snapshot()) == json.dumps(s.snapshot())
     with pytest.raises(EventRejected, match="unknown type"):
         apply_event(r, {"type": "explode", "t": 0})
+
+
+def _one_skill(tasks, count=2):
+    return _inst(tasks, species=[{"traits": [1], "count": count, "depot": [0.0, 0.0]}], skills=1)
+
+
+def _decided_after(state, policy, t_lost, robot):
+    """Run the mission; the decisions robot ``robot`` is handed at or after ``t_lost``."""
+    seen = []
+    while not state.done:
+        if state.agent == robot and state.clock >= t_lost - 1e-12:
+            seen.append(state.clock)
+        state.step(policy(state))
+    return seen
+
+
+@pytest.mark.parametrize("case", ["completion", "cancellation", "join"])
+def test_a_robot_lost_when_an_event_of_the_same_instant_frees_it_never_decides_again(case):
+    """A loss at the instant another event frees the robot (its task completes, its task is
+    cancelled, it has just joined): the robot stays lost. It is never offered a decision, never
+    joins a task, and never drives home."""
+    tasks = [_t(0.2, 0.0, [1], 2.0), _t(0.0, 0.4, [2], 2.0), _t(0.6, 0.0, [1], 1.0)]
+    s = MissionState(_one_skill(tasks), seed=0, rules=GREEDY_RULES)
+    robot, t = 0, 3.0  # robot 0 reaches task 0 at 1.0 and finishes it at 3.0 (greedy, seed 0)
+    if case == "cancellation":
+        s.schedule({"type": "cancel_task", "t": t, "task": 0})
+    if case == "join":
+        s.schedule({"type": "add_agent", "t": t, "species": 0})
+        robot = 2
+    s.schedule({"type": "drop_agent", "t": t, "agent": robot})
+    assert _decided_after(s, Greedy(), t, robot) == []
+    assert s.mode[robot] == 4 and s.arrive[robot] <= t + 1e-9  # LOST, stopped at its loss
+    assert all(not (robot in s.members[m] and s.start[m] >= t) for m in range(s.M))
+    sol = solution_from_state(s, "greedy", 0, 0.0)
+    assert all(robot not in task["members"] or task["finish"] <= t + 1e-9 for task in sol.tasks if task["members"])
+
+
+def test_robot_events_after_the_mission_ended_do_not_push_its_end():
+    """Every task done and every robot home: a robot joining or lost later changes nothing, and
+    the makespan stays the mission's; the events are logged as rejected. Before the end they
+    apply (a loss on the way home stops the robot there); a task added later is still done."""
+    tasks = [_t(0.5, 0.0, [1, 0]), _t(0.0, 0.5, [0, 1])]
+    plain = _run(MissionState(_inst(tasks), seed=0, rules=GREEDY_RULES))
+    end = plain.makespan
+    s = MissionState(_inst(tasks), seed=0, rules=GREEDY_RULES)
+    s.schedule({"type": "add_agent", "t": 1000.0, "species": 0})
+    s.schedule({"type": "drop_agent", "t": 500.0, "agent": 0})
+    _run(s)
+    assert s.success and s.makespan == end and s.A == 3 - 0 and s.mode[0] != 4
+    assert [(r["type"], r["t"]) for r in s.log] == [("drop_agent", 500.0), ("add_agent", 1000.0)]
+    assert all("after the mission's end" in r["rejected"] for r in s.log)
+    # a loss before the end applies; a task added after it still extends the mission
+    s = MissionState(_inst(tasks), seed=0, rules=GREEDY_RULES)
+    s.schedule({"type": "add_task", "t": 100.0, "task": _t(0.5, 0.5, [1, 0])})
+    s.schedule({"type": "drop_agent", "t": 50.0, "agent": 0})
+    _run(s)
+    assert s.success and s.mode[0] == 4 and s.makespan > 100.0 and s.M == 3
