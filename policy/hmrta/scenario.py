@@ -191,9 +191,23 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
             rec.update(type="drop_agent", agent=r)
         records.append((rec["t"], i, rec))
     records.sort(key=lambda x: x[:2])
-    robots, lost = A, set()  # in the order the mission applies them: a robot is lost once, after it joined
+    # in the order the mission applies them: a robot is lost once, after it joined; a task is
+    # cancelled once, after it was added
+    robots, lost, added, cancelled = A, set(), set(), set()
     for t, i, rec in records:
-        if rec["type"] == "add_agent":
+        if rec["type"] == "add_task":
+            added.add(rec["name"])
+        elif rec["type"] == "cancel_task":
+            which = rec.get("name", rec.get("task"))
+            keys = ["events", i, "id"]
+            if "name" in rec and which not in added:
+                raise err(keys, f"events[{i}].id", f"task {which!r} is cancelled at t={t:g}, before its add_task "
+                                                   f"event (expected it after the task is added)")
+            if which in cancelled:
+                raise err(keys, f"events[{i}].id", f"task {which!r} is cancelled twice (expected each task "
+                                                   f"cancelled once)")
+            cancelled.add(which)
+        elif rec["type"] == "add_agent":
             robots += 1
         elif rec["type"] == "drop_agent":
             r, keys = rec["agent"], ["events", i, "robot"]

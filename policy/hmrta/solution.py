@@ -95,6 +95,12 @@ class Solution:
                     isinstance(dyn.get("max_response"), (int, float)) else "no task done")
             line += (f"\n  {resp}; tasks lost: {lost.get('cancelled', 0)} cancelled, "
                      f"{lost.get('unsatisfiable', 0)} unsatisfiable, {lost.get('rejected', 0)} additions rejected")
+            evs = dyn.get("events") if isinstance(dyn.get("events"), list) else []
+            other = [e for e in evs if isinstance(e, dict) and "rejected" in e and e.get("type") != "add_task"]
+            if other:  # a cancellation of a task already done, a robot event after the end, ...
+                first = other[0]
+                line += (f"\n  {len(other)} other event(s) not applied (first: {first.get('type')} at "
+                         f"t={first.get('t')}: {first.get('rejected')})")
         return line
 
 

@@ -152,10 +152,19 @@ def test_scenario_errors_name_the_field(event, message):
      "events[1].robot: expected a robot of the mission at t=0.5 (0..3), got 4: it is added later"),
     ([{"t": 1, "type": "lose_robot", "robot": 0}, {"t": 2, "type": "lose_robot", "robot": 0}],
      "events[1].robot: robot 0 is lost twice"),
+    ([{"t": 2, "type": "cancel_task", "id": "x"},
+      {"t": 5, "type": "add_task", "id": "x", "location": [0.3, 0.3], "requirements": [1, 0], "duration": 1}],
+     "events[0].id: task 'x' is cancelled at t=2, before its add_task event"),
+    ([{"t": 1, "type": "cancel_task", "id": 1}, {"t": 2, "type": "cancel_task", "id": 1}],
+     "events[1].id: task 1 is cancelled twice"),
+    ([{"t": 1, "type": "add_task", "id": "x", "location": [0.3, 0.3], "requirements": [1, 0], "duration": 1},
+      {"t": 3, "type": "cancel_task", "id": "x"}, {"t": 2, "type": "cancel_task", "id": "x"}],
+     "events[1].id: task 'x' is cancelled twice"),
 ])
-def test_robot_losses_are_checked_in_time_order(events, message):
+def test_robot_losses_and_cancellations_are_checked_in_time_order(events, message):
     """Events apply in time order, whatever their order in the file: a robot can be lost only once
-    it is in the mission, and only once (both were accepted and then logged as rejected)."""
+    it is in the mission, and only once; a task cancelled only after it is added, and only once
+    (each was accepted and then logged as rejected)."""
     import yaml
 
     d = {"format": "hmrta-scenario/1", "instance": yaml.safe_load(MISSION), "events": events}
@@ -261,3 +270,18 @@ def test_commands_that_would_drop_a_scenarios_events_refuse_it(scenario, tmp_pat
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "a scenario (a mission with timed events)" in err[0] and "events would be lost" in err[0]
     assert not (tmp_path / "conv.yaml").exists()
+
+
+def test_events_not_applied_are_named_in_the_summary(tmp_path):
+    """An event the mission could not take (a task already done when its cancellation comes, a
+    robot joining after the end) is listed in the solution and named in its summary line."""
+    (tmp_path / "mission.yaml").write_text(MISSION)
+    (tmp_path / "s.yaml").write_text("format: hmrta-scenario/1\ninstance: mission.yaml\nevents:\n"
+                                     "  - {t: 100.0, type: cancel_task, id: 0}\n"
+                                     "  - {t: 1000.0, type: add_robot, species: 0}\n")
+    sol = methods.solve(load_instance(tmp_path / "s.yaml"), "greedy", seed=0)
+    plain = methods.solve(load_instance(tmp_path / "mission.yaml"), "greedy", seed=0)
+    assert sol.success and sol.makespan == plain.makespan
+    rejected = [e for e in sol.extra["dynamic"]["events"] if "rejected" in e]
+    assert [e["type"] for e in rejected] == ["cancel_task", "add_agent"]
+    assert "2 other event(s) not applied (first: cancel_task at t=100.0: after the mission's end" in sol.summary()
