@@ -104,16 +104,21 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     return tuple(errs)
 
 
-def _load(path: str, static: str | None = None):
+def _load(path: str, static: str | None = None, releases: bool = False):
     """The mission in ``path``; with ``static`` (what the command does), a scenario (a mission with
-    timed events) is refused: the command would silently drop its events."""
+    timed events) is refused: the command would silently drop its events. So are tasks with
+    release times, unless ``releases`` (the command keeps or honours them)."""
     from .formats import load_instance
 
     inst = load_instance(path)
-    if static and inst.dynamic:
+    if static and inst.events:
         raise UserError(f"{path}: a scenario (a mission with timed events): {static}, so its events would be "
                         f"lost; give its mission file (the scenario's instance), or solve the scenario "
                         f"(hmrta solve / bench run its events)")
+    late = sum(t.release > 0 for t in inst.tasks)
+    if static and late and not releases:
+        raise UserError(f"{path}: {late} task(s) with a release time: {static}, which would take every task as "
+                        f"known at time 0; solve the mission instead (hmrta solve / bench honour release times)")
     return inst
 
 
@@ -343,7 +348,7 @@ def cmd_evaluate(args) -> int:
         raise UserError(f"{routes_arg}: with a folder of instances, expected a folder of <instance stem>.json routes")
     sols = []
     for f in files:
-        inst = _load(str(f), "evaluate re-simulates routes on a mission without events")
+        inst = _load(str(f), "evaluate re-simulates routes on a mission without events or release times")
         path = _matching(routes_arg, f, "routes") if routes_arg.is_dir() else routes_arg
         routes = read_routes(inst, path)  # RouteError naming the file (unreadable, not UTF-8, bad JSON, bad ids)
         try:
@@ -430,7 +435,9 @@ def cmd_convert(args) -> int:
     from .instance import atomic_write_text
 
     _writable("--out", args.out)
-    inst = _load(args.input, "hmrta-instance/1 holds no events")
+    inst = _load(args.input, "hmrta-instance/1 holds no events", releases=True)  # release times it holds
+    if Path(args.out).suffix.lower() == ".json":
+        raise UserError(f"--out {args.out}: convert writes hmrta-instance/1 YAML; give a .yaml file name")
     src = Path(args.input)
     cfg = src / "config.json" if src.is_dir() else src
     mapping = None
@@ -757,7 +764,8 @@ def cmd_bound(args) -> int:
                             f"solutions")
     work = []  # every instance and solution is read and checked before any bound is computed or printed
     for f in files:
-        inst = _load(str(f), "the bounds hold for a mission without events")
+        # release times only delay tasks: a bound without them still holds
+        inst = _load(str(f), "the bounds hold for a mission without events", releases=True)
         sols = []
         for p in sol_args:
             path = str(_matching(p, f, "solution") if p.is_dir() else p)

@@ -432,6 +432,10 @@ def dynamic_metrics(state) -> dict[str, Any]:
 def parse_routes(inst: Instance, data: Any, source: str = "routes") -> list[list[int]]:
     if not isinstance(data, dict) or "routes" not in data:
         raise RouteError(f"{source}: expected a JSON object with a 'routes' key")
+    if isinstance(data.get("dynamic"), dict):  # the routes of a mission with events
+        raise RouteError(f"{source}: the solution of a mission with events (tasks released, added or cancelled, "
+                         f"robots joining or lost): its routes do not replay on a mission known at time 0; its "
+                         f"schedule is the run itself (hmrta render draws it)")
     routes = data["routes"]
     A, M = inst.n_agents, inst.n_tasks
     if not isinstance(routes, list) or len(routes) != A:

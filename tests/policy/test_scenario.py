@@ -285,3 +285,34 @@ def test_events_not_applied_are_named_in_the_summary(tmp_path):
     rejected = [e for e in sol.extra["dynamic"]["events"] if "rejected" in e]
     assert [e["type"] for e in rejected] == ["cancel_task", "add_agent"]
     assert "2 other event(s) not applied (first: cancel_task at t=100.0: after the mission's end" in sol.summary()
+
+
+def test_release_times_are_kept_by_convert_and_bound_and_refused_by_evaluate(tmp_path, capsys):
+    """A mission whose tasks have release times is a mission file (hmrta-instance/1 holds them):
+    convert keeps them, bound bounds it (a release only delays a task), evaluate (which takes
+    every task as known at time 0) refuses it naming the release times; and evaluate refuses the
+    routes of a mission with events instead of miscounting them."""
+    import yaml
+
+    from hmrta.cli import main
+
+    d = yaml.safe_load(MISSION)
+    d["tasks"][1]["release"] = 5.0
+    (tmp_path / "rel.yaml").write_text(yaml.safe_dump(d))
+    assert main(["convert", str(tmp_path / "rel.yaml"), "--out", str(tmp_path / "out.yaml")]) == 0
+    assert load_instance(tmp_path / "out.yaml").tasks[1].release == 5.0
+    assert main(["bound", str(tmp_path / "rel.yaml")]) == 0
+    capsys.readouterr()
+    (tmp_path / "routes.json").write_text(json.dumps({"routes": [[], [], [], []]}))
+    assert main(["evaluate", str(tmp_path / "rel.yaml"), str(tmp_path / "routes.json")]) == 2
+    assert "1 task(s) with a release time" in capsys.readouterr().err
+    assert main(["convert", str(tmp_path / "rel.yaml"), "--out", str(tmp_path / "out.json")]) == 2
+    assert "give a .yaml file name" in capsys.readouterr().err and not (tmp_path / "out.json").exists()
+    # the solution of a scenario where a robot joined: named as such, not "expected 4 routes, got 5"
+    (tmp_path / "mission.yaml").write_text(MISSION)
+    (tmp_path / "s.yaml").write_text("format: hmrta-scenario/1\ninstance: mission.yaml\nevents:\n"
+                                     "  - {t: 1.0, type: add_robot, species: 0}\n")
+    assert main(["solve", str(tmp_path / "s.yaml"), "--method", "greedy", "--out", str(tmp_path / "sol.json")]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(tmp_path / "mission.yaml"), str(tmp_path / "sol.json")]) == 2
+    assert "the solution of a mission with events" in capsys.readouterr().err
