@@ -553,7 +553,8 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
             if with_bounds:
                 from .bounds import lower_bounds
 
-                bounds = [lower_bounds(inst)["best"] for _, inst in insts]
+                # a mission with events has none: a cancellation or a lost robot can undercut any bound
+                bounds = [None if inst.events else lower_bounds(inst)["best"] for _, inst in insts]
             per_method: dict[str, list[dict]] = {}
             for method in methods:
                 res = []
@@ -568,6 +569,8 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
                 per_method[method] = res
             if bounds is not None:  # best bound per instance: cheap bounds and every solver's proven bound
                 for i, b in enumerate(bounds):
+                    if b is None:
+                        continue
                     b = max([b] + [res[i].get("solver_bound") or 0.0 for res in per_method.values()])
                     for res in per_method.values():
                         if res[i]["success"]:

@@ -1012,8 +1012,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=1000, help="test-set seed of the generated rows (never used in "
                                                           "training/validation; not used on your missions)")
     add_method_arguments(b, methods_flag=True)
-    b.add_argument("--bounds", action="store_true", help="also report each method's gap to the best lower bound, "
-                                                                "(makespan - bound) / makespan as hmrta bound gives it")
+    b.add_argument("--bounds", action="store_true",
+                   help="also report each method's gap to the best lower bound, (makespan - bound) / makespan as "
+                        "hmrta bound gives it; none for missions with events")
     b.add_argument("--compare", action="append", default=None, metavar="A,B",
                    help="paired per-instance comparison of two methods (repeatable; default: rl,greedy and "
                         "rl,greedy-coalition when those methods run)")

@@ -265,3 +265,17 @@ def test_scenario_cache_identity_follows_the_events(tmp_path):
     (tmp_path / "scen.yaml").write_text(SCENARIO.replace("t: 3.0", "t: 3.5"))
     (ident_b, _), = MissionSet.load("x", [tmp_path / "scen.yaml"]).instances(1, 0)
     assert ident_a != ident_b
+
+
+def test_missions_with_events_have_no_gap_to_bound(tmp_path):
+    """A cancelled task or a lost robot can undercut any bound of the mission known at time 0:
+    bench --bounds gives such missions no gap (it gave one, and 0% for a mission whose tasks were
+    all cancelled)."""
+    from hmrta.bench import MissionSet
+
+    (tmp_path / "mission.yaml").write_text(MISSION)
+    (tmp_path / "scen.yaml").write_text(SCENARIO)
+    rows = [MissionSet.load("scen", [tmp_path / "scen.yaml"]), MissionSet.load("plain", [tmp_path / "mission.yaml"])]
+    s = run_bench(rows, ["greedy"], 1, 0, None, {}, progress=False, log=lambda s: None, with_bounds=True)
+    scen, plain = (r["results"]["greedy"]["gap_to_bound"] for r in s["rows"])
+    assert scen is None and plain is not None and plain[0] > 0
