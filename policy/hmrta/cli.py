@@ -307,6 +307,13 @@ def cmd_solve(args) -> int:
                                 f"{out / f'{f.stem}.json'} (rename one, or solve them into separate folders)")
             by_stem[f.stem] = f
     insts = [_load(str(f)) for f in files]  # every input is read before anything is solved or written
+    from .methods import MethodError, check_instance
+
+    for f, inst in zip(files, insts):  # and every one can be planned by the method
+        try:
+            check_instance(method, inst)
+        except MethodError as e:
+            raise MethodError(f"{f}: {e}") from None
     sols = []
     for f, inst in tqdm(list(zip(files, insts)), desc="solve", disable=not many or not _progress_on(args),
                         unit="instance", file=sys.stderr, delay=SolveProgress.DELAY):
@@ -523,6 +530,16 @@ def cmd_bench(args) -> int:
             rows[0].generator().generate(args.count, args.seed)
         except ValueError as e:
             raise UserError(str(e)) from None
+    from .methods import check_instance
+
+    for row in rows:  # your missions: every method can plan every one, before any work
+        if isinstance(row, bench.MissionSet):
+            for _, inst in row.instances(args.count, args.seed):
+                for m in methods:
+                    try:
+                        check_instance(m, inst)
+                    except MethodError as e:
+                        raise MethodError(f"{row.name} ({inst.name}): {e}") from None
     if not rows:  # --max-tasks below every row of the suite
         raise UserError(f"--max-tasks {args.max_tasks}: every row of --suite {args.suite}"
                         f"{' --tables ' + args.tables if args.tables else ''} has more tasks")

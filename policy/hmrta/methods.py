@@ -239,15 +239,23 @@ def check_options(method: str, options: dict[str, Any]) -> dict[str, Any]:
     return m.check(_merge(m, implied, options))
 
 
+def check_instance(method: str, inst) -> None:
+    """MethodError unless ``method`` can plan ``inst``: an offline solver cannot plan a mission
+    whose tasks or robots change over time."""
+    name = parse(method)[0]
+    m = get(name)
+    if m.decide is None and m.choose is None and getattr(inst, "dynamic", False):
+        raise MethodError(f"method {name} is an offline solver: it cannot plan a scenario whose tasks or robots "
+                          f"change over time (use greedy, greedy-coalition or an rl method)")
+
+
 def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **options: Any):
     """Solve ``inst`` with ``method`` (a name or shorthand) -> Solution (``sol.method`` = its label).
     ``progress`` (optional) is passed to solvers that report progress."""
     name, implied = parse(method)
     m = get(name)
     opts = check_options(method, options)
-    if m.decide is None and m.choose is None and getattr(inst, "dynamic", False):
-        raise MethodError(f"method {name} is an offline solver: it cannot plan a scenario whose tasks or robots "
-                          f"change over time (use greedy, greedy-coalition or an rl method)")
+    check_instance(method, inst)
     _needs(m)
     fn = _resolve(m.solve)
     if progress is not None and "progress" in inspect.signature(fn).parameters:

@@ -91,9 +91,18 @@ def test_the_solution_of_a_grown_mission_carries_the_mission_as_it_ended(scenari
     assert (tmp_path / "cli.png").stat().st_size > 10000
 
 
-def test_cpsat_refuses_a_scenario(scenario):
+def test_cpsat_refuses_a_scenario(scenario, tmp_path, capsys):
+    from hmrta.cli import main
+
     with pytest.raises(methods.MethodError, match="offline solver"):
         methods.solve(load_instance(scenario), "cpsat", seed=0)
+    # before any work: nothing solved or written for the missions given before it
+    mission = scenario.parent / "mission.yaml"
+    assert main(["solve", str(mission), str(scenario), "--method", "cpsat", "--out", str(tmp_path / "o")]) == 2
+    assert "offline solver" in capsys.readouterr().err and not (tmp_path / "o").exists()
+    assert main(["bench", str(scenario), "--methods", "greedy,cpsat", "--out", str(tmp_path / "b"),
+                 "--no-progress"]) == 2
+    assert "offline solver" in capsys.readouterr().err and not (tmp_path / "b").exists()
 
 
 def test_cli_solve_and_bad_file(scenario, tmp_path):
