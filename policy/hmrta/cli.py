@@ -237,11 +237,11 @@ class SolveProgress:
                 self.bar = tqdm(total=total, desc=self.desc, unit=unit or "it", delay=self.DELAY, leave=False,
                                 file=sys.stderr, bar_format=None if unit != "s" else
                                 "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s{postfix}")
-                if unit == "s":
-                    import threading
+                import threading
 
-                    self._ticker = threading.Thread(target=self._tick, daemon=True)
-                    self._ticker.start()
+                self._unit, self._t0 = unit, time.monotonic()
+                self._ticker = threading.Thread(target=self._tick, daemon=True)
+                self._ticker.start()
             if total is not None and self.bar.total != total:
                 self.bar.total = total
             self._last = (done, time.monotonic())
@@ -261,7 +261,10 @@ class SolveProgress:
         while not self._stop.wait(0.5):
             with self._lock:
                 done, at = self._last
-                self._advance(done + time.monotonic() - at)
+                if self._unit == "s":  # seconds of a time limit pass between the solver's calls
+                    self._advance(done + time.monotonic() - at)
+                elif time.monotonic() - self._t0 >= self.DELAY:  # shown, its elapsed time going, between calls
+                    self.bar.refresh()
 
     def close(self) -> None:
         self._stop.set()

@@ -222,6 +222,12 @@ def test_solve_progress_bar(monkeypatch, capsys):
         prog(0.0, 30.0, "s", "heuristic")
         time.sleep(1.2)
         assert 0.5 <= prog.bar.n < 30
+    capsys.readouterr()
+    monkeypatch.setattr(SolveProgress, "DELAY", 0.5)
+    with SolveProgress("lookahead y") as prog:  # a slow first decision: the bar shows after DELAY all the same
+        prog(0, 50, "task", "0 decisions")
+        time.sleep(1.5)
+    assert "lookahead y" in capsys.readouterr().err and prog.bar.n == 0
     with SolveProgress("off", enabled=False) as prog:
         prog(1, 2, "task")
         assert prog.bar is None
@@ -237,6 +243,7 @@ def test_solvers_report_progress():
     assert sol.success and calls
     assert all(unit == "task" and total == inst.n_tasks for _, total, unit, _ in calls)
     assert [c[0] for c in calls] == sorted(c[0] for c in calls) and calls[-1][0] == inst.n_tasks
+    assert calls[0][0] == 0  # called before the first decision (the slowest): a bar shows at once
     calls.clear()
     sol = solve(inst, "cpsat", time_limit=1.0, progress=lambda *a: calls.append(a))
     assert sol.success and calls[0][3].startswith("heuristic") and "makespan" in calls[-1][3]

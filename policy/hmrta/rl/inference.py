@@ -157,6 +157,8 @@ def solve_rl_lookahead(inst: Instance, seed: int = 0, checkpoint: str | None = N
     t0 = time.perf_counter()
     state = MissionState(inst, seed=seed, rules=pol.rules)
     decisions = 0
+    if progress is not None:  # before the first decision, the slowest (every branch runs the whole mission)
+        progress(0, inst.n_tasks, "task", "0 decisions")
     while not state.done:
         lookahead_step(pol.model, [state])
         decisions += 1
