@@ -335,17 +335,41 @@ def cmd_solve(args) -> int:
     return 0 if all(s.success for s in sols) else 3
 
 
+def _event_notes(sol) -> tuple[dict[int, str], dict[int, str]]:
+    """({task: why it was not done}, {robot: when it was lost}) from a dynamic solution's events."""
+    dyn = sol.extra.get("dynamic") if isinstance(sol.extra, dict) else None
+    if not isinstance(dyn, dict):
+        return {}, {}
+    names = dyn.get("names") or []
+    tasks, robots = {}, {}
+    for e in dyn.get("events") or []:
+        if not isinstance(e, dict) or "rejected" in e:
+            continue
+        if e.get("type") == "cancel_task":
+            m = names.index(e["name"]) if e.get("name") is not None and e["name"] in names else e.get("task")
+            if isinstance(m, int):
+                tasks[m] = f"cancelled at {e['t']:.2f}"
+        elif e.get("type") in ("drop_agent", "release"):
+            for m in e.get("cancelled") or []:
+                tasks[int(m)] = f"cancelled at {e['t']:.2f}: no longer satisfiable"
+            if e.get("type") == "drop_agent" and isinstance(e.get("agent"), int):
+                robots[e["agent"]] = f"lost {e['t']:.2f}"
+    return tasks, robots
+
+
 def schedule_text(inst, sol) -> str:
+    why, lost = _event_notes(sol)
     lines = [f"  {'task':>4}  {'start':>8}  {'finish':>8}  members"]
     for m, t in sorted(enumerate(sol.tasks), key=lambda x: (x[1]["start"] is None, x[1]["start"] or 0)):
         if t["start"] is None or t["start"] != t["start"]:
-            lines.append(f"  {m:>4}  {'—':>8}  {'—':>8}  (not done)")
+            lines.append(f"  {m:>4}  {'—':>8}  {'—':>8}  ({why.get(m, 'not done')})")
         else:
             lines.append(f"  {m:>4}  {t['start']:8.2f}  {t['finish']:8.2f}  {t['members']}")
     lines.append(f"  {'agent':>5}  species  return  route")
     for a, (info, r) in enumerate(zip(sol.agents, sol.routes)):
         rt = info["return_time"]
-        lines.append(f"  {a:>5}  {info['species']:>7}  {rt:6.2f}  {r}")
+        ret = lost.get(a) or (f"{rt:6.2f}" if isinstance(rt, (int, float)) and rt == rt else f"{'—':>6}")
+        lines.append(f"  {a:>5}  {info['species']:>7}  {ret:>6}  {r}")
     return "\n".join(lines)
 
 

@@ -531,3 +531,24 @@ def test_generate_caps_the_mission_and_the_set(tmp_path, capsys):
     _exit2([*row, "--tasks", "2000", "--count", "100000000", "--out", str(tmp_path / "b")], capsys,
            "at most 1,000,000 tasks in one set")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_schedule_names_cancelled_tasks_and_lost_robots(tmp_path, capsys):
+    """--schedule of a mission with events: a task not done says why (cancelled by the operator,
+    or no longer satisfiable after a loss), a lost robot shows when, and a failed mission prints
+    no 'nan' return times."""
+    (tmp_path / "m.yaml").write_text(
+        "format: hmrta-instance/1\nrequirement_type: additive\nvelocity: 0.2\nskills: 1\n"
+        "species: [{traits: [1], count: 2, depot: [0.0, 0.0]}]\n"
+        "tasks:\n  - {location: [0.2, 0.0], requirements: [1], duration: 2}\n"
+        "  - {location: [0.0, 0.4], requirements: [2], duration: 2}\n"
+        "  - {location: [0.6, 0.0], requirements: [1], duration: 1}\n")
+    (tmp_path / "s.yaml").write_text("format: hmrta-scenario/1\ninstance: m.yaml\n"
+                                     "events: [{t: 3.0, type: lose_robot, robot: 0}]\n")
+    assert main(["solve", str(tmp_path / "s.yaml"), "--method", "greedy", "--schedule"]) == 3  # task 1 lost
+    out = capsys.readouterr().out
+    assert "(cancelled at 3.00: no longer satisfiable)" in out and "lost 3.00" in out and "nan" not in out
+    (tmp_path / "c.yaml").write_text("format: hmrta-scenario/1\ninstance: m.yaml\n"
+                                     "events: [{t: 2.0, type: cancel_task, id: 2}]\n")
+    assert main(["solve", str(tmp_path / "c.yaml"), "--method", "greedy", "--schedule"]) == 0
+    assert "(cancelled at 2.00)" in capsys.readouterr().out
