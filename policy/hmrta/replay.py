@@ -17,6 +17,7 @@ mission clock messages recorded (``rosgraph_msgs/Clock`` topics, board headers).
 from __future__ import annotations
 
 import bisect
+import errno
 import json
 import math
 from dataclasses import dataclass, field
@@ -127,6 +128,8 @@ def _messages(path: Path) -> Iterator[tuple[str, str, int, Any]]:
     except ReplayError:
         raise
     except OSError as e:
+        if e.errno == errno.EINVAL:  # the reader seeks to a summary before the file's start: cut short
+            raise ReplayError(f"{path}: damaged or cut short MCAP (too short for its own index)") from None
         raise ReplayError(f"{path}: cannot read ({e.strerror or e})") from None
     except (McapError, ValueError, KeyError, EOFError, NotImplementedError) as e:
         raise ReplayError(f"{path}: damaged or unreadable MCAP ({' '.join(str(e).splitlines()) or type(e).__name__})") from None

@@ -227,3 +227,11 @@ def test_a_recording_path_that_is_no_file_says_what_it_is(tmp_path):
     for name, what in (("fifo.mcap", "not a regular file"), ("dir.mcap", "is a folder"), ("none.mcap", "no such file")):
         with pytest.raises(ReplayError, match=f"{name}: {what} .expected an MCAP recording.$"):
             read_recording(tmp_path / name)
+
+
+def test_a_cut_short_recording_is_named_damaged(tmp_path):
+    from hmrta.replay import MAGIC, ReplayError, read_recording
+
+    (tmp_path / "short.mcap").write_bytes(MAGIC + b"x" * 8)
+    with pytest.raises(ReplayError, match="short.mcap: damaged or cut short MCAP"):
+        read_recording(tmp_path / "short.mcap")
