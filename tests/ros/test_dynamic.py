@@ -110,3 +110,45 @@ def test_a_robot_joins_a_running_mission_by_starting_its_agent(tmp_path, domain,
     assert result["success"] and result["robots"][A:] == ["robot_new"], (tmp_path / "robot_new.log").read_text()
     assert len(result["routes"]) == A + 1 and result["routes"][A], "the robot that joined did no work"
     assert "robot_new joined the mission" in (tmp_path / "logs" / "task_board.log").read_text()
+
+
+def test_sim_robot_leaves_a_driven_joiner_to_its_driver_and_stops_a_lost_robot(graph):
+    """A robot that joins while another node already publishes its pose is a real robot: sim_robot
+    does not simulate it beside its driver (a second pose publisher would credit it with work it
+    never did); a joiner with no driver is simulated. A robot the board declares lost stops where
+    it is and takes no more goals."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from geometry_msgs.msg import PoseStamped
+
+    from hmrta.core import Rules
+    from hmrta_coordinator.sim_robot import SimRobot
+    from hmrta_msgs_py import topics
+    from hmrta_msgs_py.codec import Mission, mission_to_msg, pose_to_msg
+
+    inst = load_instance(EXAMPLE)
+    robots = tuple(f"robot_{a}" for a in range(inst.n_agents))
+    sim = SimRobot(context=graph.context, start_parameter_services=False, enable_rosout=False)
+    graph.nodes.append(sim)
+    graph.executor.add_node(sim)
+    driver = graph.node("driver_real")
+    driver.create_publisher(PoseStamped, topics.robot_topic("robot_real", topics.POSE), topics.POSE_PUB_QOS)
+    m = Mission("s1", inst, robots, 0, "greedy", rules=Rules())
+    sim.on_mission(mission_to_msg(m))
+    assert set(sim.robots) == set(robots)
+    graph.spin_until(lambda: sim.count_publishers(topics.robot_topic("robot_real", topics.POSE)) > 0, 20,
+                     "the driver's pose publisher to be discovered")
+    grown = dataclasses.replace(m, instance=dataclasses.replace(inst, added_agents=(0, 0), _cache={}),
+                                robots=robots + ("robot_real", "robot_sim"))
+    sim.on_mission(mission_to_msg(grown))
+    assert "robot_real" not in sim.robots and "robot_sim" in sim.robots
+    # lost: stopped where it was, further goals ignored
+    sim.synced, r = True, sim.robots["robot_0"]
+    sim._add_leg(r, 0.9, 0.9, 0.0)
+    sim.now = 1.0
+    here = r.position(1.0)
+    sim._follow(SimpleNamespace(version=3, horizon=1.0, phase="wait", lost=(0,), clock=1.0))
+    assert r.lost and r.legs == [] and r.position(50.0) == here
+    sim.on_goal(r, pose_to_msg((0.1, 0.1), 2.0, "map", 1.0))
+    assert r.legs == [] and r.position(50.0) == here

@@ -110,6 +110,8 @@ def test_a_robot_that_never_arrives_is_dropped_as_stuck_and_the_rest_finish(tmp_
     assert reason.startswith("stuck: no arrival at task ") and "np.float64" not in reason
     first = fake.goals[0]
     assert fake.goals.count(first) == 2  # the goal was re-sent once before the robot was dropped
+    # ... and then it was told to stop: a goal where it is (it never moved from its depot)
+    assert len(fake.goals) == 3 and math.dist(fake.goals[-1][:2], fake.pos) < 1e-6, fake.goals
     lost = ROBOTS.index(EXT)
     team = INST.traits[[a for a in range(INST.n_agents) if a != lost]].sum(0)
     for m in result["undone_tasks"]:

@@ -506,8 +506,7 @@ class AgentNode(Node):
             return
         a = self.index
         if a in board.lost:
-            self._warn_once("lost", f"{self.robot}: the board declared this robot lost; stopping")
-            return self._finish()
+            return self._stop_robot()
         entry = self.host.replica.legs(a, self.leg_seq)
         if entry is not None:
             self._take_legs(*entry)
@@ -575,6 +574,47 @@ class AgentNode(Node):
         self.get_logger().warning(f"{self.robot}: board {sent[0]} still waits for this robot's choice after "
                                   f"{RESEND_AFTER:g} s: sending it again", throttle_duration_sec=10.0)
         self._send(sent[0], sent[1], sent[2])
+
+    # seconds to wait for the robot's pose before giving up on stopping it, and for the stop goal to go out
+    STOP_POSE_WAIT, STOP_SEND_WAIT = 3.0, 0.5
+
+    def _stop_robot(self) -> None:
+        """The board declared this robot lost: it stops where it is, so its driver gets a goal at
+        its own latest pose (departing now) in place of the goal it may still be driving to; then
+        the agent ends. With no pose heard within STOP_POSE_WAIT s it ends without one (logged)."""
+        if self.finished or getattr(self, "_stopping", None) is not None:
+            return
+        self._stopping = time.monotonic()
+        self.pending = []  # no queued leg goes out after the stop
+        if self._pose is None and self.species_param < 0:  # not yet following its pose: from now on
+            self.create_subscription(PoseStamped, topics.POSE, self._on_pose, topics.POSE_SUB_QOS)
+        self._stop_timer = self.create_timer(0.1, self._try_stop)
+        self._try_stop()
+
+    def _try_stop(self) -> None:
+        m, waited = self.mission, time.monotonic() - self._stopping
+        if self._pose is not None and not getattr(self, "_stop_sent", False):
+            try:
+                x, y, _ = pose_from_msg(self._pose, m.scale)
+            except DecodeError:
+                x = y = None
+            if x is not None:
+                self.goal_pub.publish(pose_to_msg((x, y), self.host.clock, m.frame_id, m.scale))
+                self._stop_sent, self._stopping = True, time.monotonic()  # then a moment for it to go out
+                self.get_logger().warning(f"{self.robot}: the board declared this robot lost: goal set to where it "
+                                          f"is ({x:.3f}, {y:.3f}) to stop it; stopping")
+                return
+        if getattr(self, "_stop_sent", False):
+            if waited < self.STOP_SEND_WAIT:
+                return
+        elif waited < self.STOP_POSE_WAIT:
+            return
+        else:
+            self.get_logger().warning(f"{self.robot}: the board declared this robot lost; no pose heard from it "
+                                      f"within {self.STOP_POSE_WAIT:g} s, so it was not sent a stop (it may still "
+                                      f"drive to its last goal); stopping")
+        self._stop_timer.cancel()
+        self._finish()
 
     def _finish(self) -> None:
         if not self.finished and self.exit_on_done:

@@ -69,6 +69,7 @@ class SimulatedRobot:
     legs: list[Leg] = field(default_factory=list)  # in departure order; later goals replace later legs
     index: int = -1  # its agent index in the mission
     placed: bool = True  # a robot added during the mission: False until a board says where it is
+    lost: bool = False  # the board dropped it: it stays where it stopped and takes no more goals
     early: list = field(default_factory=list)  # goals received before it was placed
 
     def position(self, t: float) -> tuple[float, float]:
@@ -185,10 +186,17 @@ class SimRobot(Node):
     def _grown(self, m: Mission) -> None:
         """The mission was published again with robots added (a robot joined, a scenario's
         add_robot): simulate the new ones (those this node simulates), each from where the board
-        says it was added (its first leg's start in the board's state)."""
+        says it was added (its first leg's start in the board's state). A robot whose pose another
+        node already publishes is a real robot joining (its driver's): it is left to it."""
         old = set(self.mission.robots)
         self.mission = m
         new = [n for n in m.robots if n not in old and n not in self.external and (not self.only or n in self.only)]
+        driven = [n for n in new if self.count_publishers(topics.robot_topic(n, topics.POSE)) > 0]
+        if driven:  # a real robot joined: its driver already publishes its pose
+            self.get_logger().info(f"not simulating {', '.join(driven)}: joined with a pose published by another "
+                                   f"node (a driver)")
+            self.external.update(driven)
+            new = [n for n in new if n not in driven]
         for n in new:
             self._simulate(n, m.index(n), placed=False)
         if new:
@@ -273,6 +281,11 @@ class SimRobot(Node):
     def _follow(self, b) -> None:
         self._version = b.version
         self.horizon = max(self.horizon, b.horizon)
+        for r in self.robots.values():
+            if r.index in b.lost and not r.lost:  # a lost robot stops where it is (docs/semantics.md)
+                r.lost, r.base, r.legs = True, r.position(self.now), []
+                self.get_logger().info(f"{r.name}: lost on the board at t={self.now:.3f}: stopped at "
+                                       f"({r.base[0]:.3f}, {r.base[1]:.3f})")
         if b.phase == "done":
             self.advance(max(self.now, b.clock))
             if self.exit_on_done and not self.done.done():
@@ -325,6 +338,8 @@ class SimRobot(Node):
             return
         if not r.placed:
             r.early.append(msg)
+            return
+        if r.lost:
             return
         try:
             x, y, t = pose_from_msg(msg, self.mission.scale)
