@@ -45,6 +45,22 @@ def test_killed_board_is_restarted_on_its_journal_and_the_mission_equals_offline
     assert "restarted by hmrta-mission" in log and "resumed from journal" in log
 
 
+def test_a_board_stopped_by_a_plain_kill_is_restarted_on_its_journal(tmp_path, domain, graph, launched):
+    """SIGTERM (kill's default) stops the board cleanly, exit status 0, before the mission
+    finished: hmrta-mission restarts it on its journal like a crashed one, and the mission
+    completes as offline."""
+    launcher, out = launch(tmp_path, domain)
+    launched.append(launcher)
+    kill_mid_mission(graph, launcher, "hmrta_coordinator.task_board", 6, sig=signal.SIGTERM)
+    rc, so, se = finish(launcher, 90)
+    assert rc == 0, so + se
+    assert "board process stopped before the mission finished (exit status 0)" in se, se
+    result = json.loads(out.read_text())
+    assert result["success"] and result["board_restarts"] == 1
+    assert_same_as_offline(result)
+    assert "stopped by SIGTERM before the mission finished" in (tmp_path / "mission_logs" / "task_board.log").read_text()
+
+
 def test_a_board_stopped_longer_than_the_heartbeat_timeout_resumes_without_dropping_anyone(tmp_path, domain, graph,
                                                                                           launched):
     """SIGSTOP the board for three heartbeat timeouts, then SIGCONT: the heartbeats sent meanwhile

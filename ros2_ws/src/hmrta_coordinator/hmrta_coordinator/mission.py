@@ -366,12 +366,18 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
         while time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.1)
             rc = procs.board.proc.poll()
-            # exit code 2: the board refused its parameters (a user error): a restart would refuse them again;
+            if rc == 0 and seen["phase"] != "done":
+                for _ in range(10):  # its final version may still be on its way
+                    executor.spin_once(timeout_sec=0.02)
+            # exit code 0 before the end: stopped by a signal from outside (a plain kill), the mission unfinished;
+            # 2: the board refused its parameters (a user error): a restart would refuse them again;
             # 3: the mission finished and failed (the result is written)
-            if (rc is not None and rc not in (0, 2, 3) and procs.journal is not None
+            early = rc == 0 and seen["phase"] != "done"
+            if (rc is not None and (rc not in (0, 2, 3) or early) and procs.journal is not None
                     and procs.board.restarts < procs.max_restarts):
                 procs.board.restarts += 1
-                procs.incidents.append(f"board process died ({exit_text(rc)}){when()}; restarted on its journal "
+                what = "stopped before the mission finished (exit status 0)" if early else f"died ({exit_text(rc)})"
+                procs.incidents.append(f"board process {what}{when()}; restarted on its journal "
                                        f"({procs.board.restarts}/{procs.max_restarts})")
                 print(f"hmrta-mission: {procs.incidents[-1]}", file=sys.stderr, flush=True)
                 procs._respawn(procs.board, procs.incidents[-1])
