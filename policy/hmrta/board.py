@@ -1203,7 +1203,7 @@ class MissionBoard(BoardCore):
                         f"from the task")
                     late.append(f"{self.names[a]} at task {m} (starts t={float(st.start[m]):.3f} s, {where}, "
                                 f"task at {self._m(locs[m])}, tolerance {self.tolerance * self.scale:.2f} m)")
-        return (f"clock {self.clock:.3f} s, next decision at {float(st.clock):.3f} s; arrivals not confirmed: "
+        return (f"clock {self.clock:.3f} s, plan at {float(st.clock):.3f} s; arrivals not confirmed: "
                 f"{'; '.join(late[:10]) or 'none'}")
 
     def _target(self) -> tuple[str, int | None, float]:

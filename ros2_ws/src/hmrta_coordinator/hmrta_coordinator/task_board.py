@@ -143,6 +143,11 @@ class TaskBoard(Node):
                 raise ValueError(f"{k}: expected a finite number >= 0, got {v!r}")
         if queue_depth < 1:
             raise ValueError(f"queue_depth: expected a number of messages >= 1, got {queue_depth}")
+        if real_time and tolerance > 0.1 * scale:  # real robots; the mission area is scale x scale metres
+            self.get_logger().warning(
+                f"arrival_tolerance {tolerance:g} m is {100 * tolerance / scale:.0f}% of the mission area's side "
+                f"(scale {scale:g} m per mission unit): a robot that far from a task counts as there; set scale to "
+                f"your map's size in metres (or a smaller arrival_tolerance)")
         if not frame_id:
             raise ValueError("frame_id: expected the frame of the mission's coordinates (e.g. map), got ''")
         self.inst = inst = load_instance(path)
@@ -187,7 +192,8 @@ class TaskBoard(Node):
         self.done = Future()
         self._marker_key = None
         self._last_progress = 0.0
-        self._published_at = self._clock_at = time.monotonic()
+        self._published_at = self._clock_at = self._clock_heard = time.monotonic()
+        self.clock_topic = clock_topic
         self._streamed = 0  # the latest version published
 
         self.pub_mission = self.create_publisher(String, topics.MISSION, topics.MISSION_QOS)
@@ -380,6 +386,7 @@ class TaskBoard(Node):
             self._flush()
 
     def on_clock(self, msg: Clock) -> None:
+        self._clock_heard = time.monotonic()
         if self.board.set_clock(clock_from_msg(msg)):
             self._clock_at = time.monotonic()
             self._flush()
@@ -403,7 +410,13 @@ class TaskBoard(Node):
                                       f"{self.rejection_rate:g}/s); by reason so far: {dict(b.rejected)}")
             self._rej_quiet = 0
         if b.phase in ("wait", "closing") and now - max(self._published_at, self._clock_at) > 5.0:
-            self.get_logger().warning(f"mission clock held: {b.waiting_for()}", throttle_duration_sec=10.0)
+            silent = now - self._clock_heard
+            if silent > 5.0:  # nobody drives the clock: not a robot's fault
+                self.get_logger().warning(f"mission clock held: nothing heard on {self.clock_topic} for {silent:.0f} s "
+                                          f"(is sim_robot, or whatever publishes the mission clock, running?); "
+                                          f"{b.waiting_for()}", throttle_duration_sec=10.0)
+            else:
+                self.get_logger().warning(f"mission clock held: {b.waiting_for()}", throttle_duration_sec=10.0)
         if self.progress_period > 0 and now - self._last_progress >= self.progress_period and b.started:
             self._last_progress = now
             st = b.state
