@@ -512,6 +512,8 @@ class MissionBoard(BoardCore):
         self.t_start: float | None = None
         self.started = False  # the mission has started (journaled: a replayed board does not wait again)
         self.seen_status: list[float | None] = [None] * A
+        self._hosts: dict[int, tuple[str, str | None, float]] = {}  # robot -> (host, host before, since)
+        self._two_hosts: set[int] = set()  # robots warned of two agent processes
         self.seen_pose: list[float | None] = [None] * A
         self.last_pose: list[tuple[float, float] | None] = [None] * A
         self.ptr = [0] * A  # route prefix whose arrivals are confirmed
@@ -702,10 +704,11 @@ class MissionBoard(BoardCore):
         self.rejected["malformed"] += 1
 
     def heartbeat(self, session: str, robots: Sequence[str], payload: Any = None,
-                  joining: Sequence[Any] = ()) -> str | None:
+                  joining: Sequence[Any] = (), host: str = "") -> str | None:
         """An agent heartbeat naming ``robots`` (and ``joining``: robots asking to join, objects
-        with ``robot``, ``species``, ``traits``, ``position``; see :meth:`join`); returns a
-        warning text when something in it is ignored."""
+        with ``robot``, ``species``, ``traits``, ``position``; see :meth:`join`) from the agent
+        process ``host``; returns a warning text when something in it is ignored, or when two
+        processes keep sending heartbeats for one robot (two agents driving it)."""
         if session != self.session:
             return None  # agents of another mission run
         if self.verifier is not None:
@@ -724,9 +727,31 @@ class MissionBoard(BoardCore):
                 unknown.append(r)
             else:
                 self.seen_status[a] = now
+                if host:
+                    warn = self._host_of(a, host, now) or warn
         if not self.started:
             self._maybe_start()
         return f"heartbeat names unknown robot {unknown[0]!r}" if unknown else warn
+
+    # a robot's heartbeats going back to the process they came from before, within this many seconds
+    # of the switch: both processes are alive (a restarted agent's old process has stopped)
+    TWO_HOSTS_WINDOW = 10.0
+
+    def _host_of(self, a: int, host: str, now: float) -> str | None:
+        """Follow which agent process sends robot a's heartbeats; the warning (once per robot) when
+        they come from two at once."""
+        if a not in self._hosts:
+            self._hosts[a] = (host, None, -math.inf)
+        last, before, switched = self._hosts[a]
+        if host == last:
+            return None
+        if host == before and now - switched < self.TWO_HOSTS_WINDOW and a not in self._two_hosts:
+            self._two_hosts.add(a)
+            self._hosts[a] = (host, last, now)
+            return (f"robot {self.names[a]!r}: heartbeats from two agent processes ({before} and {last}): two agents "
+                    f"drive one robot? Each of its turns is taken from whichever answers first; stop one of them")
+        self._hosts[a] = (host, last, now)
+        return None
 
     def join(self, name: str, species: int | None = None, traits: Sequence[float] | None = None,
              position: Sequence[float] | None = None) -> str | None:

@@ -311,6 +311,24 @@ def test_a_board_that_did_not_run_reads_its_queues_before_it_drops_anyone():
     assert v.decider == 0 or v.decider not in b.lost  # the decider's 8 s count from the resumption too
 
 
+def test_two_agent_processes_for_one_robot_are_warned_once_and_a_restart_is_not():
+    now = FakeTime()
+    b = started_board(now=now)
+    r = b.names[1]
+    assert b.heartbeat(b.session, [r], host="pc:100") is None
+    now.t += 0.5
+    assert b.heartbeat(b.session, [r], host="pc:200") is None  # a restarted agent: the old one is gone
+    for _ in range(3):
+        now.t += 0.5
+        assert b.heartbeat(b.session, [r], host="pc:200") is None
+    now.t += 0.5
+    warn = b.heartbeat(b.session, [r], host="pc:100")  # ... and the first one is back: both run
+    assert warn is not None and "two agent processes (pc:100 and pc:200)" in warn and repr(r) in warn
+    now.t += 0.5
+    assert b.heartbeat(b.session, [r], host="pc:200") is None  # warned once
+    assert b.heartbeat(b.session, [b.names[2]], host="pc:100") is None  # other robots: their own
+
+
 def test_decision_timeout_drops_the_decider():
     now = FakeTime()
     b = started_board(now=now, heartbeat_timeout=0.0, decision_timeout=2.0)

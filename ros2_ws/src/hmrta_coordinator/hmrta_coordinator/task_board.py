@@ -362,7 +362,7 @@ class TaskBoard(Node):
         except DecodeError as e:
             self.board.malformed()
             return self._reject("malformed", f"malformed status: {e}")
-        warn = self.board.heartbeat(s.session, s.robots, s.payload, s.joining)
+        warn = self.board.heartbeat(s.session, s.robots, s.payload, s.joining, s.host)
         if warn is not None:
             self.get_logger().warning(warn, throttle_duration_sec=5.0)
         for j in s.joining:  # tell a robot the board refuses to add, so that its agent stops asking
