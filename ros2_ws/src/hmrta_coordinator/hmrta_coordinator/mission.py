@@ -347,12 +347,15 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
             on_board(b)
         n = b.n_done + b.n_cancelled
         info = f"t={b.clock:.1f} {b.phase}" + (f" lost={len(b.lost)}" if b.lost else "")
+        if b.n_tasks > bar.total:  # tasks added during the mission
+            bar.total = b.n_tasks
         bar.n = n
         bar.set_postfix_str(info, refresh=False)
         bar.refresh()
-        if not tty and not quiet and 4 * n // max(n_tasks, 1) > told[0]:
-            told[0] = 4 * n // max(n_tasks, 1)
-            print(f"mission: {n}/{n_tasks} tasks, {info}", file=sys.stderr, flush=True)
+        total = max(n_tasks, b.n_tasks)
+        if not tty and not quiet and 4 * n // max(total, 1) > told[0]:
+            told[0] = 4 * n // max(total, 1)
+            print(f"mission: {n}/{total} tasks, {info}", file=sys.stderr, flush=True)
 
     def keyframe_cb(msg: String) -> None:
         procs.last_board = msg.data
