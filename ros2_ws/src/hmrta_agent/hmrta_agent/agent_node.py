@@ -387,6 +387,8 @@ class AgentNode(Node):
         self._warned: set[str] = set()
         self._fit: dict[str, bool] = {}  # mission session -> whether its rules are this method's (joining)
         self.refusal: str | None = None  # why this robot does not take part (it then stops)
+        self._stopping: float | None = None  # lost: since when it is being stopped (_stop_robot)
+        self._stop_sent = False  # lost: its stop goal went out
         self.choice_pub = host.choice_publisher(self)
         self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
         self._pose: PoseStamped | None = None  # its driver's latest pose (a robot asking to join reports it)
@@ -582,7 +584,7 @@ class AgentNode(Node):
         """The board declared this robot lost: it stops where it is, so its driver gets a goal at
         its own latest pose (departing now) in place of the goal it may still be driving to; then
         the agent ends. With no pose heard within STOP_POSE_WAIT s it ends without one (logged)."""
-        if self.finished or getattr(self, "_stopping", None) is not None:
+        if self.finished or self._stopping is not None:
             return
         self._stopping = time.monotonic()
         self.pending = []  # no queued leg goes out after the stop
@@ -593,7 +595,7 @@ class AgentNode(Node):
 
     def _try_stop(self) -> None:
         m, waited = self.mission, time.monotonic() - self._stopping
-        if self._pose is not None and not getattr(self, "_stop_sent", False):
+        if self._pose is not None and not self._stop_sent:
             try:
                 x, y, _ = pose_from_msg(self._pose, m.scale)
             except DecodeError:
@@ -604,7 +606,7 @@ class AgentNode(Node):
                 self.get_logger().warning(f"{self.robot}: the board declared this robot lost: goal set to where it "
                                           f"is ({x:.3f}, {y:.3f}) to stop it; stopping")
                 return
-        if getattr(self, "_stop_sent", False):
+        if self._stop_sent:
             if waited < self.STOP_SEND_WAIT:
                 return
         elif waited < self.STOP_POSE_WAIT:
