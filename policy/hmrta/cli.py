@@ -122,6 +122,19 @@ def _load(path: str, static: str | None = None, releases: bool = False):
     return inst
 
 
+def _plannable(methods: list[str], missions: list[tuple[str, object]]) -> None:
+    """MethodError naming the mission (``(where, instance)`` pairs) unless every method can plan
+    every mission (:func:`hmrta.methods.check_instance`): checked before any work."""
+    from .methods import MethodError, check_instance
+
+    for where, inst in missions:
+        for m in methods:
+            try:
+                check_instance(m, inst)
+            except MethodError as e:
+                raise MethodError(f"{where}: {e}") from None
+
+
 def _resolve_instances(paths: list[str]) -> list[Path]:
     out: list[Path] = []
     for p in paths:
@@ -310,13 +323,7 @@ def cmd_solve(args) -> int:
                                 f"{out / f'{f.stem}.json'} (rename one, or solve them into separate folders)")
             by_stem[f.stem] = f
     insts = [_load(str(f)) for f in files]  # every input is read before anything is solved or written
-    from .methods import MethodError, check_instance
-
-    for f, inst in zip(files, insts):  # and every one can be planned by the method
-        try:
-            check_instance(method, inst)
-        except MethodError as e:
-            raise MethodError(f"{f}: {e}") from None
+    _plannable([method], [(str(f), inst) for f, inst in zip(files, insts)])  # ... and can be planned
     sols = []
     for f, inst in tqdm(list(zip(files, insts)), desc="solve", disable=not many or not _progress_on(args),
                         unit="instance", file=sys.stderr, delay=SolveProgress.DELAY):
@@ -557,16 +564,8 @@ def cmd_bench(args) -> int:
             rows[0].generator().generate(args.count, args.seed)
         except ValueError as e:
             raise UserError(str(e)) from None
-    from .methods import check_instance
-
-    for row in rows:  # your missions: every method can plan every one, before any work
-        if isinstance(row, bench.MissionSet):
-            for _, inst in row.instances(args.count, args.seed):
-                for m in methods:
-                    try:
-                        check_instance(m, inst)
-                    except MethodError as e:
-                        raise MethodError(f"{row.name} ({inst.name}): {e}") from None
+    _plannable(methods, [(f"{row.name} ({inst.name})", inst) for row in rows if isinstance(row, bench.MissionSet)
+                         for _, inst in row.instances(args.count, args.seed)])  # your missions, before any work
     if not rows:  # --max-tasks below every row of the suite
         raise UserError(f"--max-tasks {args.max_tasks}: every row of --suite {args.suite}"
                         f"{' --tables ' + args.tables if args.tables else ''} has more tasks")
@@ -743,7 +742,6 @@ def cmd_checkpoint(args) -> int:
 
     require("torch", "hmrta checkpoint")
     from .rl.checkpoint import average
-
     from .rl.checkpoint_info import checkpoint_path
 
     out = _writable("--out", args.out)
@@ -870,16 +868,17 @@ def cmd_render_recording(args) -> int:
 
 
 def cmd_render(args) -> int:
-    from .render import MAX_FPS, MAX_FRAMES, render
+    from .render import check_gif_options, render
     from .solution import SolutionError, final_instance
 
     if args.from_ is not None:
         return cmd_render_recording(args)
     if args.instance is None or args.solution is None:
         raise UserError("render: give INSTANCE and SOLUTION (or --from FILE.mcap, a recorded mission)")
-    for flag, value, most in (("--frames", args.frames, MAX_FRAMES), ("--fps", args.fps, MAX_FPS)):
-        if not 1 <= value <= most:
-            raise UserError(f"{flag}: expected an integer in 1..{most}, got {value}")
+    try:  # before anything is read or drawn, also for a PNG only
+        check_gif_options(args.frames, args.fps)
+    except ValueError as e:
+        raise UserError(f"--{e}") from None
     _writable("--out", args.out)
     inst = _load(args.instance)
     sol = _read_solution(args.solution)

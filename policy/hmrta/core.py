@@ -716,7 +716,7 @@ class MissionState:
         return False
 
     def _requeue(self, freed: list[int]) -> None:
-        freed = [b for b in freed if self.mode[b] != LOST]  # freed, then lost at the same instant
+        freed = [b for b in freed if self.mode[b] != LOST]  # freed, then lost at the same instant: not shuffled in
         self.rng.shuffle(freed)
         waiting = np.flatnonzero(self.mode == WAIT)  # [W]
         waiting = waiting[np.lexsort((waiting, self.free_since[waiting]))].tolist()  # by (free_since, id)
@@ -898,7 +898,7 @@ class MissionState:
             waiting = [b for b in np.flatnonzero(self.mode == WAIT).tolist() if b not in queued]
             parked = [] if self._all_claimed() else [b for b in np.flatnonzero(self.mode == HOME).tolist()
                                                      if b not in queued]
-            order = [b for b in sorted(set(freed)) if b not in queued and self.mode[b] != LOST] + waiting + parked
+            order = [b for b in sorted(set(freed)) if b not in queued] + waiting + parked
             self.queue = order[::-1] + self.queue  # after the deciders already queued
             self._stall = False
             self._advance()

@@ -473,6 +473,13 @@ def _figure(inst: Instance, sol: Solution, ch: Changes) -> _Figure:
     return _Figure(fig, ax_map, ax_g, colors, timeline, timed)
 
 
+def check_gif_options(frames: int, fps: int) -> None:
+    """ValueError naming the option unless ``frames`` and ``fps`` are integers in range."""
+    for name, v, most in (("frames", frames, MAX_FRAMES), ("fps", fps, MAX_FPS)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= most:
+            raise ValueError(f"{name}: expected an integer in 1..{most}, got {v!r}")
+
+
 def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool = False,
            frames: int = 80, fps: int = 10, dpi: int = 110, source: str = "solution",
            progress: Callable[[int, int], None] | None = None) -> list[Path]:
@@ -493,9 +500,7 @@ def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool =
     if not out.suffix:  # matplotlib would take the format from the temporary file's name
         raise ValueError(f"expected an image file name with its format as suffix (.png, .svg, .pdf, .gif), got {out}")
     if gif or out.suffix.lower() == ".gif":  # before anything is written
-        for name, v, most in (("frames", frames, MAX_FRAMES), ("fps", fps, MAX_FPS)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= most:
-                raise ValueError(f"{name}: expected an integer in 1..{most}, got {v!r}")
+        check_gif_options(frames, fps)
     if out.parent and not out.parent.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
     written = []

@@ -41,10 +41,15 @@ FORMAT_VERSION = 1
 
 def _torch_reason(e: Exception) -> str:
     """What torch's error on reading a file says, in one line and in the file's terms (its C++
-    reader's messages name internal records and ask for bug reports)."""
+    reader's messages name internal records and ask for bug reports; its weights-only unpickler
+    wraps the reason in advice about weights_only)."""
     text = re.sub(r"\s*\(Could this error message be improved\?.*?\)", "", str(e), flags=re.S)
-    if isinstance(e, (UnicodeDecodeError, KeyError)) or "invalid load key" in text:
-        return "not a torch checkpoint file"  # torch's reader of its legacy format, on other bytes
+    if isinstance(e, pickle.UnpicklingError):
+        inner = re.search(r"WeightsUnpickler error:\s*(.*?)(?:\n\n|$)", text, re.S)
+        text = " ".join((inner.group(1) if inner else text).split())[:200] or "a weights-only read failed"
+    if (isinstance(e, (UnicodeDecodeError, KeyError)) or "invalid load key" in text
+            or text.startswith("Unsupported operand")):
+        return "not a torch checkpoint file"  # bytes that are no pickle at all (torch's legacy reader on them)
     if isinstance(e, EOFError):
         return "empty, or cut short"
     if "hasRecord" in text or "PytorchStreamReader" in text:
@@ -73,11 +78,7 @@ def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
         if g:  # a pickle that would call or build something beyond weights: never executed
             raise CheckpointError(f"{p}: refused: its pickle asks for {g.group(1)} (a checkpoint may hold only "
                                   f"tensors and plain data)") from None
-        inner = re.search(r"WeightsUnpickler error:\s*(.*?)(?:\n\n|$)", text, re.S)
-        why = " ".join((inner.group(1) if inner else text).split())[:200] or "a weights-only read failed"
-        if why.startswith(("Unsupported operand", "invalid load key")):  # bytes that are no pickle at all
-            raise CheckpointError(f"{p}: not a readable hmrta checkpoint (not a torch checkpoint file)") from None
-        raise CheckpointError(f"{p}: not a readable hmrta checkpoint (UnpicklingError: {why})") from None
+        raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({_torch_reason(e)})") from None
     except Exception as e:  # noqa: BLE001 - corrupt, truncated, not a torch file, ...
         raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({_torch_reason(e)})") from None
     if not isinstance(ck, dict):

@@ -244,9 +244,10 @@ class Trainer:
         """A continuation keeps the checkpoint's best validation score, so it must be scored as
         the checkpoint was: same validation set and rules. Otherwise a CheckpointError naming
         the first key that differs (keys only one side has are not compared)."""
-        theirs, mine = ck.get("config"), self.cfg.to_dict()
+        theirs = ck.get("config") if isinstance(ck.get("config"), dict) else {}
+        mine = self.cfg.to_dict()
         for section, skip in self.YARDSTICK:
-            a, b = (theirs or {}).get(section) if isinstance(theirs, dict) else None, mine[section]
+            a, b = theirs.get(section), mine[section]
             if not isinstance(a, dict):
                 continue
             for k in sorted(set(a) & set(b)):

@@ -431,9 +431,9 @@ class AgentNode(Node):
 
     def _fits(self, mission: Mission) -> bool:
         """A robot asks to join only a mission whose rules its method runs under: the board would
-        add it, and then drop it when its agent refuses to take part (compatible)."""
+        add it, and then drop it when its agent refuses to take part (_mismatch)."""
         if mission.session not in self._fit:
-            self._fit[mission.session] = self.compatible(mission)
+            self._fit[mission.session] = self._mismatch(mission) is None
         return self._fit[mission.session]
 
     # ------------------------------------------------------------------------------------------
@@ -473,8 +473,9 @@ class AgentNode(Node):
         if idx is None or not 0 <= idx < mission.instance.n_agents or mission.robots[idx] != self.robot:
             return self.refuse(f"robot {self.robot!r} (index {self.index_param}) is not in mission "
                                f"{mission.instance.name} (robots {', '.join(mission.robots[:5])}...): not taking part")
-        if not self.compatible(mission):
-            return self.refuse(self._mismatch(mission))
+        mismatch = self._mismatch(mission)
+        if mismatch is not None:
+            return self.refuse(mismatch)
         species = int(mission.instance.agent_species[idx])
         if self.species_param >= 0 and self.species_param != species:
             return self.refuse(f"robot {self.robot!r} is species {self.species_param} but the mission lists it as "
@@ -484,13 +485,9 @@ class AgentNode(Node):
         self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "
                                f"{mission.instance.name}, method {self.method}")
 
-    def compatible(self, mission: Mission) -> bool:
-        """Whether this robot's method runs under the mission's rules (checked once, on joining).
-        The board decides ``backdate`` (real-time departures); everything else must match."""
-        return self._mismatch(mission) is None
-
     def _mismatch(self, mission: Mission) -> str | None:
-        """Why this robot's method cannot run under the mission's rules, or None."""
+        """Why this robot's method cannot run under the mission's rules, or None (checked once, on
+        joining). The board decides ``backdate`` (real-time departures); everything else must match."""
         theirs, mine = mission.rules.to_dict(), self.rules.to_dict()  # the codec requires and checks them
         theirs.pop("backdate", None), mine.pop("backdate", None)
         if theirs == mine:
