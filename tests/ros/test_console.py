@@ -56,6 +56,20 @@ def test_ctrl_c_while_the_node_module_loads_is_one_line_and_130(tmp_path):
     assert out.stderr == "some_node: interrupted\n" and "Traceback" not in out.stdout
 
 
+def test_an_extension_interrupted_while_it_initialises_is_one_line_and_130(tmp_path):
+    # pybind11 turns a Ctrl-C inside an extension's initialisation into an ImportError caused by it
+    (tmp_path / "ext_node.py").write_text(
+        "try:\n    raise KeyboardInterrupt\nexcept KeyboardInterrupt as e:\n"
+        "    raise ImportError('initialization failed') from e\n")
+    (tmp_path / "broken_node.py").write_text("raise ImportError('no module named nothing')\n")
+    env = {"PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    out = run_python("from hmrta_msgs_py.console import run; run('some_node', 'ext_node')", **env)
+    assert out.returncode == 130 and out.stderr == "some_node: interrupted\n"
+    # an ImportError of its own is not hidden
+    out = run_python("from hmrta_msgs_py.console import run; run('some_node', 'broken_node')", **env)
+    assert out.returncode == 1 and "ImportError: no module named nothing" in out.stderr
+
+
 def test_run_exits_with_what_main_returns(tmp_path):
     (tmp_path / "node_a.py").write_text("def main():\n    return 3\n")
     (tmp_path / "node_b.py").write_text("def main():\n    print('ran')\n")

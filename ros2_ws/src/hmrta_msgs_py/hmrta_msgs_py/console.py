@@ -18,6 +18,26 @@ def run(prog: str, module: str, func: str = "main") -> None:
     try:
         code = getattr(importlib.import_module(module), func)()
     except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        raise SystemExit(130) from None
+        _interrupted(prog)
+    except ImportError as e:
+        if not _caused_by_interrupt(e):
+            raise
+        _interrupted(prog)  # a C extension (rclpy's) interrupted while it initialises
     raise SystemExit(code)
+
+
+def _interrupted(prog: str):
+    print(f"{prog}: interrupted", file=sys.stderr)
+    raise SystemExit(130) from None
+
+
+def _caused_by_interrupt(e: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is among the causes of ``e`` (pybind11 turns a Ctrl-C while an
+    extension module initialises into ``ImportError: initialization failed`` caused by it)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
