@@ -14,7 +14,7 @@ import random
 
 import numpy as np
 
-from .core import IN_PROGRESS, LOST, OPEN, TASK, MissionState, Rules
+from .core import EMPTY, IN_PROGRESS, LOST, OPEN, TASK, MissionState, Rules
 from .sim import simulate
 
 # max_open=2 was greedy's best of {1, 2, 3, 5, none} on seed-1 sets of six paper rows, and still is
@@ -110,9 +110,10 @@ class CoalitionGreedy:
         usable &= ~(on_task & (s.status[tgt] == OPEN))
         mine = self._arrival(s, pos[a], cand)  # [C] a's arrival (a is free now)
         start = mine.copy()  # [C]
-        for c, j in enumerate(cand):
-            if s.members[j]:
-                start[c] = max(start[c], s.arrive[s.members[j]].max())
+        for c in np.flatnonzero(s.status[cand] != EMPTY):  # an empty task has no members
+            mem = s.members[cand[c]]
+            if mem:
+                start[c] = max(start[c], s.arrive[mem].max())
         rem = np.maximum(s.rem[cand] - s.cap[a], 0.0)  # [C, K] left after a joins
         need = (rem > 1e-9).any(1)  # [C]
         others = np.flatnonzero(usable)  # [B]
@@ -120,9 +121,7 @@ class CoalitionGreedy:
             start = np.where(need, np.inf, start)  # nobody left to complete those coalitions
         elif need.any():
             col = np.flatnonzero(need)  # [N] the tasks a still needs others for
-            arr = free_at[None, others] + np.hypot(pos[None, others, 0] - loc[col, None, 0],
-                                                   pos[None, others, 1] - loc[col, None, 1]) / v  # [N, B]
-            last = self._completing_arrival(arr, s.cap[others], rem[col])  # [N]
+            last = self._completing_arrival(free_at[others], pos[others], loc[col], v, s.cap[others], rem[col])  # [N]
             start[col] = np.maximum(start[col], last)
         return cand, start, mine
 
@@ -131,46 +130,82 @@ class CoalitionGreedy:
         """[C] when a robot free now at ``here`` [2] arrives at ``tasks`` [C] (ids)."""
         return state.clock + np.hypot(*(state.inst.task_locations[tasks] - here).T) / state.inst.velocity
 
-    # the earliest arrivals looked at first (a coalition rarely needs more robots than this), then
-    # four times as many, and so on
+    # robots free at the same time at the same place (a coalition that finished together, a team
+    # parked at its depot) arrive together at every task: the estimates compute one arrival per
+    # group of such robots (at most GROUP robots in a group; a larger one is split), and look at the
+    # PARTIAL // GROUP earliest groups first (a coalition rarely needs more robots than PARTIAL),
+    # then four times as many, and so on
     PARTIAL = 16
+    GROUP = 4
+    GROUPED = 64  # teams of more robots than this are grouped
 
     @classmethod
-    def _completing_arrival(cls, arr: np.ndarray, cap: np.ndarray, rem: np.ndarray) -> np.ndarray:
-        """[N] for each task (row of ``arr`` [N, B], arrival times of robots with capabilities
-        ``cap`` [B, K]), the arrival time at which the robots taken in order of arrival (ties: lowest
-        column first) first cover ``rem`` [N, K]; inf where all of them do not.
+    def _completing_arrival(cls, free_at: np.ndarray, pos: np.ndarray, loc: np.ndarray, v: float,
+                            cap: np.ndarray, rem: np.ndarray) -> np.ndarray:
+        """[N] for each task at ``loc`` [N, 2], the arrival time at which the robots free at
+        ``free_at`` [B] at ``pos`` [B, 2] (speed ``v``, capabilities ``cap`` [B, K]), taken in order
+        of arrival ``free_at + |pos - loc| / v`` (ties: lowest robot first), first cover ``rem``
+        [N, K]; inf where all of them do not.
 
-        A robot with none of the skills a task still needs is left out of that task (its arrival
-        set to inf): at its turn the running sums of those skills do not change (adding 0.0 is
-        exact), so it never completes the cover. Of the others only the PARTIAL earliest arrivals
-        are sorted. Where they cover the requirement, the answer is the full sort's, bit for bit:
-        every robot arriving before the latest of them (L) is among them, in the same order, with
-        the same running sums, so a cover before L is the full sort's; a cover at L is too, since
-        the full sort, taking every robot arriving at L, has running sums at least as large by the
-        end of them (capabilities are non-negative and rounding is monotone) and none that covered
-        earlier. Where the PARTIAL include a left-out robot, they hold every robot that counts, and
-        an uncovered requirement stays uncovered. The other tasks (a coalition of many robots)
-        look at four times as many, and so on up to the full sort."""
-        N, B = arr.shape
-        useful = (cap > 0).astype(np.float64) @ (rem > 1e-9).T.astype(np.float64) > 0  # [B, N]
-        arr = np.where(useful.T, arr, np.inf)  # [N, B]
+        Robots with the same (free_at, position) have the same arrival at every task, computed once
+        per group. A group with none of the skills a task still needs is left out of that task
+        (its arrival set to inf). Of the others only the earliest groups are expanded into their
+        robots, which are sorted as the full sort does (by arrival, then index). Where they cover
+        the requirement, the answer is the full sort's, bit for bit: every robot arriving before
+        the latest of those groups (L) is among them, in the same order, so a cover before L is
+        the full sort's; a cover at L is too, since the full sort, taking every robot arriving at
+        L, has running sums at least as large by the end of them (capabilities are non-negative
+        and rounding is monotone) and none that covered earlier. A robot of those groups that has
+        none of the skills still needed changes no running sum of those skills (adding 0.0 is
+        exact), so it never completes the cover, as if it were left out. Where the earliest groups
+        include a left-out one, they hold every robot that counts, and an uncovered requirement
+        stays uncovered. The other tasks (a coalition of many robots) look at four times as many
+        groups, and so on up to all of them (the full sort)."""
+        B, N, K = len(free_at), len(loc), cap.shape[1]
+        idx = np.arange(B)  # [B]
+        if B <= cls.GROUPED:  # a small team: each robot a group of its own
+            width, q = 1, cls.PARTIAL
+            members = idx[:, None]  # [G = B, 1]
+            arr = free_at + np.hypot(pos[:, 0] - loc[:, 0:1], pos[:, 1] - loc[:, 1:2]) / v  # [N, B]
+            has = cap > 0  # [B, K]
+        else:
+            width, q = cls.GROUP, max(1, cls.PARTIAL // cls.GROUP)
+            order = np.lexsort((idx, pos[:, 1], pos[:, 0], free_at))  # [B] by (free_at, x, y, index)
+            f, x, y = free_at[order], pos[order, 0], pos[order, 1]  # [B] each
+            new = np.ones(B, dtype=bool)  # [B] order[i] starts a group
+            new[1:] = (f[1:] != f[:-1]) | (x[1:] != x[:-1]) | (y[1:] != y[:-1])
+            first = np.flatnonzero(new)  # [S] the first robot of each set of equal (free_at, x, y)
+            same = np.cumsum(new) - 1  # [B] set of order[i]
+            arr = f[first] + np.hypot(x[first] - loc[:, 0:1], y[first] - loc[:, 1:2]) / v  # [N, S]
+            new[(idx - first[same]) % width == 0] = True  # split the sets: at most GROUP robots a group
+            first = np.flatnonzero(new)  # [G]
+            group = np.cumsum(new) - 1  # [B] group of order[i]
+            members = np.full((len(first), width), B)  # [G, GROUP] robots of each group, by index (B: none)
+            members[group, idx - first[group]] = order
+            if len(first) > arr.shape[1]:
+                arr = arr[:, same[first]]  # [N, G]
+            has = np.logical_or.reduceat(cap[order] > 0, first, axis=0)  # [G, K] skills of each group
+        G = len(members)
+        useful = has.astype(np.float64) @ (rem > 1e-9).T.astype(np.float64) > 0  # [G, N]
+        arr = np.where(useful.T, arr, np.inf)  # [N, G]
+        cap = np.vstack([cap, np.zeros((1, K))])  # [B + 1, K] (row B: no robot)
         last = np.full(N, np.inf)  # [N]
-        rows, p = np.arange(N), cls.PARTIAL  # [R] the tasks still undecided, robots looked at
+        rows = np.arange(N)  # [R] the tasks still undecided; q: the groups looked at
         while len(rows):
-            a = arr[rows]  # [R, B]
-            if p < B:
-                part = np.argpartition(a, p - 1, axis=1)[:, :p]  # [R, p] unordered
-                part.sort(axis=1)  # by column, so that the stable sort below breaks ties as the full one does
-                a = np.take_along_axis(a, part, 1)  # [R, p]
-            o = np.argsort(a, axis=1, kind="stable")  # [R, p]
-            robots = o if p >= B else np.take_along_axis(part, o, 1)  # [R, p] in order of arrival
-            t, ok = cls._first_cover(np.take_along_axis(a, o, 1), cap[robots], rem[rows])
+            a = arr[rows]  # [R, G]
+            part = np.argpartition(a, q - 1, axis=1)[:, :q] if q < G else np.broadcast_to(np.arange(G), a.shape)  # [R, q']
+            ga = np.take_along_axis(a, part, 1)  # [R, q'] their arrivals
+            robots = members[part].reshape(len(rows), -1)  # [R, q' width]
+            ra = np.repeat(ga, width, axis=1) if width > 1 else ga  # [R, q' width]
+            if width > 1:
+                ra = np.where(robots < B, ra, np.inf)
+            o = np.lexsort((robots, ra), axis=1)  # [R, q' width] by arrival, then index (as the full sort)
+            t, ok = cls._first_cover(np.take_along_axis(ra, o, 1), cap[np.take_along_axis(robots, o, 1)], rem[rows])
             last[rows[ok]] = t[ok]
-            if p >= B:
+            if q >= G:
                 break
-            rows = rows[~ok & np.isfinite(a.max(1))]  # uncovered, more robots to look at
-            p *= 4
+            rows = rows[~ok & np.isfinite(ga.max(1))]  # uncovered, more groups to look at
+            q *= 4
         return last
 
     @staticmethod

@@ -225,12 +225,17 @@ def _coalition_reference(state: MissionState) -> tuple[np.ndarray, np.ndarray]:
     return cand, start
 
 
-@pytest.mark.parametrize("partial", [2, 3, CoalitionGreedy.PARTIAL])
-def test_coalition_estimates_equal_their_definition(partial, monkeypatch):
-    """The partial sort (only the earliest arrivals, the full sort where they do not decide) gives
-    the full sort's estimates bit for bit; small PARTIAL values put every branch to work on small
-    missions (distance ties on a grid, fractional capabilities, robots lost and added)."""
+@pytest.mark.parametrize("partial,group,grouped", [(2, 1, 0), (3, 2, 0), (16, 4, 0), (2, 4, 64),
+                                                    (CoalitionGreedy.PARTIAL, CoalitionGreedy.GROUP,
+                                                     CoalitionGreedy.GROUPED)])
+def test_coalition_estimates_equal_their_definition(partial, group, grouped, monkeypatch):
+    """The partial sort (only the earliest arrivals, the full sort where they do not decide), over
+    robots grouped by when and where they are free, gives the full sort's estimates bit for bit;
+    small PARTIAL, GROUP and GROUPED values put every branch to work on small missions (distance
+    ties on a grid, fractional capabilities, robots lost and added, teams at their depots)."""
     monkeypatch.setattr(CoalitionGreedy, "PARTIAL", partial)
+    monkeypatch.setattr(CoalitionGreedy, "GROUP", group)
+    monkeypatch.setattr(CoalitionGreedy, "GROUPED", grouped)
     gc = CoalitionGreedy()
 
     def same(s):
@@ -245,6 +250,42 @@ def test_coalition_estimates_equal_their_definition(partial, monkeypatch):
     while not s.done:
         same(s)
         s.step(gc(s))
+
+
+def _completing_arrival_reference(free_at, pos, loc, v, cap, rem):
+    """Every robot's arrival at every task, all sorted (stable), the first prefix that covers."""
+    last = np.full(len(loc), np.inf)
+    for j in range(len(loc)):
+        arr = free_at + np.hypot(pos[:, 0] - loc[j, 0], pos[:, 1] - loc[j, 1]) / v
+        order = np.argsort(arr, kind="stable")
+        covered = (np.cumsum(cap[order], 0) >= rem[j] - 1e-9).all(1)
+        if covered.any():
+            last[j] = arr[order][np.argmax(covered)]
+    return last
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_coalition_completing_arrival_of_large_teams_equals_the_full_sort(seed):
+    """Teams above GROUPED (grouped by when and where they are free): many robots at one place
+    and time (larger than GROUP), places at equal distances from the tasks (arrival ties across
+    groups), fractional capabilities, robots with none of the skills a task needs, requirements
+    that take most of the team or that it cannot cover."""
+    rng = np.random.default_rng(seed)
+    B, N, K = CoalitionGreedy.GROUPED + int(rng.integers(1, 200)), int(rng.integers(2, 60)), int(rng.integers(1, 6))
+    spots = rng.integers(0, 5, (int(rng.integers(1, 30)), 2)) / 4  # a coarse grid: equal distances
+    times = rng.choice([0.0, 0.5, 1.25, 3.0], int(rng.integers(1, 4)))
+    pos = spots[rng.integers(len(spots), size=B)]  # [B, 2]
+    free_at = times[rng.integers(len(times), size=B)]  # [B]
+    cap = rng.choice([0.0, 0.0, 0.1, 0.3, 0.5, 1.0, 2.0], (B, K))  # [B, K]
+    loc = np.vstack([rng.integers(0, 5, (N // 2, 2)) / 4, rng.random((N - N // 2, 2))])  # [N, 2]
+    team = cap.sum(0)  # [K]
+    rem = rng.choice([0.0, 0.3, 1.0, 2.0, 5.0], (N, K)) * (rng.random((N, 1)) < 0.9)  # [N, K]
+    rem[:, 0] = np.where((rem > 1e-9).any(1), rem[:, 0], 0.7)  # every task still needs someone
+    rem[rng.random(N) < 0.1] = team * rng.choice([0.5, 1.0])  # most of the team, or all of it
+    rem[0] = team + 0.5  # more than the team
+    got = CoalitionGreedy._completing_arrival(free_at, pos, loc, 0.2, cap, rem)
+    assert np.array_equal(got, _completing_arrival_reference(free_at, pos, loc, 0.2, cap, rem))
+    assert np.isinf(got[0])
 
 
 @pytest.mark.parametrize("chunk", [1, 3, CoalitionGreedy.CHUNK])
