@@ -1059,8 +1059,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also report each method's gap to the best lower bound, (makespan - bound) / makespan as "
                         "hmrta bound gives it; none for missions with events")
     b.add_argument("--compare", action="append", default=None, metavar="A,B",
-                   help="paired per-instance comparison of two methods (repeatable; default: rl,greedy and "
-                        "rl,greedy-coalition when those methods run)")
+                   help="paired per-instance comparison of two methods (repeatable; default: rl and portfolio, "
+                        "each against greedy and greedy-coalition, when those methods run)")
     b.add_argument("--out", default=None,
                    help="folder for results.md, results.json, results.csv and a resumable cache "
                         "(--suite default: bench-<suite> in the current folder; the committed tables are "

@@ -58,10 +58,11 @@ class ScenarioGenerator:
         if self.tasks > MAX_TASKS:
             raise ValueError(f"tasks ({self.tasks}): a mission holds at most {MAX_TASKS}")
         if self.multi_skill and self.species > 2**self.skills - 1:
-            raise ValueError(f"MA needs distinct non-zero trait vectors: at most {2**self.skills - 1} species")
+            raise ValueError(f"species ({self.species}): MA needs distinct non-zero trait vectors, so at most "
+                             f"{2**self.skills - 1} species with {self.skills} skills")
         if not self.multi_skill and self.species < self.skills:
             # one-hot species cover only `species` skills: tasks needing the others are never feasible
-            raise ValueError(f"SA needs at least as many species as skills ({self.skills}), got {self.species}")
+            raise ValueError(f"species ({self.species}): SA needs at least as many species as skills ({self.skills})")
 
     @property
     def multi_skill(self) -> bool:

@@ -150,12 +150,13 @@ METHODS: dict[str, Method] = {m.name: m for m in (
                            "seconds of list scheduling and annealing before CP-SAT, a part of the time limit (at "
                            "most --time-limit; default: a quarter of it)", minimum=0.0, within="time_limit")),
            needs=("ortools",)),
-    Method("portfolio", "per mission, the best of several methods by simulation (greedy, greedy-coalition, "
-           "rl with the default, broad and coalition-team checkpoints); live missions run the chosen one",
+    Method("portfolio", "per mission, the best of several methods by simulation (rl with the default, broad "
+           "and coalition-team checkpoints, greedy-coalition, greedy); live missions run the chosen one",
            "hmrta.portfolio:solve_portfolio", None, rules=None, choose="hmrta.portfolio:select",
-           options=(Option("candidates", str, "greedy,greedy-coalition,rl,rl@broad,rl@coalition-team",
+           options=(Option("candidates", str, "rl,greedy-coalition,rl@broad,rl@coalition-team,greedy",
                            "comma list of methods to choose from (METHOD@CHECKPOINT: an rl method with a checkpoint "
-                           "of its own, a shipped name or a path; the checkpoint option applies to the others)"),
+                           "of its own, a shipped name or a path; the checkpoint option applies to the others); "
+                           "ties, and a mission with no task known at time 0, go to the first listed"),
                     CHECKPOINT)),
 )}
 

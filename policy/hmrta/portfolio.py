@@ -1,15 +1,18 @@
 """``portfolio``: per mission, the best of several methods, chosen by simulating each one.
 
-Every candidate (by default greedy, greedy-coalition and the learned policy) is rolled out on the
-mission as it is known at the start, and the mission is then run with the candidate of the
-shortest makespan. Offline on a static mission this is simply the best of the candidates, so it is
-never worse than any of them; the cost is the sum of their solve times (greedy rules are
-milliseconds, the learned policy a fraction of a second up to 50 tasks).
+Every candidate (by default the learned policy with three shipped checkpoints, greedy-coalition
+and greedy) is rolled out on the mission as it is known at the start, and the mission is then run
+with the candidate of the shortest makespan. Offline on a static mission this is simply the best of
+the candidates, so it is never worse than any of them; the cost is the sum of their solve times
+(greedy rules are milliseconds, the learned policy a fraction of a second up to 50 tasks).
 
 Missions that change while they run (tasks released later, timed events of a scenario) are not
 known in advance: the choice is made on the initial mission only (the tasks released at time 0,
 no events), then the chosen method runs the whole mission without knowing the events before their
-time, like every other online method.
+time, like every other online method. Ties go to the first candidate listed, and so does the
+choice when no task is known at time 0 (every makespan is then 0): the default list is in the order
+of the candidates' makespans on missions that change (docs/results.md, "Missions that change"),
+so that a choice made on little or nothing falls on the method best at the unknown.
 
 The choice is made before a live mission starts (``hmrta-mission --method portfolio`` resolves it
 with :func:`select` and runs the chosen method on every robot), so the task board and the agents
@@ -50,25 +53,42 @@ def candidate_methods(candidates: str | None) -> list[str]:
     return names
 
 
+def _cannot_run(inst: Instance, spec: str) -> str | None:
+    """Why candidate ``spec`` cannot run here or on ``inst`` (its optional dependency missing, or a
+    mission with more skills than the learned policy takes), or None."""
+    from . import methods
+    from .deps import MissingDependency, require
+    from .families import MAX_SKILLS  # the learned policy's K_MAX, without importing torch
+
+    m = methods.get(methods.parse(spec)[0])
+    try:
+        for mod in m.needs:
+            require(mod, f"method {m.name}")
+    except MissingDependency as e:
+        return str(e)
+    if m.option("checkpoint") is not None and inst.skills > MAX_SKILLS:  # a method of the learned policy
+        return f"the learned policy handles at most {MAX_SKILLS} skills; the mission has {inst.skills}"
+    return None
+
+
 def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
              candidates: str | None = None, left_out: dict[str, str] | None = None) -> dict[str, Solution]:
     """Each candidate's solution on the initial view of ``inst``. Of the default candidates, those
     that cannot run here (torch missing for rl) or on this mission (more skills than the learned
     policy takes) are left out, with the reason put in ``left_out``; a candidate the caller named
-    that cannot run raises."""
+    that cannot run raises, and so does any other error (a checkpoint that cannot be read: the
+    ``checkpoint`` option or $HMRTA_CHECKPOINT is the user's, and is never ignored)."""
     from . import methods
-    from .deps import MissingDependency
 
     view = initial_view(inst)
     out: dict[str, Solution] = {}
     missing: dict[str, str] = {}
     for c in candidate_methods(candidates):
-        try:
-            out[c] = methods.solve(view, c, seed=seed, **methods.options_for(c, {"checkpoint": checkpoint}))
-        except (MissingDependency, MethodError) as e:  # no torch; a mission beyond the policy (more skills)
-            if candidates is not None:  # asked for by name: never dropped silently
-                raise
-            missing[c] = str(e)
+        why = None if candidates is not None else _cannot_run(view, c)  # named candidates: their own error
+        if why is not None:
+            missing[c] = why
+            continue
+        out[c] = methods.solve(view, c, seed=seed, **methods.options_for(c, {"checkpoint": checkpoint}))
     if not out:
         raise MethodError(f"portfolio: no candidate could run ({'; '.join(missing.values())})")
     if left_out is not None:
@@ -84,11 +104,9 @@ def choose(results: dict[str, Solution]) -> str:
 
 def select(inst: Instance, seed: int = 0, checkpoint: str | None = None,
            candidates: str | None = None) -> tuple[str, dict[str, float]]:
-    """(the method to run the mission with, makespan of every candidate on the initial view).
-    With no task known at time 0 there is nothing to compare: the first candidate runs, and the
-    scores are empty."""
-    if initial_view(inst).n_tasks == 0:
-        return candidate_methods(candidates)[0], {}
+    """(the method to run the mission with, makespan of every candidate on the initial view). With
+    no task known at time 0 every candidate's makespan is 0 and the first listed that can run is
+    chosen."""
     results = evaluate(inst, seed, checkpoint, candidates)
     return choose(results), {c: s.makespan for c, s in results.items()}
 
@@ -99,16 +117,15 @@ def solve_portfolio(inst: Instance, seed: int = 0, checkpoint: str | None = None
 
     t0 = time.perf_counter()
     left_out: dict[str, str] = {}
-    if initial_view(inst).n_tasks == 0:  # nothing known at time 0 to choose by
-        chosen, results = candidate_methods(candidates)[0], {}
-    else:
-        results = evaluate(inst, seed, checkpoint, candidates, left_out)
-        chosen = choose(results)
-    sol = results.get(chosen)
-    if inst.dynamic or sol is None:  # the choice saw only the initial mission: now run the real one, events and all
+    results = evaluate(inst, seed, checkpoint, candidates, left_out)
+    chosen = choose(results)
+    sol = results[chosen]
+    if inst.dynamic:  # the choice saw only the initial mission: now run the real one, events and all
         sol = methods.solve(inst, chosen, seed=seed, **methods.options_for(chosen, {"checkpoint": checkpoint}))
     sol.compute_seconds = time.perf_counter() - t0
     sol.extra["portfolio"] = {"chosen": chosen, "candidates": {c: s.makespan for c, s in results.items()}}
+    if inst.dynamic:  # what the candidates' makespans are of
+        sol.extra["portfolio"]["tasks_known_at_start"] = initial_view(inst).n_tasks
     if left_out:  # default candidates that could not run here (e.g. rl without torch), with the reason
         sol.extra["portfolio"]["left_out"] = left_out
     return sol

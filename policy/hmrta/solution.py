@@ -85,8 +85,12 @@ class Solution:
         line = (f"{self.instance}: {self.method} makespan {self.makespan:.3f}  AWT {self.awt:.3f}  "
                 f"redundancy {self.redundancy:.3f}  compute {self.compute_seconds:.3f}s")
         pf = self.extra.get("portfolio") if isinstance(self.extra, dict) else None
-        if isinstance(pf, dict) and pf.get("chosen"):  # a method chosen per mission: which one
+        if isinstance(pf, dict) and pf.get("chosen"):  # a method chosen per mission: which one, on what
             line += f"  chose {pf['chosen']}"
+            if isinstance(pf.get("tasks_known_at_start"), int):
+                line += f" on the {pf['tasks_known_at_start']} task(s) known at time 0"
+            if isinstance(pf.get("left_out"), dict) and pf["left_out"]:
+                line += "\n  left out: " + "; ".join(f"{c} ({why})" for c, why in pf["left_out"].items())
         dyn = self.extra.get("dynamic") if isinstance(self.extra, dict) else None
         if isinstance(dyn, dict) and isinstance(dyn.get("tasks_lost"), dict):  # a mission with events
             lost = dyn["tasks_lost"]

@@ -106,6 +106,8 @@ def test_default_and_explicit_comparison_pairs():
     assert comparison_pairs(["greedy", "rl", "greedy-coalition"], None) == [("rl", "greedy"),
                                                                             ("rl", "greedy-coalition")]
     assert comparison_pairs(["greedy", "greedy-coalition"], None) == []
+    assert comparison_pairs(["greedy", "greedy-coalition", "portfolio"], None) == [("portfolio", "greedy"),
+                                                                                  ("portfolio", "greedy-coalition")]
     assert comparison_pairs(["greedy", "random"], [("random", "greedy")]) == [("random", "greedy")]
     with pytest.raises(ValueError, match="'rl' is not one of the benchmarked methods"):
         comparison_pairs(["greedy"], [("rl", "greedy")])

@@ -102,7 +102,8 @@ def test_requirement_values_are_all_drawn():
     (("MA-AT", 10, 3, 20, 3), "multiple of species"),
     (("MA-AT", 8, 4, 20, 2), "at most 3 species"),
     (("SA-AT", 0, 0, 20, 3), ">= 1"),
-    (("SA-BT", 4, 2, 20, 3), "SA needs at least as many species as skills"),  # would loop forever
+    (("SA-BT", 4, 2, 20, 3), r"species \(2\): SA needs at least as many species as skills"),  # would loop forever
+    (("MA-AT", 20, 10, 5, 3), r"species \(10\): MA needs distinct non-zero trait vectors, so at most 7 species"),
     (("MA-AT", 0, 2, 6, 3), r"agents \(0\) must be at least species \(2\)"),  # no agents: nothing to draw
 ])
 def test_generator_argument_errors(args, match):

@@ -251,6 +251,7 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
 
 
 def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_named_ones(monkeypatch):
+    import dataclasses
     import sys
 
     from hmrta.deps import MissingDependency
@@ -261,8 +262,28 @@ def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_na
     pf = sol.extra["portfolio"]
     assert set(pf["candidates"]) == {"greedy", "greedy-coalition"} and pf["left_out"]
     assert all(c.startswith("rl") and "torch" in why for c, why in pf["left_out"].items())
+    assert "left out: rl (" in sol.summary()
     with pytest.raises(MissingDependency, match="torch"):
         methods.solve(inst, "portfolio", seed=0, candidates="greedy,rl")
+    # no task known at time 0: the first listed that can run
+    late = dataclasses.replace(inst, tasks=tuple(dataclasses.replace(t, release=1.0) for t in inst.tasks))
+    assert methods.resolve(late, "portfolio")[:2] == ("greedy-coalition", {})
+
+
+def test_portfolio_never_ignores_a_checkpoint_the_user_named(monkeypatch, tmp_path):
+    """A checkpoint given to the portfolio (its option, or $HMRTA_CHECKPOINT) that cannot be read is
+    an error, not a candidate quietly left out."""
+    pytest.importorskip("torch")
+    from hmrta.rl.checkpoint_info import CheckpointError
+
+    inst = load_instance(EXAMPLE)
+    bad = tmp_path / "bad.pt"
+    bad.write_text("not a checkpoint")
+    with pytest.raises(CheckpointError, match="bad.pt"):
+        methods.solve(inst, "portfolio", seed=0, checkpoint=str(bad))
+    monkeypatch.setenv("HMRTA_CHECKPOINT", str(tmp_path / "missing.pt"))
+    with pytest.raises(CheckpointError, match="missing.pt .named by .HMRTA_CHECKPOINT.: no such checkpoint"):
+        methods.resolve(inst, "portfolio", 0)
 
 
 def test_portfolio_leaves_out_the_learned_policy_on_a_mission_beyond_it():
@@ -282,6 +303,9 @@ def test_portfolio_on_missions_that_change_and_its_candidates():
     pytest.importorskip("torch")
     import dataclasses
 
+    candidates = methods.get("portfolio").option("candidates").default.split(",")
+    assert candidates[:2] == ["rl", "greedy-coalition"] and candidates[-1] == "greedy"  # docs/results.md
+
     inst = load_instance(EXAMPLE)
     late = dataclasses.replace(inst, tasks=tuple(dataclasses.replace(t, release=3.0) if m % 4 == 0 else t
                                                  for m, t in enumerate(inst.tasks)))
@@ -290,7 +314,12 @@ def test_portfolio_on_missions_that_change_and_its_candidates():
     chosen = sol.extra["portfolio"]["chosen"]
     assert sol.success and sol.makespan == methods.solve(late, chosen, seed=0).makespan
     everything_late = dataclasses.replace(inst, tasks=tuple(dataclasses.replace(t, release=1.0) for t in inst.tasks))
-    assert methods.resolve(everything_late, "portfolio")[:2] == ("greedy", {})  # nothing to compare: first
+    # nothing to compare (every makespan 0 on no task): the first listed, the method best on missions that change
+    assert methods.resolve(everything_late, "portfolio") == ("rl", {}, dict.fromkeys(candidates, 0.0))
+    sol = methods.solve(everything_late, "portfolio", seed=0)
+    assert sol.extra["portfolio"]["chosen"] == "rl" and sol.extra["portfolio"]["tasks_known_at_start"] == 0
+    assert sol.makespan == methods.solve(everything_late, "rl", seed=0).makespan and "known at time 0" in sol.summary()
+    assert methods.resolve(everything_late, "portfolio", candidates="greedy,rl")[:2] == ("greedy", {})
     with pytest.raises(MethodError, match="cpsat cannot be a candidate"):
         methods.solve(inst, "portfolio", candidates="greedy,cpsat")
 
@@ -338,7 +367,7 @@ def test_a_method_spec_can_name_its_own_checkpoint(tmp_path, monkeypatch):
         methods.parse("greedy@broad")
     with pytest.raises(MethodError, match="expected a checkpoint after '@'"):
         methods.parse("rl@")
-    # a bare shipped name is the shipped file, unless a file of that name is here; a path stays a path
+    # a bare shipped name is the shipped file, even with a file of that name here (below); a path stays a path
     assert checkpoint_path("broad") == SHIPPED_DIR / "broad.pt"
     with pytest.raises(CheckpointError, match="no such checkpoint .shipped: .*broad.*default"):
         methods.solve(load_instance(EXAMPLE), "rl", checkpoint="nope")
@@ -361,6 +390,8 @@ def test_a_method_spec_can_name_its_own_checkpoint(tmp_path, monkeypatch):
     assert methods.live_spec("rl@broad", {"checkpoint": coalition}) == ("rl", {"checkpoint": "broad"})
     assert methods.live_spec("rl-s10", {"checkpoint": coalition}) == ("rl-sample", {"checkpoint": coalition})
     monkeypatch.chdir(tmp_path)
-    (tmp_path / "broad").write_bytes(b"mine")
-    assert checkpoint_path("broad") == Path("broad")
+    (tmp_path / "broad").write_bytes(b"mine")  # a stray file cannot change what rl@broad (a portfolio candidate) runs
+    assert checkpoint_path("broad") == SHIPPED_DIR / "broad.pt"
+    assert methods.solve(inst, "rl@broad", seed=1).makespan == own.makespan
+    assert checkpoint_path("./broad") == Path("broad")
     assert checkpoint_path("elsewhere/broad") == Path("elsewhere/broad")

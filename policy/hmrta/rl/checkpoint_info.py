@@ -52,14 +52,15 @@ def missing(path: Path) -> CheckpointError:
 
 def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
     """The checkpoint file an rl method uses: the given one, $HMRTA_CHECKPOINT, or the shipped
-    ``default.pt``. A bare name with no such file here (``broad``) is a shipped checkpoint:
-    :func:`shipped_checkpoints`."""
+    ``default.pt``. A bare name of a shipped checkpoint (``broad``: :func:`shipped_checkpoints`)
+    is that checkpoint, whatever files are in the current folder (a file named so is ``./broad``),
+    so that the portfolio's candidates and the nodes of a live mission read the same policy
+    wherever they run."""
     given = checkpoint or os.environ.get("HMRTA_CHECKPOINT")
     if not given:
         return DEFAULT_CHECKPOINT
     path, name = Path(given), str(given)
-    if (not path.exists() and path.suffix == "" and "/" not in name
-            and (SHIPPED_DIR / f"{name}.pt").is_file()):
+    if path.suffix == "" and "/" not in name and (SHIPPED_DIR / f"{name}.pt").is_file():
         return SHIPPED_DIR / f"{name}.pt"
     return path
 
