@@ -133,8 +133,8 @@ class CoalitionGreedy:
     # robots free at the same time at the same place (a coalition that finished together, a team
     # parked at its depot) arrive together at every task: the estimates compute one arrival per
     # group of such robots (at most GROUP robots in a group; a larger one is split), and look at the
-    # PARTIAL // GROUP earliest groups first (a coalition rarely needs more robots than PARTIAL),
-    # then four times as many, and so on
+    # earliest groups first, PARTIAL robots' worth on average (a coalition rarely needs more), then
+    # four times as many, and so on
     PARTIAL = 16
     GROUP = 4
     GROUPED = 64  # teams of more robots than this are grouped
@@ -145,7 +145,8 @@ class CoalitionGreedy:
         """[N] for each task at ``loc`` [N, 2], the arrival time at which the robots free at
         ``free_at`` [B] at ``pos`` [B, 2] (speed ``v``, capabilities ``cap`` [B, K]), taken in order
         of arrival ``free_at + |pos - loc| / v`` (ties: lowest robot first), first cover ``rem``
-        [N, K]; inf where all of them do not.
+        [N, K]; inf where all of them do not. Every row of ``rem`` needs something (an entry above
+        1e-9: the tasks the decider cannot complete alone).
 
         Robots with the same (free_at, position) have the same arrival at every task, computed once
         per group. A group with none of the skills a task still needs is left out of that task
@@ -160,16 +161,15 @@ class CoalitionGreedy:
         exact), so it never completes the cover, as if it were left out. Where the earliest groups
         include a left-out one, they hold every robot that counts, and an uncovered requirement
         stays uncovered. The other tasks (a coalition of many robots) look at four times as many
-        groups, and so on up to all of them (the full sort)."""
+        groups, and so on up to all of them: the full sort, robot by robot."""
         B, N, K = len(free_at), len(loc), cap.shape[1]
         idx = np.arange(B)  # [B]
         if B <= cls.GROUPED:  # a small team: each robot a group of its own
-            width, q = 1, cls.PARTIAL
+            width, gof = 1, idx  # gof [B]: the group of each robot
             members = idx[:, None]  # [G = B, 1]
             arr = free_at + np.hypot(pos[:, 0] - loc[:, 0:1], pos[:, 1] - loc[:, 1:2]) / v  # [N, B]
             has = cap > 0  # [B, K]
         else:
-            width, q = cls.GROUP, max(1, cls.PARTIAL // cls.GROUP)
             order = np.lexsort((idx, pos[:, 1], pos[:, 0], free_at))  # [B] by (free_at, x, y, index)
             f, x, y = free_at[order], pos[order, 0], pos[order, 1]  # [B] each
             new = np.ones(B, dtype=bool)  # [B] order[i] starts a group
@@ -177,11 +177,14 @@ class CoalitionGreedy:
             first = np.flatnonzero(new)  # [S] the first robot of each set of equal (free_at, x, y)
             same = np.cumsum(new) - 1  # [B] set of order[i]
             arr = f[first] + np.hypot(x[first] - loc[:, 0:1], y[first] - loc[:, 1:2]) / v  # [N, S]
-            new[(idx - first[same]) % width == 0] = True  # split the sets: at most GROUP robots a group
+            width = min(cls.GROUP, int(np.diff(first, append=B).max()))  # robots in a group, at most
+            new[(idx - first[same]) % width == 0] = True  # split the sets: at most width robots a group
             first = np.flatnonzero(new)  # [G]
             group = np.cumsum(new) - 1  # [B] group of order[i]
-            members = np.full((len(first), width), B)  # [G, GROUP] robots of each group, by index (B: none)
+            members = np.full((len(first), width), B)  # [G, width] robots of each group, by index (B: none)
             members[group, idx - first[group]] = order
+            gof = np.empty(B, dtype=np.int64)
+            gof[order] = group
             if len(first) > arr.shape[1]:
                 arr = arr[:, same[first]]  # [N, G]
             has = np.logical_or.reduceat(cap[order] > 0, first, axis=0)  # [G, K] skills of each group
@@ -190,16 +193,20 @@ class CoalitionGreedy:
         arr = np.where(useful.T, arr, np.inf)  # [N, G]
         cap = np.vstack([cap, np.zeros((1, K))])  # [B + 1, K] (row B: no robot)
         last = np.full(N, np.inf)  # [N]
-        rows = np.arange(N)  # [R] the tasks still undecided; q: the groups looked at
+        rows, q = np.arange(N), -(-cls.PARTIAL * G // B)  # [R] the tasks still undecided; groups looked at (PARTIAL robots on average)
         while len(rows):
             a = arr[rows]  # [R, G]
-            part = np.argpartition(a, q - 1, axis=1)[:, :q] if q < G else np.broadcast_to(np.arange(G), a.shape)  # [R, q']
-            ga = np.take_along_axis(a, part, 1)  # [R, q'] their arrivals
-            robots = members[part].reshape(len(rows), -1)  # [R, q' width]
-            ra = np.repeat(ga, width, axis=1) if width > 1 else ga  # [R, q' width]
-            if width > 1:
-                ra = np.where(robots < B, ra, np.inf)
-            o = np.lexsort((robots, ra), axis=1)  # [R, q' width] by arrival, then index (as the full sort)
+            if q < G:  # the q earliest groups, expanded into their robots
+                part = np.argpartition(a, q - 1, axis=1)[:, :q]  # [R, q]
+                ga = np.take_along_axis(a, part, 1)  # [R, q] their arrivals
+                robots = members[part].reshape(len(rows), -1)  # [R, q width]
+                ra = np.repeat(ga, width, axis=1) if width > 1 else ga  # [R, q width]
+                if width > 1:
+                    ra = np.where(robots < B, ra, np.inf)
+                o = np.lexsort((robots, ra), axis=1)  # [R, q width] by arrival, then index (as the full sort)
+            else:  # every robot: the full sort
+                robots, ra = np.broadcast_to(idx, (len(rows), B)), a[:, gof]  # [R, B] each, by index
+                o = np.argsort(ra, axis=1, kind="stable")  # [R, B] by arrival, then index
             t, ok = cls._first_cover(np.take_along_axis(ra, o, 1), cap[np.take_along_axis(robots, o, 1)], rem[rows])
             last[rows[ok]] = t[ok]
             if q >= G:

@@ -1290,6 +1290,10 @@ class MissionState:
         self.start = t.floats("start", (M,), nullable=True)
         self.finish = t.floats("finish", (M,), nullable=True)
         self.members = t.id_lists("members", M, A)
+        for m in np.flatnonzero((self.status == EMPTY) | (self.status == UNRELEASED)):
+            if self.members[m]:  # commitments make a task open (greedy-coalition's estimates rely on it)
+                raise t.err(f"members[{m}]", f"no members for a task that is {STATUS_NAMES[self.status[m]]}",
+                            self.members[m])
         self.release = t.floats("release", (M,)) if "release" in t.d else np.array(inst.releases, dtype=np.float64)
         names = t.raw("names") if "names" in t.d else [None] * M
         if not isinstance(names, list) or len(names) != M or not all(x is None or isinstance(x, str) for x in names):

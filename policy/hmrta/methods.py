@@ -110,7 +110,8 @@ class Method:
 
 
 CHECKPOINT = Option("checkpoint", str, None, "policy checkpoint: a file or a shipped name "
-                    f"({', '.join(shipped_checkpoints())}); default: $HMRTA_CHECKPOINT, else default")
+                    f"({', '.join(shipped_checkpoints())}; a file of such a name here is ./NAME); "
+                    "default: $HMRTA_CHECKPOINT, else default")
 _RL = dict(rules="hmrta.rl.checkpoint_info:checkpoint_rules", needs=("torch",))
 # rl-sample's default temperature, chosen on the dev missions (docs/training.md, "Sampling
 # temperature"): the shipped policies are cloned (from greedy-coalition, from the solver's

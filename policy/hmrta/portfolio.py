@@ -21,6 +21,7 @@ see an ordinary method and its rules; ``portfolio`` itself has no per-decision f
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 
 from .errors import MethodError
@@ -77,7 +78,7 @@ def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
     that cannot run here (torch missing for rl) or on this mission (more skills than the learned
     policy takes) are left out, with the reason put in ``left_out``; a candidate the caller named
     that cannot run raises, and so does any other error (a checkpoint that cannot be read: the
-    ``checkpoint`` option or $HMRTA_CHECKPOINT is the user's, and is never ignored)."""
+    ``checkpoint`` option, $HMRTA_CHECKPOINT or a damaged shipped file)."""
     from . import methods
 
     view = initial_view(inst)
@@ -106,8 +107,11 @@ def select(inst: Instance, seed: int = 0, checkpoint: str | None = None,
            candidates: str | None = None) -> tuple[str, dict[str, float]]:
     """(the method to run the mission with, makespan of every candidate on the initial view). With
     no task known at time 0 every candidate's makespan is 0 and the first listed that can run is
-    chosen."""
-    results = evaluate(inst, seed, checkpoint, candidates)
+    chosen. Default candidates left out are logged as a warning (a live mission has no summary)."""
+    left_out: dict[str, str] = {}
+    results = evaluate(inst, seed, checkpoint, candidates, left_out)
+    for c, why in left_out.items():
+        logging.getLogger(__name__).warning("portfolio: left out %s (%s)", c, why)
     return choose(results), {c: s.makespan for c, s in results.items()}
 
 

@@ -268,13 +268,13 @@ def _completing_arrival_reference(free_at, pos, loc, v, cap, rem):
 def test_coalition_completing_arrival_of_large_teams_equals_the_full_sort(seed):
     """Teams above GROUPED (grouped by when and where they are free): many robots at one place
     and time (larger than GROUP), places at equal distances from the tasks (arrival ties across
-    groups), fractional capabilities, robots with none of the skills a task needs, requirements
-    that take most of the team or that it cannot cover."""
+    groups), or every robot at a place of its own; fractional capabilities, robots with none of
+    the skills a task needs, requirements that take most of the team or that it cannot cover."""
     rng = np.random.default_rng(seed)
     B, N, K = CoalitionGreedy.GROUPED + int(rng.integers(1, 200)), int(rng.integers(2, 60)), int(rng.integers(1, 6))
     spots = rng.integers(0, 5, (int(rng.integers(1, 30)), 2)) / 4  # a coarse grid: equal distances
     times = rng.choice([0.0, 0.5, 1.25, 3.0], int(rng.integers(1, 4)))
-    pos = spots[rng.integers(len(spots), size=B)]  # [B, 2]
+    pos = spots[rng.integers(len(spots), size=B)] if seed % 3 else rng.random((B, 2))  # [B, 2] (distinct: 0, 3)
     free_at = times[rng.integers(len(times), size=B)]  # [B]
     cap = rng.choice([0.0, 0.0, 0.1, 0.3, 0.5, 1.0, 2.0], (B, K))  # [B, K]
     loc = np.vstack([rng.integers(0, 5, (N // 2, 2)) / 4, rng.random((N - N // 2, 2))])  # [N, 2]

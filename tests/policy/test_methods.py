@@ -250,7 +250,7 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
         methods.resolve(inst, "cpsat")
 
 
-def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_named_ones(monkeypatch):
+def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_named_ones(monkeypatch, caplog):
     import dataclasses
     import sys
 
@@ -265,9 +265,11 @@ def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_na
     assert "left out: rl (" in sol.summary()
     with pytest.raises(MissingDependency, match="torch"):
         methods.solve(inst, "portfolio", seed=0, candidates="greedy,rl")
-    # no task known at time 0: the first listed that can run
+    # no task known at time 0: the first listed that can run; live, the left out are logged
     late = dataclasses.replace(inst, tasks=tuple(dataclasses.replace(t, release=1.0) for t in inst.tasks))
-    assert methods.resolve(late, "portfolio")[:2] == ("greedy-coalition", {})
+    with caplog.at_level("WARNING", logger="hmrta.portfolio"):
+        assert methods.resolve(late, "portfolio")[:2] == ("greedy-coalition", {})
+    assert "portfolio: left out rl (" in caplog.text and "torch" in caplog.text
 
 
 def test_portfolio_never_ignores_a_checkpoint_the_user_named(monkeypatch, tmp_path):

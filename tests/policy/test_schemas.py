@@ -347,6 +347,16 @@ def test_bad_snapshots_are_a_snapshot_error_naming_the_field(mutate, message, sc
     assert bool(errors("hmrta-state/1", bad)) == schema_rejects
 
 
+def test_a_snapshot_with_members_on_an_empty_task_is_refused():
+    """Commitments make a task open: an empty task with members does not come from the machine."""
+    inst, snap = _mid_snapshot()
+    empty = snap["tasks"]["status"].index("empty")
+    snap["tasks"]["members"][empty] = [4]
+    with pytest.raises(SnapshotError, match=rf"^snapshot tasks.members\[{empty}\]: expected no members for a "
+                                            rf"task that is empty, got \[4\]"):
+        MissionState.from_snapshot(inst, snap)
+
+
 @pytest.mark.parametrize("bad", [None, [], "state", 3])
 def test_a_snapshot_that_is_not_a_mapping_is_a_snapshot_error(bad):
     with pytest.raises(SnapshotError, match="expected a mapping"):
