@@ -302,10 +302,12 @@ def mission_methods() -> list[str]:
     return [k for k, v in METHODS.items() if v.decide is not None or v.choose is not None]
 
 
-def resolve(inst, method: str, seed: int = 0, **options: Any) -> tuple[str, dict[str, Any], dict | None]:
+def resolve(inst, method: str, seed: int = 0, progress: Callable | None = None,
+            **options: Any) -> tuple[str, dict[str, Any], dict | None]:
     """The live method a mission runs: ``(name, its options, None)`` for a method with a
     per-decision form; for a method that chooses per mission (portfolio), the chosen method, the
-    options it takes and ``{candidate: makespan}`` of the choice."""
+    options it takes and ``{candidate: makespan}`` of the choice (``progress`` is passed to the
+    choice, as :func:`solve` passes it to a solver)."""
     name, implied = parse(method)
     m = get(name)
     if m.decide is not None:
@@ -315,7 +317,11 @@ def resolve(inst, method: str, seed: int = 0, **options: Any) -> tuple[str, dict
                           f"{', '.join(mission_methods())})")
     opts = m.check(_merge(m, implied, options))
     _needs(m)
-    chosen, scores = _resolve(m.choose)(inst, seed=seed, **opts)
+    choose = _resolve(m.choose)
+    if progress is not None and "progress" in inspect.signature(choose).parameters:
+        opts = {**opts, "progress": progress}
+    chosen, scores = choose(inst, seed=seed, **opts)
+    opts.pop("progress", None)
     return (*live_spec(chosen, opts), scores)
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from typing import Callable
 
 from .errors import MethodError
 from .instance import Instance
@@ -73,23 +74,31 @@ def _cannot_run(inst: Instance, spec: str) -> str | None:
 
 
 def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
-             candidates: str | None = None, left_out: dict[str, str] | None = None) -> dict[str, Solution]:
+             candidates: str | None = None, left_out: dict[str, str] | None = None,
+             progress: Callable[..., None] | None = None) -> dict[str, Solution]:
     """Each candidate's solution on the initial view of ``inst``. Of the default candidates, those
     that cannot run here (torch missing for rl) or on this mission (more skills than the learned
     policy takes) are left out, with the reason put in ``left_out``; a candidate the caller named
     that cannot run raises, and so does any other error (a checkpoint that cannot be read: the
-    ``checkpoint`` option, $HMRTA_CHECKPOINT or a damaged shipped file)."""
+    ``checkpoint`` option, $HMRTA_CHECKPOINT or a damaged shipped file). ``progress(done, total,
+    unit, note)``, if given, is called before and after each candidate (a large mission takes
+    seconds to minutes per learned candidate)."""
     from . import methods
 
     view = initial_view(inst)
     out: dict[str, Solution] = {}
     missing: dict[str, str] = {}
-    for c in candidate_methods(candidates):
+    names = candidate_methods(candidates)
+    for i, c in enumerate(names):
         why = None if candidates is not None else _cannot_run(view, c)  # named candidates: their own error
         if why is not None:
             missing[c] = why
             continue
+        if progress is not None:
+            progress(i, len(names), "candidate", f"simulating {c}")
         out[c] = methods.solve(view, c, seed=seed, **methods.options_for(c, {"checkpoint": checkpoint}))
+        if progress is not None:
+            progress(i + 1, len(names), "candidate", f"{c} {out[c].makespan:.2f}")
     if not out:
         raise MethodError(f"portfolio: no candidate could run ({'; '.join(missing.values())})")
     if left_out is not None:
@@ -103,25 +112,25 @@ def choose(results: dict[str, Solution]) -> str:
     return min(ok)[2] if ok else next(iter(results))
 
 
-def select(inst: Instance, seed: int = 0, checkpoint: str | None = None,
-           candidates: str | None = None) -> tuple[str, dict[str, float]]:
+def select(inst: Instance, seed: int = 0, checkpoint: str | None = None, candidates: str | None = None,
+           progress: Callable[..., None] | None = None) -> tuple[str, dict[str, float]]:
     """(the method to run the mission with, makespan of every candidate on the initial view). With
     no task known at time 0 every candidate's makespan is 0 and the first listed that can run is
     chosen. Default candidates left out are logged as a warning (a live mission has no summary)."""
     left_out: dict[str, str] = {}
-    results = evaluate(inst, seed, checkpoint, candidates, left_out)
+    results = evaluate(inst, seed, checkpoint, candidates, left_out, progress)
     for c, why in left_out.items():
         logging.getLogger(__name__).warning("portfolio: left out %s (%s)", c, why)
     return choose(results), {c: s.makespan for c, s in results.items()}
 
 
 def solve_portfolio(inst: Instance, seed: int = 0, checkpoint: str | None = None,
-                    candidates: str | None = None) -> Solution:
+                    candidates: str | None = None, progress: Callable[..., None] | None = None) -> Solution:
     from . import methods
 
     t0 = time.perf_counter()
     left_out: dict[str, str] = {}
-    results = evaluate(inst, seed, checkpoint, candidates, left_out)
+    results = evaluate(inst, seed, checkpoint, candidates, left_out, progress)
     chosen = choose(results)
     sol = results[chosen]
     if inst.dynamic:  # the choice saw only the initial mission: now run the real one, events and all

@@ -272,6 +272,23 @@ def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_na
     assert "portfolio: left out rl (" in caplog.text and "torch" in caplog.text
 
 
+def test_portfolio_reports_progress_per_candidate_offline_and_live():
+    """A large mission takes seconds to minutes per learned candidate: the choice reports each
+    candidate before and after it runs (hmrta solve and hmrta-mission draw a bar from it)."""
+    inst = load_instance(EXAMPLE)
+    calls = []
+    sol = methods.solve(inst, "portfolio", candidates="greedy,greedy-coalition", progress=lambda *a: calls.append(a))
+    each = sol.extra["portfolio"]["candidates"]
+    assert calls == [(0, 2, "candidate", "simulating greedy"), (1, 2, "candidate", f"greedy {each['greedy']:.2f}"),
+                     (1, 2, "candidate", "simulating greedy-coalition"),
+                     (2, 2, "candidate", f"greedy-coalition {each['greedy-coalition']:.2f}")]
+    live = []
+    assert methods.resolve(inst, "portfolio", 0, progress=lambda *a: live.append(a),
+                           candidates="greedy,greedy-coalition")[2] == each
+    assert live == calls
+    assert methods.resolve(inst, "greedy", 0, progress=lambda *a: live.append(a)) == ("greedy", {}, None)
+
+
 def test_portfolio_never_ignores_a_checkpoint_the_user_named(monkeypatch, tmp_path):
     """A checkpoint given to the portfolio (its option, or $HMRTA_CHECKPOINT) that cannot be read is
     an error, not a candidate quietly left out."""

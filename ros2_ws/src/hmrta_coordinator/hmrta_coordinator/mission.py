@@ -541,7 +541,8 @@ def _main(argv: list[str] | None = None) -> int:
     p.add_argument("--record", default=None, metavar="FILE.mcap",
                    help="record every /hmrta topic and the robots' goals and poses to this MCAP file "
                         "(Foxglove, rosbag2; hmrta render --from FILE.mcap)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bars (the portfolio's simulation of its candidates, the mission)")
     args = p.parse_args(remove_ros_args(argv)[1:])
     for flag, v, ok, want in (("--time-scale", args.time_scale, args.time_scale >= 0, "a number >= 0"),
                               ("--timeout", args.timeout, args.timeout > 0, "a number of seconds > 0"),
@@ -573,8 +574,11 @@ def _main(argv: list[str] | None = None) -> int:
             keystore = Path(args.keystore).absolute()
             hkeys.load_keystore(keystore, robots)
         # the live method every robot runs (a per-mission choice such as portfolio is made here)
-        args.method, method_options, scores = methods.resolve(inst, args.method, args.seed,
-                                                              **methods.options_from_args(args))
+        from hmrta.cli import SolveProgress  # a bar on stderr when the choice takes seconds (a large mission)
+
+        with SolveProgress(args.method, not args.quiet) as prog:
+            args.method, method_options, scores = methods.resolve(inst, args.method, args.seed, progress=prog,
+                                                                  **methods.options_from_args(args))
         methods.rules(args.method, **method_options)  # its checkpoint readable (a bad one: here, not in every node)
     except (InstanceError, methods.MethodError, hkeys.KeystoreError) as e:
         print(f"hmrta-mission: {e}", file=sys.stderr)
