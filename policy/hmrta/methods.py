@@ -243,12 +243,17 @@ def check_options(method: str, options: dict[str, Any]) -> dict[str, Any]:
 
 def check_instance(method: str, inst) -> None:
     """MethodError unless ``method`` can plan ``inst``: an offline solver cannot plan a mission
-    whose tasks or robots change over time."""
+    whose tasks or robots change over time, and the learned policy takes at most 5 skills."""
+    from .families import MAX_SKILLS  # the learned policy's K_MAX (hmrta.rl.features), without torch
+
     name = parse(method)[0]
     m = get(name)
     if m.decide is None and m.choose is None and getattr(inst, "dynamic", False):
         raise MethodError(f"method {name} is an offline solver: it cannot plan a scenario whose tasks or robots "
                           f"change over time (use greedy, greedy-coalition or an rl method)")
+    if m.rules == _RL["rules"] and inst.skills > MAX_SKILLS:
+        raise MethodError(f"method {name}: the learned policy handles at most {MAX_SKILLS} skills, the mission "
+                          f"has {inst.skills} (use greedy, greedy-coalition or cpsat)")
 
 
 def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **options: Any):

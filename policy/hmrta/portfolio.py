@@ -60,16 +60,14 @@ def _cannot_run(inst: Instance, spec: str) -> str | None:
     mission with more skills than the learned policy takes), or None."""
     from . import methods
     from .deps import MissingDependency, require
-    from .families import MAX_SKILLS  # the learned policy's K_MAX, without importing torch
 
     m = methods.get(methods.parse(spec)[0])
     try:
         for mod in m.needs:
             require(mod, f"method {m.name}")
-    except MissingDependency as e:
+        methods.check_instance(spec, inst)
+    except (MissingDependency, MethodError) as e:
         return str(e)
-    if m.option("checkpoint") is not None and inst.skills > MAX_SKILLS:  # a method of the learned policy
-        return f"the learned policy handles at most {MAX_SKILLS} skills; the mission has {inst.skills}"
     return None
 
 

@@ -90,7 +90,10 @@ class Solution:
             if isinstance(pf.get("tasks_known_at_start"), int):
                 line += f" on the {pf['tasks_known_at_start']} task(s) known at time 0"
             if isinstance(pf.get("left_out"), dict) and pf["left_out"]:
-                line += "\n  left out: " + "; ".join(f"{c} ({why})" for c, why in pf["left_out"].items())
+                by_why: dict = {}  # the candidates left out for one reason together
+                for c, why in pf["left_out"].items():
+                    by_why.setdefault(str(why), []).append(str(c))
+                line += "\n  left out: " + "; ".join(f"{', '.join(cs)} ({why})" for why, cs in by_why.items())
         dyn = self.extra.get("dynamic") if isinstance(self.extra, dict) else None
         if isinstance(dyn, dict) and isinstance(dyn.get("tasks_lost"), dict):  # a mission with events
             lost = dyn["tasks_lost"]

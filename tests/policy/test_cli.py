@@ -552,3 +552,21 @@ def test_schedule_names_cancelled_tasks_and_lost_robots(tmp_path, capsys):
                                      "events: [{t: 2.0, type: cancel_task, id: 2}]\n")
     assert main(["solve", str(tmp_path / "c.yaml"), "--method", "greedy", "--schedule"]) == 0
     assert "(cancelled at 2.00)" in capsys.readouterr().out
+
+
+def test_a_mission_beyond_the_learned_policy_is_refused_naming_the_file_before_any_work(tmp_path, capsys):
+    """More skills than the policy takes: the rl methods refuse the file (one line, exit 2, nothing
+    written); the default method leaves them out and says so."""
+    from hmrta.generators import ScenarioGenerator
+
+    mission = tmp_path / "seven.yaml"
+    ScenarioGenerator("MA-AT", 6, 3, 5, 7).instance(0, 0).save(mission)
+    for method in ("rl", "rl-s10", "rl@broad"):
+        assert main(["solve", str(mission), "--method", method, "--out", str(tmp_path / "out.json")]) == 2
+        line = _one_error_line(capsys)
+        assert line.startswith(f"hmrta: error: {mission}: method rl") and "at most 5 skills, the mission has 7" in line
+        assert not (tmp_path / "out.json").exists()
+    assert main(["solve", str(mission), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "chose greedy" in out and "left out: rl, rl@broad, rl@coalition-team (method rl: the learned policy " \
+                                     "handles at most 5 skills, the mission has 7" in out

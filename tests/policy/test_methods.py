@@ -262,7 +262,7 @@ def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_na
     pf = sol.extra["portfolio"]
     assert set(pf["candidates"]) == {"greedy", "greedy-coalition"} and pf["left_out"]
     assert all(c.startswith("rl") and "torch" in why for c, why in pf["left_out"].items())
-    assert "left out: rl (" in sol.summary()
+    assert "left out: rl, rl@broad, rl@coalition-team (method rl needs torch" in sol.summary()
     with pytest.raises(MissingDependency, match="torch"):
         methods.solve(inst, "portfolio", seed=0, candidates="greedy,rl")
     # no task known at time 0: the first listed that can run; live, the left out are logged
