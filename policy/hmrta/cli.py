@@ -278,6 +278,7 @@ class SolveProgress:
                     self._advance(done + time.monotonic() - at)
                 elif time.monotonic() - self._t0 >= self.DELAY:  # shown, its elapsed time going, between calls
                     self.bar.refresh()
+                    self.bar.last_print_t = self.bar._time()  # shown: close() clears it (tqdm counts updates only)
 
     def close(self) -> None:
         self._stop.set()
@@ -561,9 +562,10 @@ def cmd_bench(args) -> int:
         table = args.scenario
         try:  # every instance can be drawn (a team too small for the tasks cannot), before any work
             rows = [bench.Row(table, args.agents, args.species, args.tasks, args.skills)]
-            rows[0].generator().generate(args.count, args.seed)
+            drawn = rows[0].generator().generate(args.count, args.seed)
         except ValueError as e:
             raise UserError(str(e)) from None
+        _plannable(methods, [(f"{rows[0].key} ({inst.name})", inst) for inst in drawn[:1]])  # one row: one size
     _plannable(methods, [(f"{row.name} ({inst.name})", inst) for row in rows if isinstance(row, bench.MissionSet)
                          for _, inst in row.instances(args.count, args.seed)])  # your missions, before any work
     if not rows:  # --max-tasks below every row of the suite
@@ -1013,7 +1015,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print the solution JSON instead of a summary")
     s.add_argument("--schedule", action="store_true", help="also print the per-task schedule and routes")
     s.add_argument("--no-progress", action="store_true",
-                   help="no progress bars (per instance with several, per decision or second in a long solve)")
+                   help="no progress bars (per instance with several, per decision or second in a long solve, "
+                        "per candidate of the portfolio)")
     s.add_argument("--threads", type=int, default=1, metavar="N", help=THREADS_HELP)
     s.set_defaults(fn=cmd_solve)
 

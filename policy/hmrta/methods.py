@@ -253,7 +253,7 @@ def check_instance(method: str, inst) -> None:
                           f"change over time (use greedy, greedy-coalition or an rl method)")
     if m.rules == _RL["rules"] and inst.skills > MAX_SKILLS:
         raise MethodError(f"method {name}: the learned policy handles at most {MAX_SKILLS} skills, the mission "
-                          f"has {inst.skills} (use greedy, greedy-coalition or cpsat)")
+                          f"has {inst.skills}")
 
 
 def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **options: Any):
@@ -316,7 +316,9 @@ def resolve(inst, method: str, seed: int = 0, progress: Callable | None = None,
     name, implied = parse(method)
     m = get(name)
     if m.decide is not None:
-        return name, m.check(_merge(m, implied, options, live=True), live=True), None
+        opts = m.check(_merge(m, implied, options, live=True), live=True)
+        check_instance(method, inst)  # before any process starts
+        return name, opts, None
     if m.choose is None:
         raise MethodError(f"method {name} has no per-decision form (live missions run: "
                           f"{', '.join(mission_methods())})")

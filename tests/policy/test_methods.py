@@ -286,7 +286,16 @@ def test_portfolio_reports_progress_per_candidate_offline_and_live():
     assert methods.resolve(inst, "portfolio", 0, progress=lambda *a: live.append(a),
                            candidates="greedy,greedy-coalition")[2] == each
     assert live == calls
+    live.clear()
     assert methods.resolve(inst, "greedy", 0, progress=lambda *a: live.append(a)) == ("greedy", {}, None)
+    assert live == []  # a method that does not choose reports nothing
+    # the default candidates left out (more skills than the policy takes) are skipped, the count still of all five
+    calls.clear()
+    methods.solve(ScenarioGenerator("MA-AT", 6, 3, 5, 7).instance(0, 0), "portfolio",
+                  progress=lambda *a: calls.append(a))
+    assert [(c[0], c[1], c[3].split()[-1]) for c in calls] == [
+        (1, 5, "greedy-coalition"), (2, 5, calls[1][3].split()[-1]), (4, 5, "greedy"), (5, 5, calls[3][3].split()[-1])]
+    assert calls[1][3].startswith("greedy-coalition ") and calls[3][3].startswith("greedy ")
 
 
 def test_portfolio_never_ignores_a_checkpoint_the_user_named(monkeypatch, tmp_path):

@@ -576,7 +576,7 @@ def _main(argv: list[str] | None = None) -> int:
         # the live method every robot runs (a per-mission choice such as portfolio is made here)
         from hmrta.cli import SolveProgress  # a bar on stderr when the choice takes seconds (a large mission)
 
-        with SolveProgress(args.method, not args.quiet) as prog:
+        with SolveProgress(args.method, not args.quiet and sys.stderr.isatty()) as prog:
             args.method, method_options, scores = methods.resolve(inst, args.method, args.seed, progress=prog,
                                                                   **methods.options_from_args(args))
         methods.rules(args.method, **method_options)  # its checkpoint readable (a bad one: here, not in every node)
