@@ -200,9 +200,7 @@ class CoalitionGreedy:
                 part = np.argpartition(a, q - 1, axis=1)[:, :q]  # [R, q]
                 ga = np.take_along_axis(a, part, 1)  # [R, q] their arrivals
                 robots = members[part].reshape(len(rows), -1)  # [R, q width]
-                ra = np.repeat(ga, width, axis=1) if width > 1 else ga  # [R, q width]
-                if width > 1:
-                    ra = np.where(robots < B, ra, np.inf)
+                ra = np.where(robots < B, np.repeat(ga, width, axis=1), np.inf) if width > 1 else ga  # [R, q width]
                 o = np.lexsort((robots, ra), axis=1)  # [R, q width] by arrival, then index (as the full sort)
             else:  # every robot: the full sort
                 robots, ra = np.broadcast_to(idx, (len(rows), B)), a[:, gof]  # [R, B] each, by index

@@ -256,18 +256,27 @@ def check_instance(method: str, inst) -> None:
                           f"has {inst.skills}")
 
 
+def check_runnable(method: str, inst) -> None:
+    """MissingDependency unless ``method``'s optional dependencies are installed, MethodError
+    unless it can plan ``inst`` (:func:`check_instance`): what :func:`solve` checks before any work."""
+    check_instance(method, inst)
+    _needs(get(parse(method)[0]))
+
+
+def _progress_for(fn: Callable, progress: Callable | None) -> dict[str, Any]:
+    """``{"progress": progress}`` for a solver or chooser that reports progress, else nothing."""
+    return {"progress": progress} if progress is not None and "progress" in inspect.signature(fn).parameters else {}
+
+
 def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **options: Any):
     """Solve ``inst`` with ``method`` (a name or shorthand) -> Solution (``sol.method`` = its label).
     ``progress`` (optional) is passed to solvers that report progress."""
     name, implied = parse(method)
     m = get(name)
     opts = check_options(method, options)
-    check_instance(method, inst)
-    _needs(m)
+    check_runnable(method, inst)
     fn = _resolve(m.solve)
-    if progress is not None and "progress" in inspect.signature(fn).parameters:
-        opts["progress"] = progress
-    sol = fn(inst, seed=seed, **opts)
+    sol = fn(inst, seed=seed, **opts, **_progress_for(fn, progress))
     sol.method = label(name, opts, implied)
     return sol
 
@@ -325,10 +334,7 @@ def resolve(inst, method: str, seed: int = 0, progress: Callable | None = None,
     opts = m.check(_merge(m, implied, options))
     _needs(m)
     choose = _resolve(m.choose)
-    if progress is not None and "progress" in inspect.signature(choose).parameters:
-        opts = {**opts, "progress": progress}
-    chosen, scores = choose(inst, seed=seed, **opts)
-    opts.pop("progress", None)
+    chosen, scores = choose(inst, seed=seed, **opts, **_progress_for(choose, progress))
     return (*live_spec(chosen, opts), scores)
 
 

@@ -59,13 +59,10 @@ def _cannot_run(inst: Instance, spec: str) -> str | None:
     """Why candidate ``spec`` cannot run here or on ``inst`` (its optional dependency missing, or a
     mission with more skills than the learned policy takes), or None."""
     from . import methods
-    from .deps import MissingDependency, require
+    from .deps import MissingDependency
 
-    m = methods.get(methods.parse(spec)[0])
     try:
-        for mod in m.needs:
-            require(mod, f"method {m.name}")
-        methods.check_instance(spec, inst)
+        methods.check_runnable(spec, inst)
     except (MissingDependency, MethodError) as e:
         return str(e)
     return None

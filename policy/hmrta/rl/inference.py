@@ -86,15 +86,7 @@ def load_policy(checkpoint: str | Path | None = None) -> LoadedPolicy:
         return lp
 
 
-def _check(inst: Instance) -> None:
-    from .features import K_MAX
-
-    if inst.skills > K_MAX:
-        raise MethodError(f"the learned policy handles at most {K_MAX} skills; {inst.name} has {inst.skills}")
-
-
 def solve_rl(inst: Instance, seed: int = 0, checkpoint: str | None = None) -> Solution:
-    _check(inst)
     pol = load_policy(checkpoint)
     t0 = time.perf_counter()
     state = MissionState(inst, seed=seed, rules=pol.rules)
@@ -106,7 +98,6 @@ def solve_rl_sample(inst: Instance, seed: int = 0, samples: int = 10,
                     temperature: float = SAMPLE_TEMPERATURE, checkpoint: str | None = None) -> Solution:
     """RL(s.N): ``samples`` rollouts sampled from softmax(logits / ``temperature``), one batch,
     the shortest successful one kept."""
-    _check(inst)
     if samples < 1:
         raise MethodError(f"samples: expected a positive integer, got {samples}")
     if not temperature > 0:
@@ -152,7 +143,6 @@ def solve_rl_lookahead(inst: Instance, seed: int = 0, checkpoint: str | None = N
                        progress: Callable[..., None] | None = None) -> Solution:
     """``progress(done, total, unit, note)``, if given, is called after every decision with the
     number of tasks started (unit "task") out of all tasks."""
-    _check(inst)
     pol = load_policy(checkpoint)
     t0 = time.perf_counter()
     state = MissionState(inst, seed=seed, rules=pol.rules)
