@@ -121,7 +121,8 @@ class CoalitionGreedy:
             start = np.where(need, np.inf, start)  # nobody left to complete those coalitions
         elif need.any():
             col = np.flatnonzero(need)  # [N] the tasks a still needs others for
-            last = self._completing_arrival(free_at[others], pos[others], loc[col], v, s.cap[others], rem[col])  # [N]
+            last = self._completing_arrival(free_at[others], pos[others], loc[col], v, s.cap[others], rem[col],
+                                            exact=s._exact)  # [N]
             start[col] = np.maximum(start[col], last)
         return cand, start, mine
 
@@ -141,7 +142,7 @@ class CoalitionGreedy:
 
     @classmethod
     def _completing_arrival(cls, free_at: np.ndarray, pos: np.ndarray, loc: np.ndarray, v: float,
-                            cap: np.ndarray, rem: np.ndarray) -> np.ndarray:
+                            cap: np.ndarray, rem: np.ndarray, exact: bool = False) -> np.ndarray:
         """[N] for each task at ``loc`` [N, 2], the arrival time at which the robots free at
         ``free_at`` [B] at ``pos`` [B, 2] (speed ``v``, capabilities ``cap`` [B, K]), taken in order
         of arrival ``free_at + |pos - loc| / v`` (ties: lowest robot first), first cover ``rem``
@@ -161,8 +162,14 @@ class CoalitionGreedy:
         exact), so it never completes the cover, as if it were left out. Where the earliest groups
         include a left-out one, they hold every robot that counts, and an uncovered requirement
         stays uncovered. The other tasks (a coalition of many robots) look at four times as many
-        groups, and so on up to all of them: the full sort, robot by robot."""
+        groups, and so on up to all of them: the full sort, robot by robot.
+
+        ``exact``: every capability and remaining requirement is a multiple of 2^-24 and their
+        sums stay below 2^28 (``MissionState._exact``), so every running sum is exact whatever the
+        order of its terms. A large team then takes :meth:`_completing_arrival_by_place`."""
         B, N, K = len(free_at), len(loc), cap.shape[1]
+        if exact and B > cls.GROUPED:
+            return cls._completing_arrival_by_place(free_at, pos, loc, v, cap, rem)
         idx = np.arange(B)  # [B]
         if B <= cls.GROUPED:  # a small team: each robot a group of its own
             width, gof = 1, idx  # gof [B]: the group of each robot
@@ -188,28 +195,83 @@ class CoalitionGreedy:
             if len(first) > arr.shape[1]:
                 arr = arr[:, same[first]]  # [N, G]
             has = np.logical_or.reduceat(cap[order] > 0, first, axis=0)  # [G, K] skills of each group
-        G = len(members)
         useful = has.astype(np.float64) @ (rem > 1e-9).T.astype(np.float64) > 0  # [G, N]
         arr = np.where(useful.T, arr, np.inf)  # [N, G]
         cap = np.vstack([cap, np.zeros((1, K))])  # [B + 1, K] (row B: no robot)
+
+        def robots_in_order(part, ga):  # the robots of the groups looked at, by arrival, then index
+            if part is not None:  # the earliest groups, expanded into their robots
+                robots = members[part].reshape(len(ga), -1)  # [R, q width]
+                ra = np.where(robots < B, np.repeat(ga, width, axis=1), np.inf) if width > 1 else ga  # [R, q width]
+                o = np.lexsort((robots, ra), axis=1)  # [R, q width] (as the full sort)
+            else:  # every robot: the full sort
+                robots, ra = np.broadcast_to(idx, (len(ga), B)), ga[:, gof]  # [R, B] each, by index
+                o = np.argsort(ra, axis=1, kind="stable")  # [R, B]
+            return np.take_along_axis(ra, o, 1), cap[np.take_along_axis(robots, o, 1)]
+
+        return cls._earliest_cover(arr, -(-cls.PARTIAL * len(members) // B), rem, robots_in_order)
+
+    @classmethod
+    def _completing_arrival_by_place(cls, free_at: np.ndarray, pos: np.ndarray, loc: np.ndarray, v: float,
+                                     cap: np.ndarray, rem: np.ndarray) -> np.ndarray:
+        """:meth:`_completing_arrival` when the arithmetic is exact: over the sets of robots free
+        at the same (free_at, position), each counted as one robot with the sum of their
+        capabilities, taken in order of arrival (ties in any order).
+
+        The same result bit for bit: with exact sums, the full sort's answer is the earliest
+        arrival t at which the robots arriving by t cover the requirement (its covering robot
+        arrives at t, and every robot before it arrives by t; no robot arriving before t is
+        preceded by one arriving later, so by any earlier time the robots arriving are a prefix
+        that does not cover). Summing by sets, in order of arrival, finds that t: the running sum
+        after every set arriving by t is the sum of the robots arriving by t, whatever the order
+        among sets of equal arrival, and a set that covers midway through a run of sets of
+        equal arrival covers at that arrival. The earliest sets are looked at first (PARTIAL
+        robots' worth on average, then four times as many): every set arriving before the latest
+        of them (L) is among them, so a cover before L is the answer, and so is a cover at L (the
+        robots arriving by L include those looked at). Sets with none of the skills still needed
+        are left out (their arrival set to inf): they add nothing to what is needed."""
+        B, N = len(free_at), len(loc)
+        order = np.lexsort((pos[:, 1], pos[:, 0], free_at))  # [B] by (free_at, x, y)
+        f, x, y = free_at[order], pos[order, 0], pos[order, 1]  # [B] each
+        new = np.ones(B, dtype=bool)  # [B] order[i] starts a set
+        new[1:] = (f[1:] != f[:-1]) | (x[1:] != x[:-1]) | (y[1:] != y[:-1])
+        first = np.flatnonzero(new)  # [S] the first robot of each set
+        S = len(first)
+        arr = f[first] + np.hypot(x[first] - loc[:, 0:1], y[first] - loc[:, 1:2]) / v  # [N, S]
+        cap_s = np.add.reduceat(cap[order], first, axis=0)  # [S, K] capability of each set (exact sums)
+        useful = (cap_s > 0).astype(np.float64) @ (rem > 1e-9).T.astype(np.float64) > 0  # [S, N]
+        arr = np.where(useful.T, arr, np.inf)  # [N, S]
+
+        def sets_in_order(part, ga):  # the sets looked at, by arrival (ties in any order)
+            part = np.broadcast_to(np.arange(S), ga.shape) if part is None else part  # [R, q]
+            o = np.argsort(ga, axis=1)  # [R, q]
+            return np.take_along_axis(ga, o, 1), cap_s[np.take_along_axis(part, o, 1)]
+
+        return cls._earliest_cover(arr, -(-cls.PARTIAL * S // B), rem, sets_in_order)
+
+    @classmethod
+    def _earliest_cover(cls, arr: np.ndarray, q: int, rem: np.ndarray, in_order) -> np.ndarray:
+        """[N] for each task (row of ``arr`` [N, G], the arrival of each group, inf for one left
+        out) the arrival at which the groups looked at first cover ``rem`` [N, K], inf where they
+        do not: first the ``q`` earliest groups, then four times as many for the tasks they leave
+        uncovered while groups remain, up to all of them. ``in_order(part [R, q] or None for all,
+        their arrivals [R, q])`` gives the arrivals and capabilities ([R, n], [R, n, K]) of what
+        those groups hold, in the order their capabilities are summed."""
+        N, G = arr.shape
         last = np.full(N, np.inf)  # [N]
-        rows, q = np.arange(N), -(-cls.PARTIAL * G // B)  # [R] the tasks still undecided; groups looked at (PARTIAL robots on average)
+        rows = np.arange(N)  # [R] the tasks still undecided
         while len(rows):
             a = arr[rows]  # [R, G]
-            if q < G:  # the q earliest groups, expanded into their robots
+            if q < G:  # the q earliest groups
                 part = np.argpartition(a, q - 1, axis=1)[:, :q]  # [R, q]
                 ga = np.take_along_axis(a, part, 1)  # [R, q] their arrivals
-                robots = members[part].reshape(len(rows), -1)  # [R, q width]
-                ra = np.where(robots < B, np.repeat(ga, width, axis=1), np.inf) if width > 1 else ga  # [R, q width]
-                o = np.lexsort((robots, ra), axis=1)  # [R, q width] by arrival, then index (as the full sort)
-            else:  # every robot: the full sort
-                robots, ra = np.broadcast_to(idx, (len(rows), B)), a[:, gof]  # [R, B] each, by index
-                o = np.argsort(ra, axis=1, kind="stable")  # [R, B] by arrival, then index
-            t, ok = cls._first_cover(np.take_along_axis(ra, o, 1), cap[np.take_along_axis(robots, o, 1)], rem[rows])
+            else:
+                part, ga = None, a
+            t, ok = cls._first_cover(*in_order(part, ga), rem[rows])
             last[rows[ok]] = t[ok]
             if q >= G:
                 break
-            rows = rows[~ok & np.isfinite(ga.max(1))]  # uncovered, more groups to look at
+            rows = rows[~ok & np.isfinite(ga.max(1))]  # uncovered, with groups not looked at yet
             q *= 4
         return last
 

@@ -264,26 +264,31 @@ def _completing_arrival_reference(free_at, pos, loc, v, cap, rem):
     return last
 
 
+@pytest.mark.parametrize("exact", [False, True])
 @pytest.mark.parametrize("seed", range(6))
-def test_coalition_completing_arrival_of_large_teams_equals_the_full_sort(seed):
+def test_coalition_completing_arrival_of_large_teams_equals_the_full_sort(seed, exact):
     """Teams above GROUPED (grouped by when and where they are free): many robots at one place
     and time (larger than GROUP), places at equal distances from the tasks (arrival ties across
-    groups), or every robot at a place of its own; fractional capabilities, robots with none of
-    the skills a task needs, requirements that take most of the team or that it cannot cover."""
+    groups), or every robot at a place of its own; fractional capabilities (``exact``: multiples
+    of 1/4, summed by place), robots with none of the skills a task needs, requirements that take
+    most of the team or that it cannot cover."""
     rng = np.random.default_rng(seed)
     B, N, K = CoalitionGreedy.GROUPED + int(rng.integers(1, 200)), int(rng.integers(2, 60)), int(rng.integers(1, 6))
     spots = rng.integers(0, 5, (int(rng.integers(1, 30)), 2)) / 4  # a coarse grid: equal distances
     times = rng.choice([0.0, 0.5, 1.25, 3.0], int(rng.integers(1, 4)))
     pos = spots[rng.integers(len(spots), size=B)] if seed % 3 else rng.random((B, 2))  # [B, 2] (distinct: 0, 3)
     free_at = times[rng.integers(len(times), size=B)]  # [B]
-    cap = rng.choice([0.0, 0.0, 0.1, 0.3, 0.5, 1.0, 2.0], (B, K))  # [B, K]
+    fractions = [0.25, 0.75, 0.5] if exact else [0.1, 0.3, 0.5]
+    cap = rng.choice([0.0, 0.0, *fractions, 1.0, 2.0], (B, K))  # [B, K]
     loc = np.vstack([rng.integers(0, 5, (N // 2, 2)) / 4, rng.random((N - N // 2, 2))])  # [N, 2]
     team = cap.sum(0)  # [K]
-    rem = rng.choice([0.0, 0.3, 1.0, 2.0, 5.0], (N, K)) * (rng.random((N, 1)) < 0.9)  # [N, K]
-    rem[:, 0] = np.where((rem > 1e-9).any(1), rem[:, 0], 0.7)  # every task still needs someone
+    rem = rng.choice([0.0, fractions[1], 1.0, 2.0, 5.0], (N, K)) * (rng.random((N, 1)) < 0.9)  # [N, K]
+    rem[:, 0] = np.where((rem > 1e-9).any(1), rem[:, 0], 0.75)  # every task still needs someone
     rem[rng.random(N) < 0.1] = team * rng.choice([0.5, 1.0])  # most of the team, or all of it
     rem[0] = team + 0.5  # more than the team
-    got = CoalitionGreedy._completing_arrival(free_at, pos, loc, 0.2, cap, rem)
+    if exact:  # what MissionState._exact certifies
+        assert all((np.ldexp(x, 24) % 1.0 == 0).all() for x in (cap, rem))
+    got = CoalitionGreedy._completing_arrival(free_at, pos, loc, 0.2, cap, rem, exact=exact)
     assert np.array_equal(got, _completing_arrival_reference(free_at, pos, loc, 0.2, cap, rem))
     assert np.isinf(got[0])
 
