@@ -114,7 +114,7 @@ class CoalitionGreedy:
             mem = s.members[cand[c]]
             if mem:
                 start[c] = max(start[c], s.arrive[mem].max())
-        rem = np.maximum(s.rem[cand] - s.cap[a], 0.0)  # [C, K] left after a joins
+        rem = s._remaining(s.rem[cand] - s.cap[a])  # [C, K] left after a joins
         need = (rem > 1e-9).any(1)  # [C]
         others = np.flatnonzero(usable)  # [B]
         if need.any() and len(others) == 0:

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from .instance import MAX_VALUE, Instance, Species, Task
+from .instance import MAX_VALUE, Instance, Species, Task, cover_tolerance, exact_arithmetic
 from .reading import finite  # as a mission file's numbers: also integers beyond the float range
 
 # agent modes (LOST: removed from the mission by drop_agent, e.g. a robot that stopped reporting)
@@ -310,6 +310,7 @@ class MissionState:
         self.depot_stops = np.zeros(A, dtype=np.int64)  # [A] returns home while work remained
         self.pool = self.cap.sum(0)  # [K] capability of agents not waiting at an open task
         self._exact = self._arithmetic_exact()  # masks may take the fast path of _safe
+        self._tol = cover_tolerance(self.cap, self.req)  # a remaining entry at most this is met
         self.n_open = 0
         self.n_done = 0
         self.n_cancelled = 0  # tasks closed by drop_agent (no longer satisfiable)
@@ -403,26 +404,23 @@ class MissionState:
 
     # ---- deadlock avoidance (banker's algorithm over open tasks) -------------------------------
     def _fits(self, rem: np.ndarray, pool: np.ndarray) -> np.ndarray:
-        """bool [...]: remaining requirement rows that `pool` could satisfy alone."""
-        return (rem <= (pool if self.additive else (pool > 0))).all(-1)
+        """bool [...]: remaining requirement rows that `pool` could satisfy alone (to within the
+        mission's cover tolerance, :func:`hmrta.instance.cover_tolerance`)."""
+        return (rem <= (pool + self._tol if self.additive else (pool > 0))).all(-1)
 
     def _rows_within(self, bound: np.ndarray) -> np.ndarray:
         """bool [M]: tasks whose remaining requirement is <= bound [K] in every skill."""
         rem = self.rem
         ok = np.ones(self.M, dtype=bool)
         for k in range(self.K):  # a column at a time: K is small, the tasks many
-            ok &= rem[:, k] <= bound[k]
+            ok &= rem[:, k] <= bound[k] + self._tol
         return ok
 
     def _arithmetic_exact(self) -> bool:
         """True when every capability, requirement, held and pool entry is a multiple of 2^-24
         and their sums stay below 2^28: then every sum and difference the masks compute (pools,
         remaining requirements) is exact, whatever the order of the additions (:meth:`_safe`)."""
-        vals = (self.cap, self.req, self.rem, self.held, self.pool)
-        total = sum(float(np.abs(v).sum()) for v in vals)
-        if not math.isfinite(total) or total >= 2.0 ** 28:
-            return False
-        return all(bool((np.ldexp(v, 24) % 1.0 == 0).all()) for v in vals)
+        return exact_arithmetic(self.cap, self.req, self.rem, self.held, self.pool)
 
     def _closure(self, rems: np.ndarray, helds: np.ndarray, pool: np.ndarray):
         """Complete open tasks greedily with the pool; returns (all done, final pool, alive [O])."""
@@ -462,7 +460,7 @@ class MissionState:
         pool = self.pool  # a is in the pool (it is not waiting at an open task)
         empty = np.flatnonzero(cand & (self.status == EMPTY))  # [E]
         on_open = cand[open_ids]  # [O] open candidates
-        r_open = np.maximum(rems - ca, 0.0)  # [O, K] remaining of each open task if a joins
+        r_open = self._remaining(rems - ca)  # [O, K] remaining of each open task if a joins
         starts = (r_open <= 0).all(1)  # [O] a satisfies the task
         joins = on_open & ~starts  # [O]
         starts &= on_open
@@ -511,7 +509,7 @@ class MissionState:
         # empty candidates: a opens X with remaining r_X = max(q_X - ca, 0), leaving the pool
         empty = np.flatnonzero(cand & (self.status == EMPTY))
         if len(empty):
-            r = np.maximum(self.rem[empty] - ca, 0.0)  # [E, K]
+            r = self._remaining(self.rem[empty] - ca)  # [E, K]
             instant = (r <= 0).all(1)  # [E] a alone satisfies X: state unchanged, safe
             all_done, p_stuck, alive = self._closure(rems, helds, pool - ca)
             ok = self._fits(r, p_stuck)  # [E]
@@ -522,7 +520,7 @@ class MissionState:
         for i, m in enumerate(open_ids):
             if not cand[m]:
                 continue
-            r = np.maximum(rems[i] - ca, 0.0)
+            r = self._remaining(rems[i] - ca)
             if (r <= 0).all():  # X starts: its members are released after it finishes
                 keep = np.arange(len(open_ids)) != i
                 out[m] = self._closure(rems[keep], helds[keep], pool + helds[i])[0]
@@ -570,7 +568,7 @@ class MissionState:
         self.members[m].append(a)
         self.routes[a].append(m)
         self.held[m] += self.cap[a]
-        self.rem[m] = np.maximum(self.rem[m] - self.cap[a], 0.0)
+        self.rem[m] = self._remaining(self.rem[m] - self.cap[a])
         was_open = self.status[m] == OPEN
         if (self.rem[m] <= 0).all():  # coalition satisfies m: in progress (SPEC §3, rule 3)
             self.status[m] = IN_PROGRESS
@@ -591,6 +589,11 @@ class MissionState:
         if self._nothing_to_join():
             for b in np.flatnonzero(self.mode == WAIT):  # nothing left to join: waiting agents go home
                 self.commit(int(b), 0)
+
+    def _remaining(self, short: np.ndarray) -> np.ndarray:
+        """[K] a remaining requirement from what is still short (requirement minus what the
+        coalition holds): 0 where nothing, or no more than the cover tolerance, is short."""
+        return np.where(short > self._tol, short, 0.0)
 
     def _leg(self, a: int, frm: np.ndarray, to: np.ndarray, t_dep: float) -> None:
         self.from_pos[a] = frm
@@ -1008,6 +1011,7 @@ class MissionState:
         self.names.append(name)
         self.by_operator = np.append(self.by_operator, False)
         self._exact = self._exact and self._arithmetic_exact()
+        self._tol = cover_tolerance(self.cap, self.req)
         return m, []
 
     def _task_id(self, rec: dict) -> int:
@@ -1091,6 +1095,7 @@ class MissionState:
         self.depot_stops = np.append(self.depot_stops, 0)
         self.pool = self.pool + cap
         self._exact = self._exact and self._arithmetic_exact()
+        self._tol = cover_tolerance(self.cap, self.req)
         return a, [a]
 
     def _stop(self, a: int) -> None:
@@ -1106,7 +1111,7 @@ class MissionState:
         if self.routes[a] and self.routes[a][-1] == m:
             self.routes[a].pop()
         self.held[m] -= self.cap[a]
-        self.rem[m] = np.maximum(self.req[m] - self.held[m], 0.0)
+        self.rem[m] = self._remaining(self.req[m] - self.held[m])
         if self.status[m] == OPEN:
             if not self.members[m]:
                 self.status[m] = EMPTY
@@ -1317,6 +1322,7 @@ class MissionState:
         self.n_cancelled = int((self.status == CANCELLED).sum())
         self.n_hidden = int((self.status == UNRELEASED).sum())
         self._exact = self._arithmetic_exact()
+        self._tol = cover_tolerance(self.cap, self.req)
         pending = d.get("pending") or []
         log = d.get("log") or []
         if not isinstance(pending, list) or not isinstance(log, list) or not all(isinstance(x, dict) for x in log):

@@ -32,6 +32,31 @@ MAX_VALUE = 1e9
 MIN_VELOCITY = 1e-9
 
 
+COVER_RTOL = 1e-9  # relative tolerance of "a coalition meets a requirement" (cover_tolerance)
+
+
+def exact_arithmetic(*values: np.ndarray) -> bool:
+    """True when every entry is a multiple of 2^-24 and the absolute values sum below 2^28: every
+    sum and difference of such numbers is then exact in float64, whatever their order."""
+    total = sum(float(np.abs(v).sum()) for v in values)
+    if not math.isfinite(total) or total >= 2.0 ** 28:
+        return False
+    return all(bool((np.ldexp(np.asarray(v, dtype=np.float64), 24) % 1.0 == 0).all()) for v in values)
+
+
+def cover_tolerance(cap: np.ndarray, req: np.ndarray) -> float:
+    """By how much a coalition's summed capability may fall short of a requirement entry and
+    still meet it, for capabilities ``cap`` [A, K] and requirements ``req`` [M, K]: 0 when the
+    arithmetic is exact (:func:`exact_arithmetic`: the generators' integers, halves, quarters),
+    otherwise 1e-9 of the largest entry. Decimal capabilities add up with rounding error (0.1
+    added eight times is 0.7999999999999999, short of 0.8), and a coalition they complete must
+    complete the task in the state machine, the route evaluation and the solvers alike."""
+    if exact_arithmetic(cap, req):
+        return 0.0
+    scale = max(float(np.abs(cap).max(initial=0.0)), float(np.abs(req).max(initial=0.0)))
+    return COVER_RTOL * scale
+
+
 class InstanceError(ValueError):
     """A user error in an instance file or instance data (one line, names the field)."""
 
@@ -115,6 +140,11 @@ class Instance:
         return _ro(np.array([t.requirements for t in self.tasks], dtype=np.float64).reshape(-1, self.skills))
 
     @cached_property
+    def cover_tol(self) -> float:
+        """:func:`cover_tolerance` of this mission's robots and tasks."""
+        return cover_tolerance(self.traits, self.requirements)
+
+    @cached_property
     def durations(self) -> np.ndarray:  # [tasks]
         return _ro(np.array([t.duration for t in self.tasks], dtype=np.float64))
 
@@ -191,7 +221,7 @@ class Instance:
         team = (self.species_traits * np.array([s.count for s in self.species])[:, None]).sum(0)  # [skills]
         for m, t in enumerate(self.tasks):
             for k, q in enumerate(t.requirements):
-                if self.additive and q > team[k]:
+                if self.additive and q - team[k] > self.cover_tol:  # (short by no more: met)
                     return (
                         f"task {m} is infeasible: it needs {_num(q)} of skill {k} "
                         f"but the whole team has {_num(team[k])}"

@@ -352,17 +352,17 @@ def redundancy(inst: Instance, members: Sequence[Sequence[int]], satisfied: Sequ
         if not satisfied[m]:
             w.append(ETA)
             continue
-        c = traits[list(members[m])].sum(0) if members[m] else np.zeros(inst.skills)  # [K]
+        c = traits[sorted(members[m])].sum(0) if members[m] else np.zeros(inst.skills)  # [K] (by id: one sum order)
         w.append(float(np.abs(c - req[m]).sum() / req[m].sum()))
     return float(np.mean(w)) if w else 0.0
 
 
 def satisfies(inst: Instance, coalition: Sequence[int], m: int) -> list[int]:
     """Skills task m still lacks with this coalition (empty list: satisfied)."""
-    c = inst.traits[list(coalition)].sum(0) if coalition else np.zeros(inst.skills)  # [K]
+    c = inst.traits[sorted(coalition)].sum(0) if coalition else np.zeros(inst.skills)  # [K] (by id: one sum order)
     q = inst.requirements[m]
-    if inst.additive:
-        return [k for k in range(inst.skills) if c[k] < q[k]]
+    if inst.additive:  # short by no more than the cover tolerance: met (as in the state machine)
+        return [k for k in range(inst.skills) if q[k] - c[k] > inst.cover_tol]
     return [k for k in range(inst.skills) if q[k] > 0 and c[k] <= 0]
 
 

@@ -461,3 +461,24 @@ def test_team_rule_is_the_fixed_cap_of_the_mission(scenario):
 def test_bad_max_open_is_a_clear_error(bad):
     with pytest.raises(ValueError, match="max_open: expected a positive integer, null"):
         Rules(max_open=bad)
+
+
+def test_decimal_capabilities_complete_the_task_they_add_up_to():
+    """Eight robots of 0.1 meet a requirement of 0.8 (their sum, one by one, is
+    0.7999999999999999), and a team of 0.35 x 3 a requirement of 1.05 (1.0499999999999998):
+    the mission loads, every deterministic method completes it, and route evaluation agrees."""
+    from hmrta.methods import solve
+
+    eight = make("additive", 1, [([0.1], 8, (1, 1))], [((4, 4), [0.8], 1.0)])
+    assert sum([0.1] * 8) < 0.8 and eight.cover_tol == pytest.approx(0.8e-9)
+    three = make("additive", 2, [([0.35, 0.1], 3, (0, 0))], [((2, 0), [1.05, 0.3], 1.0), ((0, 2), [0.7, 0.0], 0.5)])
+    assert 0.35 + 0.35 + 0.35 < 1.05
+    for inst in (eight, three):
+        for method, opts in (("greedy", {}), ("greedy-coalition", {}), ("cpsat", {"time_limit": 1.0})):
+            sol = solve(inst, method, 0, **opts)
+            assert sol.success, (method, sol.extra.get("failure"))
+            assert evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
+    assert len(solve(eight, "greedy", 0).tasks[0]["members"]) == 8
+    # the tolerance is 0 where the arithmetic is exact: one robot short of 2 x 1 is short
+    exact = make("additive", 1, [([1.0], 2, (0, 0))], [((1, 0), [2.0], 1.0)])
+    assert exact.cover_tol == 0.0

@@ -67,6 +67,37 @@ def arbitrary(draw):
         "velocity": draw(st.sampled_from([0.2, 0.125, 1.0])), "skills": K, "species": species, "tasks": tasks})
 
 
+DECIMALS = [0.1, 0.2, 0.3, 0.7, 0.05, 1.1, 0.35]  # capabilities whose sums round (0.1 x 8 < 0.8)
+
+
+@st.composite
+def decimal(draw):
+    """A feasible instance with decimal capabilities, whose requirements are what some robots of
+    the team add up to, written to 6 decimals as a user would (0.8 for eight robots of 0.1, whose
+    sum one by one is 0.7999999999999999): the coalitions that meet them exactly on paper must
+    meet them in floating point too (hmrta.instance.cover_tolerance)."""
+    K = draw(st.integers(1, 3))
+    species = []
+    for _ in range(draw(st.integers(1, 3))):
+        traits = [draw(st.sampled_from([0.0, *DECIMALS])) for _ in range(K)]
+        traits[0] = traits[0] or (0.0 if any(traits) else 0.1)
+        species.append({"traits": traits, "count": draw(st.integers(1, 8)),
+                        "depot": [draw(st.sampled_from(GRID)), draw(st.sampled_from(GRID))]})
+    tasks = []
+    for _ in range(draw(st.integers(1, 6))):
+        q = np.zeros(K)
+        for sp in species:  # some of each species' robots, added one by one
+            for _ in range(draw(st.integers(0, sp["count"]))):
+                q = q + np.array(sp["traits"])
+        if not q.any():
+            q = np.array(species[0]["traits"])
+        tasks.append({"location": [draw(st.sampled_from(GRID)), draw(st.sampled_from(GRID))],
+                      "requirements": [round(float(x), 6) for x in q],
+                      "duration": draw(st.sampled_from([0, 0.5, 2.5]))})
+    return instance_from_dict({"format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2,
+                               "skills": K, "species": species, "tasks": tasks})
+
+
 # greedy under its documented rules and under real-time rules (no back-dated departures);
 # the random policy under several rule sets
 policies = st.one_of(
@@ -106,6 +137,12 @@ def test_generated_instances(inst, spec, seed, traced_run, check_rollout):
 @SETTINGS
 @given(inst=arbitrary(), spec=policies, seed=st.integers(0, 1000))
 def test_arbitrary_instances(inst, spec, seed, traced_run, check_rollout):
+    _run_and_check(inst, spec, seed, traced_run, check_rollout)
+
+
+@SETTINGS
+@given(inst=decimal(), spec=policies, seed=st.integers(0, 1000))
+def test_decimal_capabilities_meet_the_requirements_they_add_up_to(inst, spec, seed, traced_run, check_rollout):
     _run_and_check(inst, spec, seed, traced_run, check_rollout)
 
 

@@ -103,7 +103,7 @@ class StateDecoder:
         self.dur = [float(d) for d in inst.durations]
         cap = st.cap.tolist()  # [A][K] (0/1 coverage for binary requirements)
         self.cap = cap
-        self.need = [st.rem[m].tolist() for m in range(M)]  # [M][K] what the plan must still add
+        self.need = [(st.rem[m] - st._tol).tolist() for m in range(M)]  # [M][K] what the plan must still add (less the cover tolerance)
         self.needk = [[k for k in range(K) if self.need[m][k] > 0] for m in range(M)]
         avail = [a for a in range(A) if st.mode[a] != LOST]
         self.cand = [[a for a in avail if any(cap[a][k] > 0 for k in self.needk[m])] for m in range(M)]

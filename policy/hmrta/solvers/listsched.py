@@ -28,9 +28,11 @@ from ..solution import Solution, evaluate_routes, satisfies
 
 def capability(inst: Instance) -> tuple[np.ndarray, np.ndarray]:
     """(per agent capability [A,K], per task requirement [M,K]) in requirement arithmetic:
-    AT uses traits and requirements; BT uses 0/1 skill coverage."""
+    AT uses traits and requirements, the requirements less the mission's cover tolerance (a sum
+    that falls short by no more is met, as in the state machine:
+    :func:`hmrta.instance.cover_tolerance`); BT uses 0/1 skill coverage."""
     if inst.additive:
-        return np.asarray(inst.traits, dtype=np.float64), np.asarray(inst.requirements, dtype=np.float64)
+        return np.asarray(inst.traits, dtype=np.float64), np.asarray(inst.requirements, dtype=np.float64) - inst.cover_tol
     return (np.asarray(inst.traits) > 0).astype(np.float64), (np.asarray(inst.requirements) > 0).astype(np.float64)
 
 
