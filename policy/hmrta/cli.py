@@ -53,14 +53,32 @@ def _row_sizes(args) -> None:
         _positive(f"--{k}", getattr(args, k))
 
 
-def _writable(flag: str, path: str | Path, folder: bool = False) -> Path:
+def _not_an_input(flag: str, out: Path, inputs) -> None:
+    """A UserError when the output file ``out`` is one of the files ``inputs`` (or a folder's
+    config.json): writing it would destroy what the command reads."""
+    import os
+
+    for i in inputs:
+        for f in (Path(i), Path(i) / "config.json"):
+            try:
+                same = out.exists() and f.is_file() and os.path.samefile(out, f)
+            except OSError:
+                same = False
+            if same:
+                raise UserError(f"{flag} {out}: is an input of this command ({f}); write the output elsewhere")
+
+
+def _writable(flag: str, path: str | Path, folder: bool = False, inputs: tuple = ()) -> Path:
     """``path``, the output named by ``flag``: a file (``folder``: a folder) that can be written there,
     checked before any work by creating and removing a probe file in the nearest existing folder on
-    its way. Otherwise a UserError naming the option, the path and the reason (nothing is left)."""
+    its way, and (a file) none of the command's ``inputs``. Otherwise a UserError naming the option,
+    the path and the reason (nothing is left)."""
     import os
     import tempfile
 
     p = Path(path)
+    if not folder:
+        _not_an_input(flag, p, inputs)
     if folder and p.exists() and not p.is_dir():
         raise UserError(f"{flag} {p}: exists and is not a folder")
     if not folder and p.is_dir():
@@ -315,7 +333,10 @@ def cmd_solve(args) -> int:
     # one mission: a file unless --out is a folder or a name without a suffix (out.json, out.txt: files)
     to_folder = bool(out) and (many or out.is_dir() or not out.suffix or args.out.endswith(("/", "\\")))
     if out:
-        _writable("--out", out, folder=to_folder)
+        _writable("--out", out, folder=to_folder, inputs=tuple(files))
+    if to_folder:  # DIR/<stem>.json is none of the inputs either
+        for f in files:
+            _not_an_input("--out", out / f"{f.stem}.json", files)
     if to_folder:  # DIR/<stem>.json: two inputs of one stem would overwrite each other
         by_stem: dict[str, Path] = {}
         for f in files:
@@ -476,7 +497,7 @@ def mapping_path(out: str | Path) -> Path:
 def cmd_convert(args) -> int:
     from .instance import atomic_write_text
 
-    _writable("--out", args.out)
+    _writable("--out", args.out, inputs=(args.input,))
     inst = _load(args.input, "hmrta-instance/1 holds no events", releases=True)  # release times it holds
     if Path(args.out).suffix.lower() == ".json":
         raise UserError(f"--out {args.out}: convert writes hmrta-instance/1 YAML; give a .yaml file name")
@@ -848,7 +869,7 @@ def cmd_render_recording(args) -> int:
         raise UserError("render --from: give the recording and (optionally) the instance, not a solution file")
     if args.gif:
         raise UserError("render --from: --gif is not available for recordings")
-    _writable("--out", args.out)
+    _writable("--out", args.out, inputs=tuple(x for x in (args.from_, args.instance) if x))
     try:
         rec = read_recording(args.from_)
     except ReplayError as e:
@@ -881,7 +902,7 @@ def cmd_render(args) -> int:
         check_gif_options(args.frames, args.fps)
     except ValueError as e:
         raise UserError(f"--{e}") from None
-    _writable("--out", args.out)
+    _writable("--out", args.out, inputs=(args.instance, args.solution))
     inst = _load(args.instance)
     sol = _read_solution(args.solution)
     animated = args.gif or Path(args.out).suffix.lower() == ".gif"
@@ -1205,7 +1226,54 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class _PrintedOutput:
+    """Standard output that goes quiet, and lets the command go on, once its reader has gone
+    (``hmrta solve ... | head -1``): what a command writes to files is its result, what it prints
+    is a summary, so a closed pipe must not cut a solve short or lose a file it was to write."""
+
+    def __init__(self, stream):
+        self._stream, self.reader_gone = stream, False
+
+    def write(self, text: str) -> int:
+        if not self.reader_gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._gone()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.reader_gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._gone()
+
+    def _gone(self) -> None:
+        self.reader_gone = True
+        try:  # what is still buffered, and the interpreter's last flush, go nowhere
+            import os
+
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self._stream.fileno())
+            os.close(devnull)
+        except (OSError, ValueError, AttributeError):
+            pass
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None) -> int:
+    stdout = sys.stdout
+    sys.stdout = _PrintedOutput(stdout)
+    try:
+        return _main(argv)
+    finally:
+        sys.stdout = stdout
+
+
+def _main(argv: list[str] | None) -> int:
     try:
         parser = build_parser()  # (imports the method table: a moment on a loaded machine)
     except KeyboardInterrupt:

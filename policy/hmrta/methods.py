@@ -152,7 +152,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
                            "most --time-limit; default: a quarter of it)", minimum=0.0, within="time_limit")),
            needs=("ortools",)),
     Method("portfolio", "per mission, the best of several methods by simulation (rl with the default, broad "
-           "and coalition-team checkpoints, greedy-coalition, greedy); live missions run the chosen one",
+           "and coalition-team checkpoints, greedy-coalition, greedy) on the mission as known at time 0 "
+           "(tasks released later are not seen: the choice may then do worse than a rule on the rest); "
+           "live missions run the chosen one",
            "hmrta.portfolio:solve_portfolio", None, rules=None, choose="hmrta.portfolio:select",
            options=(Option("candidates", str, "rl,greedy-coalition,rl@broad,rl@coalition-team,greedy",
                            "comma list of methods to choose from (METHOD@CHECKPOINT: an rl method with a checkpoint "

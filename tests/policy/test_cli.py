@@ -570,3 +570,53 @@ def test_a_mission_beyond_the_learned_policy_is_refused_naming_the_file_before_a
     out = capsys.readouterr().out
     assert "chose greedy" in out and "left out: rl, rl@broad, rl@coalition-team (method rl: the learned policy " \
                                      "handles at most 5 skills, the mission has 7" in out
+
+
+def test_a_reader_that_goes_early_loses_no_output_file(tmp_path):
+    """``hmrta solve ... | head -1``: the pipe closes after the first summary line; every mission
+    is still solved and written, with no traceback and exit 0 (``demo --out`` too)."""
+    import subprocess
+
+    folder = _missions(tmp_path, 3)
+    out = tmp_path / "sols"
+    cmd = [sys.executable, "-m", "hmrta.cli"]
+    for args, written in (
+            (["solve", str(folder), "--method", "greedy", "--out", str(out), "--schedule"],
+             [out / f"{f.stem}.json" for f in sorted(folder.glob("*.yaml"))]),
+            (["demo", "--method", "greedy", "--out", str(tmp_path / "demo.json")], [tmp_path / "demo.json"])):
+        proc = subprocess.Popen(cmd + args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        proc.stdout.readline()
+        proc.stdout.close()  # the reader goes
+        err = proc.stderr.read().decode()
+        assert proc.wait(timeout=120) == 0, err
+        assert "Traceback" not in err, err
+        assert all(f.exists() for f in written), (args, list(out.glob("*")) if out.exists() else [])
+
+
+def test_an_output_is_never_one_of_the_inputs(tmp_path, capsys):
+    """``--out`` naming a file the command reads is refused before any work (exit 2, one line),
+    and the file is left as it was: solve (a file, or a folder holding the input's .json name),
+    convert, render."""
+    mission = tmp_path / "m.yaml"
+    mission.write_text(EXAMPLE.read_text())
+    sol = tmp_path / "m.json"
+    assert main(["solve", str(mission), "--method", "greedy", "--out", str(sol)]) == 0
+    before = {p: p.read_bytes() for p in (mission, sol)}
+    capsys.readouterr()
+    for argv, culprit in ((["solve", str(mission), "--method", "greedy", "--out", str(mission)], mission),
+                          (["solve", str(sol.with_suffix(".yaml")), "--method", "greedy", "--out", str(tmp_path / "x.json")], None),
+                          (["convert", str(mission), "--out", str(mission)], mission),
+                          (["render", str(mission), str(sol), "--out", str(sol)], sol)):
+        if culprit is None:  # (a control: a different output is fine)
+            assert main(argv) == 0
+            capsys.readouterr()
+            continue
+        assert main(argv) == 2, argv
+        assert "is an input of this command" in _one_error_line(capsys)
+    assert {p: p.read_bytes() for p in (mission, sol)} == before
+    # a folder output whose <stem>.json would be an input (a solution named like its mission)
+    ctas = tmp_path / "c"
+    ctas.mkdir()
+    (ctas / "config.json").write_text((CTAS / "config.json").read_text())
+    assert main(["solve", str(ctas / "config.json"), "--method", "greedy", "--out", str(ctas)]) == 2
+    assert "is an input of this command" in _one_error_line(capsys)
