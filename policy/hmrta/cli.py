@@ -234,8 +234,17 @@ def _threads(args) -> TorchThreads | None:
     return TorchThreads(n)
 
 
+def _terminal() -> bool:
+    """Whether stderr is a terminal: progress bars are drawn only there (in a log file or a pipe
+    they would be runs of carriage returns)."""
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
 def _progress_on(args) -> bool:
-    return not getattr(args, "no_progress", False)
+    return not getattr(args, "no_progress", False) and _terminal()
 
 
 class SolveProgress:
@@ -702,7 +711,7 @@ def cmd_train(args) -> int:
     write_config(cfg, run_dir / "config.yaml")
     print(f"training on {tr.device}; log {run_dir / 'log.csv'}", file=sys.stderr)
     try:
-        res = tr.run(progress=not args.no_progress)
+        res = tr.run(progress=_progress_on(args))
     except KeyboardInterrupt:
         print(f"stopped: checkpoint saved to {last} (continue with --resume)", file=sys.stderr)
         return 130
@@ -803,7 +812,7 @@ def cmd_schedules(args) -> int:
             raise UserError(f"--team-scale {args.team_scale[0]:g} {args.team_scale[1]:g} with --generator "
                             f"{args.generator}: {e}") from None
     n = generate(out, spec, args.seed, args.count, args.time_limit, args.workers, args.jobs, args.ray_address,
-                 progress=not args.no_progress)
+                 progress=_progress_on(args))
     ss = ScheduleSet(out)
     mk = [r["makespan"] for r in ss.rows.values()]
     print(json.dumps({"out": str(out), "solved_now": n, "schedules": len(ss),
@@ -1037,7 +1046,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--schedule", action="store_true", help="also print the per-task schedule and routes")
     s.add_argument("--no-progress", action="store_true",
                    help="no progress bars (per instance with several, per decision or second in a long solve, "
-                        "per candidate of the portfolio)")
+                        "per candidate of the portfolio; drawn only when stderr is a terminal)")
     s.add_argument("--threads", type=int, default=1, metavar="N", help=THREADS_HELP)
     s.set_defaults(fn=cmd_solve)
 
@@ -1090,7 +1099,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(--suite default: bench-<suite> in the current folder; the committed tables are "
                         "regenerated with --out docs/results/<suite>)")
     b.add_argument("--json", action="store_true", help="print the results as JSON instead of Markdown")
-    b.add_argument("--no-progress", action="store_true", help="no progress bar")
+    b.add_argument("--no-progress", action="store_true", help="no progress bar (drawn only when stderr is a terminal)")
     _fanout_args(b, "solve the uncached items", " (not to be confused with --workers, CP-SAT's search workers "
                                                 "per solve)")
     b.add_argument("--threads", type=int, default=1, metavar="N",
@@ -1119,7 +1128,7 @@ def build_parser() -> argparse.ArgumentParser:
     _fanout_args(t, "label the teachers' missions (behaviour cloning) and roll out the validation set",
                  "; the labels, and so the run, are the same whatever N")
     t.add_argument("--export", default=None, help="after training, write the best weights + config here")
-    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar (drawn only when stderr is a terminal)")
     t.add_argument("--check", action="store_true", help="only validate the config (with --iterations and "
                                                         "--max-minutes applied), then exit (no training)")
     t.set_defaults(fn=cmd_train)
@@ -1176,7 +1185,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--time-limit", type=float, default=1.5, help="solver seconds per mission")
     sc.add_argument("--workers", type=int, default=1, help="CP-SAT search workers per mission")
     _fanout_args(sc, "solve the missions")
-    sc.add_argument("--no-progress", action="store_true", help="no progress bar")
+    sc.add_argument("--no-progress", action="store_true", help="no progress bar (drawn only when stderr is a terminal)")
     sc.set_defaults(fn=cmd_schedules)
 
     lb = sub.add_parser("bound", help="lower bounds on the makespan (and the gap of given solutions)",
@@ -1187,7 +1196,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "<instance stem>.json files (e.g. written by solve --out DIR)")
     lb.add_argument("--time-limit", type=float, default=None, help="also run CP-SAT this long; its bound counts")
     lb.add_argument("--json", action="store_true", help="print JSON")
-    lb.add_argument("--no-progress", action="store_true", help="no progress bars")
+    lb.add_argument("--no-progress", action="store_true", help="no progress bars (drawn only when stderr is a terminal)")
     lb.set_defaults(fn=cmd_bound)
 
     r = sub.add_parser("render", help="draw the routes map and a Gantt chart of a solution", formatter_class=F)
@@ -1200,7 +1209,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--gif", action="store_true", help="also write an animated GIF beside the PNG")
     r.add_argument("--frames", type=int, default=80, help="GIF frames (1..1000)")
     r.add_argument("--fps", type=int, default=10, help="GIF frames per second (1..50)")
-    r.add_argument("--no-progress", action="store_true", help="no progress bar while the GIF is drawn")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar while the GIF is drawn (drawn only when stderr is a terminal)")
     r.set_defaults(fn=cmd_render)
 
     d = sub.add_parser("demo", help="solve the built-in example mission and print its schedule", formatter_class=F)
@@ -1208,7 +1217,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_method_arguments(d, default="portfolio")
     d.add_argument("--seed", type=int, default=0, help="episode seed")
     d.add_argument("--out", default=None, help="also write the solution JSON here")
-    d.add_argument("--no-progress", action="store_true", help="no progress bar during a long solve")
+    d.add_argument("--no-progress", action="store_true", help="no progress bar during a long solve (drawn only when stderr is a terminal)")
     d.add_argument("--threads", type=int, default=1, metavar="N", help=THREADS_HELP)
     d.set_defaults(fn=cmd_demo)
 

@@ -41,6 +41,10 @@ def _load(path: str | Path, scenarios: bool) -> Instance:
     if p.suffix.lower() == ".json":
         data = parse_json(text, str(p), InstanceError)
         fmt = data.get("format") if isinstance(data, dict) else None
+        if fmt == "hmrta-instance/1":  # a mission written as JSON (JSON is YAML: the same reader)
+            return instance_from_dict(data, source=str(p))
+        if scenarios and is_scenario(data):
+            return scenario_from_dict(data, str(p), text, load_mission=_load_mission)
         if isinstance(fmt, str) and fmt.startswith("hmrta-") and fmt != "hmrta-instance/1":  # e.g. a solution
             raise InstanceError(f"{p}: an {fmt} file, expected a mission (an hmrta-instance/1 YAML file or a "
                                 f"CTAS-D config.json)")

@@ -252,9 +252,14 @@ def test_solvers_report_progress():
 
 
 def test_progress_per_instance_whenever_there_are_several(tmp_path, monkeypatch, capsys):
+    import hmrta.cli
+
     monkeypatch.setattr(SolveProgress, "DELAY", 0.0)
     folder = _missions(tmp_path)
     capsys.readouterr()
+    assert main(["solve", str(folder), "--method", "greedy"]) == 0  # stderr is no terminal here: no bar
+    assert capsys.readouterr().err == ""
+    monkeypatch.setattr(hmrta.cli, "_terminal", lambda: True)
     assert main(["solve", str(folder), "--method", "greedy"]) == 0
     err = capsys.readouterr().err
     assert "solve" in err and "2/2" in err and "instance" in err

@@ -325,3 +325,20 @@ def test_an_hmrta_output_given_as_a_mission_is_named(tmp_path):
         load_instance(sol)
     with pytest.raises(InstanceError, match="an hmrta bench results file, expected a mission"):
         load_instance(res)
+
+
+def test_a_mission_written_as_json_reads_as_the_yaml_one(tmp_path):
+    """An hmrta-instance/1 mission saved as .json is that mission (not a CTAS-D config); a
+    scenario saved as .json is a scenario."""
+    import json
+    from pathlib import Path
+
+    example = Path(__file__).parent / "data" / "example.yaml"
+    data = yaml.safe_load(example.read_text())
+    (tmp_path / "m.json").write_text(json.dumps(data))
+    a, b = load_instance(example), load_instance(tmp_path / "m.json")
+    assert a.to_dict() == b.to_dict()
+    scen = {"format": "hmrta-scenario/1", "instance": str(example),
+            "events": [{"t": 2.0, "type": "cancel_task", "id": 1}]}
+    (tmp_path / "s.json").write_text(json.dumps(scen))
+    assert load_instance(tmp_path / "s.json").dynamic

@@ -39,6 +39,25 @@ class LoadedPolicy:
         self.net, self.config, self.path, self.meta = model, config, path, meta
         self.model = TracedPolicy(model)
         self.rules = Rules.from_dict(config.get("rules", {}))
+        self._sha256: str | None = None
+
+    @property
+    def sha256(self) -> str:
+        """The checkpoint file's sha256 (read once; "" for a policy built in memory)."""
+        if self._sha256 is None:
+            from .checkpoint_info import sha256
+
+            try:
+                self._sha256 = sha256(self.path)
+            except OSError:
+                self._sha256 = ""
+        return self._sha256
+
+
+def _provenance(sol: Solution, pol: LoadedPolicy) -> Solution:
+    """``sol`` with the checkpoint that planned it in ``extra["checkpoint"]``: its path and sha256."""
+    sol.extra["checkpoint"] = {"path": pol.path, "sha256": pol.sha256}
+    return sol
 
 
 def load_policy(checkpoint: str | Path | None = None) -> LoadedPolicy:
@@ -91,7 +110,7 @@ def solve_rl(inst: Instance, seed: int = 0, checkpoint: str | None = None) -> So
     t0 = time.perf_counter()
     state = MissionState(inst, seed=seed, rules=pol.rules)
     rollout(pol.model, [state], sample=False)
-    return solution_from_state(state, "rl", seed, time.perf_counter() - t0)
+    return _provenance(solution_from_state(state, "rl", seed, time.perf_counter() - t0), pol)
 
 
 def solve_rl_sample(inst: Instance, seed: int = 0, samples: int = 10,
@@ -109,7 +128,7 @@ def solve_rl_sample(inst: Instance, seed: int = 0, samples: int = 10,
     rollout(pol.model, states, sample=True, generator=gen, temperature=temperature)
     ok = [s for s in states if s.success]
     best = min(ok, key=lambda s: s.makespan) if ok else states[0]
-    sol = solution_from_state(best, f"rl-s{samples}", best.seed, time.perf_counter() - t0)
+    sol = _provenance(solution_from_state(best, f"rl-s{samples}", best.seed, time.perf_counter() - t0), pol)
     sol.extra["samples"] = samples
     sol.extra["temperature"] = temperature
     return sol
@@ -154,7 +173,7 @@ def solve_rl_lookahead(inst: Instance, seed: int = 0, checkpoint: str | None = N
         decisions += 1
         if progress is not None:
             progress(int((state.status >= IN_PROGRESS).sum()), inst.n_tasks, "task", f"{decisions} decisions")
-    return solution_from_state(state, "rl-lookahead", seed, time.perf_counter() - t0)
+    return _provenance(solution_from_state(state, "rl-lookahead", seed, time.perf_counter() - t0), pol)
 
 
 class RLDecider:

@@ -667,6 +667,12 @@ def test_shipped_checkpoint_solves():
 
     for sol in (g, s):
         assert evaluate_routes(inst, sol.routes).makespan <= sol.makespan + 1e-9
+    # the solution names the checkpoint that planned it
+    from hmrta.rl.checkpoint_info import checkpoint_path, sha256
+
+    assert g.extra["checkpoint"] == {"path": str(DEFAULT_CHECKPOINT), "sha256": sha256(DEFAULT_CHECKPOINT)}
+    b = solve(inst, "rl", seed=0, checkpoint="broad").to_dict()["checkpoint"]
+    assert b["path"] == str(checkpoint_path("broad")) and b["sha256"] == sha256(checkpoint_path("broad"))
 
 
 @pytest.mark.skipif(not DEFAULT_CHECKPOINT.exists(), reason="no shipped checkpoint")
