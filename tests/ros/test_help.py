@@ -162,6 +162,9 @@ def test_param_parse_rejects(typ, text):
     ("hmrta-mission", ["--timeout", "-5"], "--timeout"),
     ("hmrta-mission", ["--timeout", "nan"], "--timeout"),
     ("hmrta-mission", ["--heartbeat-timeout", "0"], "--heartbeat-timeout"),
+    # outputs that cannot be written: refused before the method is chosen or any process starts
+    ("hmrta-mission", ["--method", "greedy", "--out", "/proc/hmrta/m.json"], "--out /proc/hmrta/m.json: cannot write"),
+    ("hmrta-mission", ["--method", "greedy", "--record", "/proc/x.mcap"], "--record /proc/x.mcap: cannot write"),
     ("hmrta-mission", ["--domain-id", "500"], "--domain-id"),
     ("hmrta-mission", ["--seed", "-1"], "--seed"),
     ("hmrta-task", ["--domain-id", "500", "list"], "--domain-id"),

@@ -322,6 +322,11 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
 
     seen = {"clock": math.nan, "phase": ""}  # mission clock (topics.CLOCK or the board's), board phase
 
+    def finished() -> bool:
+        """The board ended the mission: its last board was seen, or its result is written (the
+        stream is not latched, and a short mission's last board can end before it is heard)."""
+        return seen["phase"] == "done" or (procs.out is not None and procs.out.exists())
+
     def when() -> str:
         t = seen["clock"]
         if t != t and procs.journal is not None:  # not heard (yet) over DDS: the board's journal knows
@@ -369,13 +374,13 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
         while time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.1)
             rc = procs.board.proc.poll()
-            if rc == 0 and seen["phase"] != "done":
+            if rc == 0 and not finished():
                 for _ in range(10):  # its final version may still be on its way
                     executor.spin_once(timeout_sec=0.02)
             # exit code 0 before the end: stopped by a signal from outside (a plain kill), the mission unfinished;
             # 2: the board refused its parameters (a user error): a restart would refuse them again;
             # 3: the mission finished and failed (the result is written)
-            early = rc == 0 and seen["phase"] != "done"
+            early = rc == 0 and not finished()
             if (rc is not None and (rc not in (0, 2, 3) or early) and procs.journal is not None
                     and procs.board.restarts < procs.max_restarts):
                 procs.board.restarts += 1
@@ -397,7 +402,7 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
                                                      f"; not restarted: it was restarted {procs.board.restarts} "
                                                      f"time(s) already (at most {procs.max_restarts})"))
                 break
-            if seen["phase"] != "done":  # after the end everybody exits on their own
+            if not finished():  # after the end everybody exits on their own
                 failure = procs.supervise(seen["clock"])
                 if failure is not None:
                     status = failure
@@ -564,6 +569,16 @@ def _main(argv: list[str] | None = None) -> int:
     if args.agents_per_process < 1:
         print("hmrta-mission: --agents-per-process must be >= 1", file=sys.stderr)
         return 2
+    from hmrta.cli import UserError, writable
+
+    try:  # every output can be written (and is not the mission itself), checked before any work
+        for flag, value in (("--out", args.out), ("--plot", None if args.no_plot else args.plot),
+                            ("--record", args.record)):
+            if value:
+                writable(flag, value, inputs=(path,))
+    except UserError as e:
+        print(f"hmrta-mission: {e}", file=sys.stderr)
+        return 2
     from hmrta import keys as hkeys
 
     asked, keystore = args.method, None
@@ -615,8 +630,11 @@ def _main(argv: list[str] | None = None) -> int:
                              board_params={"heartbeat_timeout": args.heartbeat_timeout, "progress_period": 0.0},
                              journal=None if args.no_journal else log_dir / "journal.jsonl",
                              record=Path(args.record) if args.record else None, added=added)
-    if procs.journal is not None and procs.journal.exists():
-        procs.journal.unlink()  # a new mission: never resume a previous run's journal
+    if procs.journal is not None and procs.journal.exists():  # a new mission never resumes a previous run's
+        # journal; it is kept beside (the record of an interrupted run; task_board -p journal:=... resumes it)
+        kept = procs.journal.with_name("journal.previous.jsonl")
+        procs.journal.replace(kept)
+        print(f"hmrta-mission: kept the previous run's journal as {kept}", flush=True)
     n_proc = 2 + len(procs.agent_groups())
     print(f"mission {inst.name}: {inst.n_agents} robots, {inst.n_tasks} tasks, method {args.method}, seed {args.seed}; "
           f"{n_proc} processes on ROS domain {env['ROS_DOMAIN_ID']} "
