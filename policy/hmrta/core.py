@@ -229,7 +229,7 @@ def apply_event(state: "MissionState", record: dict) -> Any:
 _ATOMS = (int, float, bool, str, type(None), np.integer, np.floating, np.bool_)
 # list fields of MissionState holding lists of numbers (one level of copy is a full copy), and
 # those holding immutable entries (numbers, strings, tuples of numbers)
-_NESTED_LISTS = frozenset(("members", "routes"))
+_NESTED_LISTS = frozenset(("members", "routes", "moves"))
 _FLAT_LISTS = frozenset(("queue", "events", "names"))
 
 
@@ -307,6 +307,10 @@ class MissionState:
         self.free_since = np.zeros(A)  # [A] when a FREE / WAIT agent became free at its position
         self.wait_total = np.zeros(A)  # [A] time waited at tasks for the coalition (AWT)
         self.routes: list[list[int]] = [[] for _ in range(A)]
+        # [A] every robot's movements in time order: (t, node) a leg started at t towards node (0
+        # its depot, 1 + m task m), (t, -1) it stopped where it was at t. What a drawing of the
+        # mission needs (hmrta.render); None in a state restored from a snapshot (not carried)
+        self.moves: list[list[tuple[float, int]]] | None = [[] for _ in range(A)]
         self.depot_stops = np.zeros(A, dtype=np.int64)  # [A] returns home while work remained
         self.pool = self.cap.sum(0)  # [K] capability of agents not waiting at an open task
         self._exact = self._arithmetic_exact()  # masks may take the fast path of _safe
@@ -549,6 +553,8 @@ class MissionState:
         mode = self.mode[a]
         backdate = self.rules.backdate and mode in (FREE, WAIT)
         t_dep = self.free_since[a] if backdate else self.clock
+        if backdate and node > 0:  # never before the task was known (released, or added)
+            t_dep = max(t_dep, float(self.release[node - 1]))
         here = self.position(a)
         inst = self.inst
         self._mask = None
@@ -556,14 +562,14 @@ class MissionState:
         if node == 0:
             if mode == HOME:
                 return  # stays parked (or keeps going home)
-            self._leg(a, here, inst.depots[a], t_dep)
+            self._leg(a, here, inst.depots[a], t_dep, 0)
             self.mode[a], self.target[a] = HOME, -1
             if not self._all_claimed():
                 self.depot_stops[a] += 1
             return
         m = node - 1
         self._commits += 1
-        self._leg(a, here, inst.task_locations[m], t_dep)
+        self._leg(a, here, inst.task_locations[m], t_dep, node)
         self.mode[a], self.target[a] = TASK, m
         self.members[m].append(a)
         self.routes[a].append(m)
@@ -595,7 +601,9 @@ class MissionState:
         coalition holds): 0 where nothing, or no more than the cover tolerance, is short."""
         return np.where(short > self._tol, short, 0.0)
 
-    def _leg(self, a: int, frm: np.ndarray, to: np.ndarray, t_dep: float) -> None:
+    def _leg(self, a: int, frm: np.ndarray, to: np.ndarray, t_dep: float, node: int) -> None:
+        if self.moves is not None:
+            self.moves[a].append((float(t_dep), int(node)))
         self.from_pos[a] = frm
         self.to_pos[a] = to
         self.depart[a] = t_dep
@@ -1092,6 +1100,8 @@ class MissionState:
             setattr(self, k, np.append(getattr(self, k), self.clock))
         self.wait_total = np.append(self.wait_total, 0.0)
         self.routes.append([])
+        if self.moves is not None:
+            self.moves.append([])
         self.depot_stops = np.append(self.depot_stops, 0)
         self.pool = self.pool + cap
         self._exact = self._exact and self._arithmetic_exact()
@@ -1104,6 +1114,8 @@ class MissionState:
         self.from_pos[a] = here
         self.to_pos[a] = here
         self.depart[a] = self.arrive[a] = self.clock
+        if self.moves is not None:
+            self.moves[a].append((float(self.clock), -1))
 
     def _leave_task(self, a: int, m: int) -> None:
         """Remove member a from task m (open or in progress); keeps pool and events consistent."""
@@ -1316,6 +1328,7 @@ class MissionState:
         for k in ("depart", "arrive", "free_since", "wait_total"):
             setattr(self, k, a.floats(k, (A,)))
         self.routes = a.id_lists("routes", A, M)
+        self.moves = None  # (not in snapshots)
         self.depot_stops = np.array(a.ints("depot_stops", A, 0, None), dtype=np.int64)
         self.n_open = int((self.status == OPEN).sum())
         self.n_done = int((self.status == DONE).sum())

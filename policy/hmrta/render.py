@@ -18,8 +18,11 @@
   their X and cancelled tasks grey out at their time. The static picture is drawn once and each
   frame only redraws the moving artists over it (blitting), then Pillow writes the frames.
 
-Times are recomputed from the solution's task starts/finishes and straight-line travel: an agent
-leaves a task at its finish, arrives after the travel time and waits until the task's start. A
+Times follow the robots' recorded movements (``extra["moves"]`` of a simulated or live run: when
+each leg started and where it went, home and back included, cut short where the next began).
+Without them (a solution of route evaluation or another solver) they are recomputed from the task
+starts/finishes and straight-line travel: an agent leaves a task at its finish, arrives after the
+travel time and waits until the task's start. A
 lost robot's X stands where it stopped (the ``at`` of its ``drop_agent`` record), reached by its
 last leg; a solution written before the record carried it shows the robot where it was last
 known: its last task, or where it started.
@@ -88,7 +91,7 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
             continue  # added tasks are drawn from the instance (their release time)
         t = e.get("t")
         if not finite(t) or t < 0:
-            raise SolutionError(f"{w}.t: expected a time >= 0, got {short(t)}")
+            raise SolutionError(f"{w}.t: expected a finite time >= 0, got {short(t)}")
         t = float(t)
         if kind in ("release", "drop_agent"):  # the tasks a loss (or a release) found unsatisfiable
             cancelled = e.get("cancelled", [])
@@ -131,6 +134,64 @@ def _index(v: Any, n: int, where: str) -> int:
     return v
 
 
+def _timeline_of_moves(inst: Instance, sol: Solution, a: int, moves, ch: Changes,
+                       running: dict) -> list[dict[str, Any]]:
+    """Robot a's segments from its recorded movements (``extra["moves"]``: (t, node) a leg started
+    at t towards node, 0 its depot, 1 + m task m, -1 a stop where it was): each leg travels in a
+    straight line at the mission's speed and is cut short where the next movement starts; at a
+    task the robot waits for the coalition and works from the task's start to its finish (the
+    planned finish for a task under way when a run stopped)."""
+    home = tuple(float(x) for x in inst.depots[a])
+    here = ch.joined[a][1] if a in ch.joined else home
+    segs: list[dict[str, Any]] = []
+    leg = None  # (t_dep, p0, node, p1, t_arrive) of the current leg
+
+    def at(leg, t: float) -> tuple[float, float]:  # where the leg has the robot at time t
+        td, p0, _, p1, ta = leg
+        if t >= ta or ta <= td:
+            return p1
+        f = (t - td) / (ta - td)
+        return (p0[0] + f * (p1[0] - p0[0]), p0[1] + f * (p1[1] - p0[1]))
+
+    route = set(sol.routes[a])
+
+    def close(leg, until: float) -> None:  # the segments of a leg, up to ``until`` (the next movement)
+        td, p0, node, p1, ta = leg
+        m = node - 1 if node > 0 and node - 1 in route else None  # (a task it left: no longer its)
+        end = min(ta, until)
+        if node >= 0 and (end > td or p0 != p1):
+            segs.append({"kind": "travel", "t0": td, "t1": end, "task": m, "p0": p0, "p1": at(leg, end)})
+        if m is None or ta > until:
+            return
+        tk = sol.tasks[m]
+        st, fin, planned = tk.get("start", math.nan), tk.get("finish", math.nan), False
+        if not (st == st and fin == fin) and m in running:
+            st, fin, planned = running[m]["start"], running[m]["finish"], True
+        wait_end = min(st, until) if st == st else until
+        if math.isfinite(wait_end) and wait_end > ta + 1e-9:
+            segs.append({"kind": "wait", "t0": ta, "t1": wait_end, "task": m, "p0": p1, "p1": p1})
+        if st == st and fin == fin and st < until:
+            seg = {"kind": "work", "t0": st, "t1": min(fin, until), "task": m, "p0": p1, "p1": p1}
+            if planned:
+                seg["planned"] = True
+            segs.append(seg)
+
+    for i, (t, node) in enumerate(moves):
+        if node > len(sol.tasks):
+            raise SolutionError(f"moves[{a}][{i}]: task {node - 1} is not among the solution's {len(sol.tasks)} tasks")
+        p0 = at(leg, t) if leg is not None else here
+        if leg is not None:
+            close(leg, t)
+        if node < 0:  # a stop: it stays where it is
+            leg = (t, p0, -1, p0, t)
+            continue
+        p1 = home if node == 0 else tuple(float(x) for x in inst.task_locations[node - 1])
+        leg = (t, p0, node, p1, t + inst.travel_time(p0, p1))
+    if leg is not None:
+        close(leg, math.inf)
+    return segs
+
+
 def agent_timeline(inst: Instance, sol: Solution, changes: Changes | None = None) -> list[list[dict[str, Any]]]:
     """Per agent, a list of segments {kind: travel|wait|work, t0, t1, task, p0, p1} in time order.
     ``task`` is the task id (None for the final trip home, or a lost robot's last leg up to where
@@ -142,6 +203,9 @@ def agent_timeline(inst: Instance, sol: Solution, changes: Changes | None = None
     ``changes`` defaults to :func:`mission_changes` of ``sol``."""
     ch = mission_changes(inst, sol) if changes is None else changes
     running = {r["task"]: r for r in sol.extra.get("in_progress", ())} if isinstance(sol.extra, dict) else {}
+    moves = sol.extra.get("moves") if isinstance(sol.extra, dict) else None
+    if moves is not None and len(moves) == len(sol.routes):  # how the robots moved, as recorded
+        return [_timeline_of_moves(inst, sol, a, mv, ch, running) for a, mv in enumerate(moves)]
     out = []
     for a, route in enumerate(sol.routes):
         home = tuple(inst.depots[a])

@@ -133,6 +133,28 @@ def _serr(where: str, msg: str) -> SolutionError:
     return SolutionError(f"{where}: {msg}")
 
 
+def _moves(v: Any, where: str) -> list[list[list]]:
+    """The ``moves`` extra: per robot, [t, node] pairs in time order (node 0 its depot, 1 + m task
+    m, -1 a stop where it was)."""
+    rows = _list(v, where)
+    out = []  # (one list per robot: checked against the mission where it is used, hmrta.render)
+    for a, row in enumerate(rows):
+        mv, last = [], -math.inf
+        for i, e in enumerate(_list(row, f"{where}[{a}]")):
+            w = f"{where}[{a}][{i}]"
+            if not isinstance(e, (list, tuple)) or len(e) != 2:
+                raise _serr(w, f"expected [time, node], got {short(e)}")
+            t, n = _time(e[0], f"{w}[0]"), e[1]
+            if isinstance(n, bool) or not isinstance(n, int) or n < -1:  # (tasks: checked against the mission)
+                raise _serr(f"{w}[1]", f"expected a node >= -1 (0 the depot, 1 + m task m, -1 a stop), got {short(n)}")
+            if not t >= last:
+                raise _serr(f"{w}[0]", f"expected times in order (>= {short(last)}), got {short(e[0])}")
+            mv.append([t, n])
+            last = t
+        out.append(mv)
+    return out
+
+
 def _int(v: Any, where: str, lo: int = 0) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or v < lo:
         raise _serr(where, f"expected an integer >= {lo}, got {short(v)}")
@@ -236,6 +258,8 @@ def _solution_from_dict(d: Any, source: str) -> Solution:
         _time(extra["lower_bound"], f"{source}: lower_bound")
     if "in_progress" in extra:
         extra["in_progress"] = _in_progress(extra["in_progress"], tasks, routes, d["success"], f"{source}: in_progress")
+    if "moves" in extra:
+        extra["moves"] = _moves(extra["moves"], f"{source}: moves")
     if d["success"]:
         if math.isnan(metrics[0]):
             raise _serr(f"{source}: makespan", "expected a number: the solution succeeded")
@@ -394,6 +418,8 @@ def solution_from_state(state, method: str, seed: int, compute_seconds: float) -
                                      "members": sorted(int(a) for a in state.members[m])} for m in running]
     if int(state.depot_stops.sum()):
         extra["depot_stops"] = [int(x) for x in state.depot_stops]
+    if getattr(state, "moves", None) is not None:  # how the robots moved: what a drawing shows (hmrta.render)
+        extra["moves"] = [[[float(t), int(n)] for t, n in mv] for mv in state.moves]
     if state.log or state.M > state.base[0] or bool((state.release > 0).any()):
         extra["dynamic"] = dynamic_metrics(state)
     if (state.M, state.A, inst.n_species) != tuple(state.base):  # tasks or robots were added: the mission as it

@@ -325,8 +325,9 @@ def test_snapshot_round_trip_mid_episode(make_pol, rules, cut):
         restored.step(pol2(restored))
     a = solution_from_state(state, "x", 7, 0.0).to_dict()
     b = solution_from_state(restored, "x", 7, 0.0).to_dict()
+    assert a.pop("moves") and "moves" not in b  # the movement history is not in snapshots (a drawing aid)
     assert a == b
-    assert a == solution_from_state(full, "x", 7, 0.0).to_dict()
+    assert a == {k: v for k, v in solution_from_state(full, "x", 7, 0.0).to_dict().items() if k != "moves"}
 
 
 def test_empty_instance():

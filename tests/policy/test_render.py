@@ -239,8 +239,11 @@ def test_mission_changes_are_read_from_the_solution(changed, case):
     assert tl[1][-1]["t1"] - tl[1][-1]["t0"] == pytest.approx(inst.travel_time(tl[1][-1]["p0"], at[1]))
     # robot 4: lost on its first leg, from its depot
     assert [(s["kind"], s["t0"], s["t1"], s["p1"]) for s in tl[4]] == [("travel", 0.0, 2.0, at[4])]
+    # without the recorded movements (a solution of route evaluation, or an older file) the
+    # timeline is rebuilt from the routes and the events
     # a robot lost where it had arrived earlier (``since``): its last leg ends at that arrival
     moved = json.loads(json.dumps(sol.to_dict()))
+    del moved["moves"]
     rec = next(e for e in moved["dynamic"]["events"] if e.get("agent") == 1)
     rec["since"] = 4.5
     leg = agent_timeline(inst, Solution.from_dict(moved))[1][-1]
@@ -250,6 +253,7 @@ def test_mission_changes_are_read_from_the_solution(changed, case):
         mission_changes(inst, Solution.from_dict(moved))
     # a record without "at" (written before the log carried it): the robot where it was last known
     old = json.loads(json.dumps(sol.to_dict()))
+    del old["moves"]
     for e in old["dynamic"]["events"]:
         e.pop("at", None)
     old_tl = agent_timeline(inst, Solution.from_dict(old))
@@ -325,7 +329,7 @@ def test_a_changed_mission_renders_png_and_gif(tmp_path, changed):
 @pytest.mark.parametrize("event, expect", [
     ({"type": "drop_agent", "t": 1.0, "agent": 9, "cancelled": []},
      "dynamic.events[0].agent: expected an index in 0..5, got 9"),
-    ({"type": "drop_agent", "t": "soon", "agent": 1}, "dynamic.events[0].t: expected a time >= 0, got 'soon'"),
+    ({"type": "drop_agent", "t": "soon", "agent": 1}, "dynamic.events[0].t: expected a finite time >= 0, got 'soon'"),
     ({"type": "drop_agent", "t": 1.0, "agent": 1, "cancelled": [7]},
      "dynamic.events[0].cancelled[0]: expected an index in 0..5"),
     ({"type": "cancel_task", "t": 1.0, "name": "nope"}, "dynamic.events[0].name: expected the client id of a task"),
@@ -372,3 +376,37 @@ def test_gif_draws_the_figure_once_and_blits_the_same_frames(tmp_path, case, mon
     assert full.shape == frames[0].shape
     assert (np.abs(frames[0] - full).sum(-1) > 60).mean() < 0.03  # only the moving artists differ
     assert (np.abs(frames[0] - frames[6]).sum(-1) > 60).mean() > 0.001  # and they move
+
+
+@pytest.mark.parametrize("method", ["greedy", "greedy-coalition"])
+def test_the_drawing_of_a_mission_with_release_times_is_what_happened(method):
+    """Tasks released during the mission: robots go home and come back, leave later than their
+    last finish. The timeline follows the recorded movements (``extra["moves"]``): no robot is at
+    a task before its release (a back-dated departure never precedes it either), the drawn waits
+    are the solution's AWT, every segment follows the one before, and every robot ends home at its
+    return time."""
+    import dataclasses
+
+    from hmrta.methods import solve
+
+    checked = detours = 0
+    for i, inst in enumerate(ScenarioGenerator("MA-AT", 9, 3, 20, 3).generate(4, 5)):
+        rng = np.random.default_rng(i)
+        inst = dataclasses.replace(inst, tasks=tuple(
+            dataclasses.replace(t, release=float(rng.random() * 30) if rng.random() < 0.6 else 0.0)
+            for t in inst.tasks), _cache={})
+        sol = Solution.from_dict(json.loads(json.dumps(solve(inst, method, 0).to_dict())))
+        detours += sum(len(mv) > len(r) + 1 for mv, r in zip(sol.extra["moves"], sol.routes))  # home and back
+        tl = agent_timeline(inst, sol)
+        waits = [sum(s["t1"] - s["t0"] for s in segs if s["kind"] == "wait") for segs in tl]
+        assert np.mean(waits) == pytest.approx(sol.awt, abs=1e-9)
+        for a, segs in enumerate(tl):
+            for s in segs:
+                if s["task"] is not None and s["kind"] in ("wait", "work"):
+                    assert s["t0"] >= inst.tasks[s["task"]].release, (a, s)
+                    checked += 1
+            for x, y in zip(segs, segs[1:]):
+                assert y["t0"] >= x["t1"] - 1e-9 and np.allclose(y["p0"], x["p1"])
+            assert segs[-1]["kind"] == "travel" and segs[-1]["t1"] == pytest.approx(sol.agents[a]["return_time"])
+            assert np.allclose(segs[-1]["p1"], inst.depots[a])
+    assert checked > 100 and detours > 0
