@@ -68,7 +68,7 @@ def _not_an_input(flag: str, out: Path, inputs) -> None:
                 raise UserError(f"{flag} {out}: is an input of this command ({f}); write the output elsewhere")
 
 
-def _writable(flag: str, path: str | Path, folder: bool = False, inputs: tuple = ()) -> Path:
+def writable(flag: str, path: str | Path, folder: bool = False, inputs: tuple = ()) -> Path:
     """``path``, the output named by ``flag``: a file (``folder``: a folder) that can be written there,
     checked before any work by creating and removing a probe file in the nearest existing folder on
     its way, and (a file) none of the command's ``inputs``. Otherwise a UserError naming the option,
@@ -342,7 +342,7 @@ def cmd_solve(args) -> int:
     # one mission: a file unless --out is a folder or a name without a suffix (out.json, out.txt: files)
     to_folder = bool(out) and (many or out.is_dir() or not out.suffix or args.out.endswith(("/", "\\")))
     if out:
-        _writable("--out", out, folder=to_folder, inputs=tuple(files))
+        writable("--out", out, folder=to_folder, inputs=tuple(files))
     if to_folder:  # DIR/<stem>.json is none of the inputs either
         for f in files:
             _not_an_input("--out", out / f"{f.stem}.json", files)
@@ -445,7 +445,7 @@ def cmd_generate(args) -> int:
         raise UserError(f"--count {args.count} x --tasks {args.tasks}: at most {MAX_SET_TASKS:,} tasks in one set "
                         f"(write several sets with other --seed values)")
     _seed(args.seed)
-    _writable("--out", args.out, folder=True)
+    writable("--out", args.out, folder=True)
     try:  # every instance is drawn before the folder is made: a row no team can do leaves nothing
         gen = ScenarioGenerator(args.scenario, args.agents, args.species, args.tasks, args.skills)
         instances = gen.generate(args.count, args.seed)
@@ -506,7 +506,7 @@ def mapping_path(out: str | Path) -> Path:
 def cmd_convert(args) -> int:
     from .instance import atomic_write_text
 
-    _writable("--out", args.out, inputs=(args.input,))
+    writable("--out", args.out, inputs=(args.input,))
     inst = _load(args.input, "hmrta-instance/1 holds no events", releases=True)  # release times it holds
     if Path(args.out).suffix.lower() == ".json":
         raise UserError(f"--out {args.out}: convert writes hmrta-instance/1 YAML; give a .yaml file name")
@@ -604,7 +604,7 @@ def cmd_bench(args) -> int:
     _jobs(args)
     if args.suite and not args.out:  # never the committed tables (docs/results/<suite>) unless asked for
         args.out = f"bench-{args.suite}"
-    out_dir = _writable("--out", args.out, folder=True) if args.out else None
+    out_dir = writable("--out", args.out, folder=True) if args.out else None
     summary = bench.run_bench(rows, methods, args.count, args.seed, out_dir, _solve_opts(args),
                               progress=_progress_on(args), with_bounds=args.bounds,
                               log=lambda s: print(s, file=sys.stderr), compare=compare,
@@ -682,9 +682,9 @@ def cmd_train(args) -> int:
         return 0
     if (args.init or args.reseed) and not args.resume:
         raise UserError("--init and --reseed only apply with --resume")
-    run_dir = _writable("--run-dir", args.run_dir or f"runs/{cfg['name']}", folder=True)
+    run_dir = writable("--run-dir", args.run_dir or f"runs/{cfg['name']}", folder=True)
     if args.export:
-        _writable("--export", args.export)
+        writable("--export", args.export)
     last = run_dir / "last.pt"
     if last.exists() and not args.resume:
         raise UserError(f"{run_dir} already holds a run: pass --resume to continue it or --run-dir for a new one")
@@ -776,7 +776,7 @@ def cmd_checkpoint(args) -> int:
     from .rl.checkpoint import average
     from .rl.checkpoint_info import checkpoint_path
 
-    out = _writable("--out", args.out)
+    out = writable("--out", args.out)
     if not out.parent.is_dir():
         raise UserError(f"--out {out}: no such folder {out.parent}")
     if out.exists():
@@ -802,7 +802,7 @@ def cmd_schedules(args) -> int:
     _seconds("--time-limit", args.time_limit)
     _jobs(args)
     _positive("--workers", args.workers)
-    out = _writable("--out", args.out)
+    out = writable("--out", args.out)
     spec = {"kind": args.generator, "min_tasks": args.min_tasks, "max_tasks": args.max_tasks}
     if args.team_scale is not None and tuple(args.team_scale) != (1, 1):  # 1 1: the plain broad header
         spec["team_scale"] = list(args.team_scale)
@@ -878,7 +878,7 @@ def cmd_render_recording(args) -> int:
         raise UserError("render --from: give the recording and (optionally) the instance, not a solution file")
     if args.gif:
         raise UserError("render --from: --gif is not available for recordings")
-    _writable("--out", args.out, inputs=tuple(x for x in (args.from_, args.instance) if x))
+    writable("--out", args.out, inputs=tuple(x for x in (args.from_, args.instance) if x))
     try:
         rec = read_recording(args.from_)
     except ReplayError as e:
@@ -911,7 +911,7 @@ def cmd_render(args) -> int:
         check_gif_options(args.frames, args.fps)
     except ValueError as e:
         raise UserError(f"--{e}") from None
-    _writable("--out", args.out, inputs=(args.instance, args.solution))
+    writable("--out", args.out, inputs=(args.instance, args.solution))
     inst = _load(args.instance)
     sol = _read_solution(args.solution)
     animated = args.gif or Path(args.out).suffix.lower() == ".gif"
@@ -944,7 +944,7 @@ def cmd_demo(args) -> int:
 
     _seed(args.seed)
     if args.out:
-        _writable("--out", args.out)
+        writable("--out", args.out)
     inst = _load(args.instance or str(EXAMPLE))
     print(f"mission {inst.name}: {inst.n_agents} robots in {inst.n_species} species, {inst.n_tasks} tasks, "
           f"{inst.requirement_type} requirements")
@@ -1205,7 +1205,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("solution", nargs="?", default=None, help="hmrta-solution/1 JSON")
     r.add_argument("--from", dest="from_", default=None, metavar="FILE.mcap",
                    help="draw a recorded mission (hmrta-mission --record): planned vs actual arrival times")
-    r.add_argument("--out", required=True, help="output image (.png); an --out ending in .gif writes only the animation")
+    r.add_argument("--out", required=True, help="output image (.png, or any format matplotlib writes: .svg, .pdf, ...); an --out ending in .gif writes "
+                        "only the animation")
     r.add_argument("--gif", action="store_true", help="also write an animated GIF beside the PNG")
     r.add_argument("--frames", type=int, default=80, help="GIF frames (1..1000)")
     r.add_argument("--fps", type=int, default=10, help="GIF frames per second (1..50)")

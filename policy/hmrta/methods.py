@@ -138,7 +138,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
                            "sampling temperature: softmax(logits / T); below 1 the samples stay nearer the greedy "
                            "decoding (docs/semantics.md#sampling-temperature)", minimum=0.01),
                     CHECKPOINT), **_RL),
-    Method("rl-lookahead", "one-step lookahead over the policy's greedy continuations: slower, better",
+    Method("rl-lookahead", "one-step lookahead over the policy's greedy continuations: better, and far "
+           "slower (a whole rollout per admissible task at every decision: up to a minute or two at 20 tasks; "
+           "a 50-task mission did not finish in 25 minutes): for small missions",
            "hmrta.rl.inference:solve_rl_lookahead", "hmrta.rl.inference:lookahead_decider",
            options=(CHECKPOINT,), **_RL),
     Method("cpsat", "anytime exact solver: list scheduler, annealing and CP-SAT; offline only",

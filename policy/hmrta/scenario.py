@@ -132,7 +132,7 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
                 raise err(keys, w, f"missing field {k!r} for {kind}")
         t = e["t"]
         if not finite(t) or not 0 <= t <= MAX_VALUE:
-            raise err(keys + ["t"], f"{w}.t", f"expected a time >= 0, got {short(t)}")
+            raise err(keys + ["t"], f"{w}.t", f"expected a finite time in [0, {MAX_VALUE:g}], got {short(t)}")
 
         def vec(k: str, n: int, unit: bool = False) -> list[float]:
             v = e[k]

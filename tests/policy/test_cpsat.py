@@ -224,20 +224,40 @@ def test_ctrl_c_during_the_cp_sat_search_stops_the_command(tmp_path):
     import sys
     import time
 
+    import os
+    import pty
+    import select
+
     path = tmp_path / "m.yaml"
     ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(3, 0).save(path)
     out = tmp_path / "out.json"
-    err = open(tmp_path / "err.txt", "w+")
+    import fcntl
+    import struct
+    import termios
+
+    master, slave = pty.openpty()  # stderr a terminal (24 x 160): the progress bar names the phase
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 160, 0, 0))
     p = subprocess.Popen([sys.executable, "-m", "hmrta.cli", "solve", "--method", "cpsat", "--time-limit", "120",
                           "--heuristic-seconds", "0.5", "--out", str(out), str(path)],
-                         stdout=subprocess.PIPE, stderr=err, text=True)
+                         stdout=subprocess.PIPE, stderr=slave, text=True)
+    os.close(slave)
+    seen = []
+
+    def read(wait: float) -> str:  # what the child wrote to its terminal so far
+        end = time.monotonic() + wait
+        while time.monotonic() < end and select.select([master], [], [], 0.1)[0]:
+            try:
+                seen.append(os.read(master, 65536).decode(errors="replace"))
+            except OSError:  # the child closed its end
+                break
+        return "".join(seen)
+
     try:
         deadline = time.monotonic() + 60
-        while "CP-SAT" not in (tmp_path / "err.txt").read_text() and time.monotonic() < deadline:
-            assert p.poll() is None, (tmp_path / "err.txt").read_text()
-            time.sleep(0.1)
-        assert "CP-SAT" in (tmp_path / "err.txt").read_text(), "the CP-SAT phase never started"
-        time.sleep(1.0)  # inside the search
+        while "CP-SAT" not in read(0.2) and time.monotonic() < deadline:
+            assert p.poll() is None, read(0.5)
+        assert "CP-SAT" in read(0.1), "the CP-SAT phase never started"
+        read(1.0)  # inside the search
         t0 = time.monotonic()
         p.send_signal(signal.SIGINT)
         stdout, _ = p.communicate(timeout=20)
@@ -246,7 +266,8 @@ def test_ctrl_c_during_the_cp_sat_search_stops_the_command(tmp_path):
         if p.poll() is None:
             p.kill()
             p.wait()
-    text = (tmp_path / "err.txt").read_text()
+    text = read(1.0).replace("\r", "\n")
+    os.close(master)
     assert p.returncode == 130, text
     assert text.rstrip().endswith("interrupted") and "Traceback" not in text
     assert stdout == "" and not out.exists()

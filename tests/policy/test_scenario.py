@@ -123,7 +123,7 @@ def test_cli_solve_and_bad_file(scenario, tmp_path):
 
 
 @pytest.mark.parametrize("event, message", [
-    ({"t": -1, "type": "lose_robot", "robot": 0}, "events[0].t: expected a time >= 0"),
+    ({"t": -1, "type": "lose_robot", "robot": 0}, "events[0].t: expected a finite time in [0, 1e+09]"),
     ({"t": 1, "type": "explode"}, "events[0].type: expected one of add_task"),
     ({"t": 1, "type": "lose_robot", "robot": 9}, "events[0].robot: expected a robot index in 0..3"),
     ({"t": 1, "type": "cancel_task", "id": "nope"}, "events[0].id: no add_task event has id 'nope'"),
@@ -134,7 +134,7 @@ def test_cli_solve_and_bad_file(scenario, tmp_path):
     ({"t": 1, "type": "add_task", "id": "a", "location": [0, 0], "requirements": [1, 0]}, "missing field 'duration'"),
     ({"t": 1, "type": "lose_robot", "robot": 0, "why": "x"}, "events[0].why: unknown field"),
     # integers too large for a float are refused like any number out of range (no OverflowError)
-    ({"t": 10 ** 400, "type": "lose_robot", "robot": 0}, "events[0].t: expected a time >= 0"),
+    ({"t": 10 ** 400, "type": "lose_robot", "robot": 0}, "events[0].t: expected a finite time in [0, 1e+09]"),
     ({"t": 1, "type": "add_task", "id": "a", "location": [0, 0], "requirements": [10 ** 400, 0], "duration": 1},
      "events[0].requirements"),
     ({"t": 1, "type": "add_task", "id": "a", "location": [0, 0], "requirements": [1, 0], "duration": 10 ** 400},
