@@ -151,6 +151,9 @@ def scenario_from_dict(d: Any, source: str = "<data>", text: str | None = None,
                 raise err(keys + ["id"], f"{w}.id", f"expected a client id (a non-empty string), got {short(cid)}")
             if cid in ids:
                 raise err(keys + ["id"], f"{w}.id", f"duplicate task id {cid!r}")
+            if cid.isascii() and cid.isdigit():  # as for operators (hmrta-task cancel 7: the mission's task 7)
+                raise err(keys + ["id"], f"{w}.id", f"an id of decimal digits names a task of the mission by its "
+                                                   f"index: choose an id with a letter, got {cid!r}")
             ids.add(cid)
             dur = e["duration"]
             if not finite(dur) or not 0 <= dur <= MAX_VALUE:

@@ -144,6 +144,9 @@ def test_cli_solve_and_bad_file(scenario, tmp_path):
      "events[0].requirements: expected a list of 2 numbers in [0, 1e+09]"),
     ({"t": 1, "type": "add_robot", "traits": [10 ** 29, 1], "position": [0, 0]},
      "events[0].traits: expected a list of 2 numbers in [0, 1e+09]"),
+    # an id an operator could not give (it names a task of the mission by its index)
+    ({"t": 1, "type": "add_task", "id": "7", "location": [0, 0], "requirements": [1, 0], "duration": 1},
+     "events[0].id: an id of decimal digits names a task of the mission by its index"),
 ])
 def test_scenario_errors_name_the_field(event, message):
     import yaml

@@ -181,6 +181,9 @@ def test_param_parse_rejects(typ, text):
      "at least one of them non-zero"),
     ("hmrta-task", ["add", "--location", "0.1,1.5", "--requirements", "1,0", "--duration", "1"],
      "--location: expected x,y in the unit square [0, 1], got 0.1,1.5"),
+    ("hmrta-task", ["add", "--location", "0.1,0.5", "--requirements", "1,0", "--duration", "1", "--id", ""],
+     "--id: expected a task id"),
+    ("agent_node", ["--robots", "robot_0,,robot_1"], "expected distinct comma-separated robot names"),
 ])
 def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_path):
     r = subprocess.run([str(BIN / exe), *args], capture_output=True, text=True, timeout=60, cwd=tmp_path,

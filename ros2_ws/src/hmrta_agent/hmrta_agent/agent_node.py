@@ -622,8 +622,8 @@ class AgentNode(Node):
 
 
 def robots_arg(text: str) -> list[str]:
-    names = [r.strip().strip("/") for r in text.split(",") if r.strip()]
-    if not names or len(set(names)) != len(names):
+    names = [r.strip().strip("/") for r in text.split(",")]
+    if not all(names) or len(set(names)) != len(names):  # (an empty name between commas too)
         raise argparse.ArgumentTypeError(f"expected distinct comma-separated robot names, got {text!r}")
     return names
 

@@ -77,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{','.join(f'{r:g}' for r in args.requirements)}")
         if not all(0 <= v <= 1 for v in args.location):
             p.error(f"--location: expected x,y in the unit square [0, 1], got {args.location[0]:g},{args.location[1]:g}")
+        if args.id is not None and not args.id.strip():
+            p.error("--id: expected a task id (leave the option out for a random one), got an empty one")
 
     import rclpy
     from std_msgs.msg import String
@@ -125,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
                 when = f" finish {t['finish'][m]:.3f}" if t["finish"][m] is not None else ""
                 print(f"  {m:4d} {names[m] or '-':>16} {status}{when}")
             return 0
-        rid = args.id if args.cmd == "cancel" else (args.id or f"task-{uuid.uuid4().hex[:8]}")
+        rid = args.id if args.cmd == "cancel" or args.id is not None else f"task-{uuid.uuid4().hex[:8]}"
         task = None
         if args.cmd == "add":
             task = {"location": args.location, "requirements": args.requirements, "duration": args.duration}
