@@ -29,6 +29,11 @@ Bounds (all in time units):
 ``species_workload``
     Species s must send at least ``need[s,m]`` members to task m, the number still missing when
     every other species comes at full count. ``C >= sum_m need[s,m] (dur[m] + in[s,m]) / count_s``.
+``release``
+    A task released at ``r[m] > 0`` (``release`` in the mission file) cannot start before it (no
+    robot sets off for it earlier; one may be at the spot already), is worked ``dur[m]``, and its
+    members then go home: ``C >= r[m] + dur[m] + min_s back[s,m]`` over the species that can
+    contribute. 0 when every task is known at 0.
 ``best``
     The maximum of the above (``best_name`` names it).
 
@@ -48,6 +53,7 @@ BOUND_DOCS = {
     "team_workload": "total minimum busy time (in-travel + work) of all coalitions / agents",
     "skill_workload": "per skill: skill-weighted busy time / team capacity of the skill (max over skills)",
     "species_workload": "per species: busy time of its unavoidable members / its count (max over species)",
+    "release": "per task released later: release + duration + shortest way home (max over tasks)",
 }
 
 _ENUM_LIMIT = 20000
@@ -107,7 +113,8 @@ def _min_coalition_cost(c: np.ndarray, q: np.ndarray, n: np.ndarray, cost: np.nd
 def lower_bounds(inst: Instance) -> dict:
     """Cheap lower bounds on the optimal makespan (see the module docstring)."""
     S, M, K = inst.n_species, inst.n_tasks, inst.skills
-    out = {"task_round_trip": 0.0, "team_workload": 0.0, "skill_workload": 0.0, "species_workload": 0.0}
+    out = {"task_round_trip": 0.0, "team_workload": 0.0, "skill_workload": 0.0, "species_workload": 0.0,
+           "release": 0.0}
     if M == 0:
         out.update(best=0.0, best_name="task_round_trip")
         return out
@@ -163,6 +170,12 @@ def lower_bounds(inst: Instance) -> dict:
             work += need * (dur[m] + t_in[s, m])
         spw = max(spw, work / n[s])
     out["species_workload"] = float(spw)
+    # release times
+    rel = np.asarray(inst.releases, dtype=np.float64)  # [M]
+    for m in np.flatnonzero(rel > 0):
+        ok = useful[:, m]  # [S] species that can contribute
+        if ok.any():
+            out["release"] = max(out["release"], float((rel[m] + dur[m]) + t_back[ok, m].min()))
     name = max(BOUND_DOCS, key=lambda k: out[k])
     out["best"] = out[name]
     out["best_name"] = name

@@ -838,12 +838,12 @@ def cmd_bound(args) -> int:
                             f"solutions")
     work = []  # every instance and solution is read and checked before any bound is computed or printed
     for f in files:
-        # release times only delay tasks: a bound without them still holds
+        # release times only delay tasks (the "release" bound takes them into account)
         inst = _load(str(f), "the bounds hold for a mission without events", releases=True)
         sols = []
         for p in sol_args:
             path = str(_matching(p, f, "solution") if p.is_dir() else p)
-            sols.append(_read_solution(path))
+            sols.append(_solution_or_routes(inst, path))
             check_solution(inst, sols[-1], path)  # a solution of another instance has no gap here
         work.append((inst, sols))
     reports = []
@@ -867,6 +867,21 @@ def _read_solution(path: str):
     from .solution import read_solution
 
     return read_solution(path)
+
+
+def _solution_or_routes(inst, path: str):
+    """An ``hmrta-solution/1`` file, or a routes file as ``hmrta evaluate`` takes it (then
+    re-simulated on ``inst``); the error is the solution reader's when it is neither."""
+    from .solution import RouteError, SolutionError, evaluate_routes, read_routes
+
+    try:
+        return _read_solution(path)
+    except SolutionError as e:
+        try:
+            routes = read_routes(inst, path)
+        except RouteError:
+            raise e from None
+    return evaluate_routes(inst, routes)
 
 
 def cmd_render_recording(args) -> int:

@@ -86,3 +86,42 @@ def test_report_with_solutions():
     assert rep["best"] == g.makespan - 1.0 and rep["best_name"] == "greedy (solver)"
     text = format_report(rep)
     assert "task_round_trip" in text and "gap to best bound" in text
+
+
+def test_release_times_bound_the_makespan():
+    """A task released at 30 starts no sooner, is worked 2 and its members go 4 home: 36. Every
+    method's makespan on missions with release times is above the bound."""
+    import dataclasses
+
+    import numpy as np
+
+    inst = Instance("additive", 0.2, 1, (Species((1.0,), 2, (0.1, 0.1)),),
+                    (Task((0.5, 0.5), (1.0,), 1.0), Task((0.9, 0.1), (2.0,), 2.0, release=30.0)))
+    b = lower_bounds(inst)
+    assert b["release"] == pytest.approx(36.0) and b["best_name"] == "release"
+    assert solve(inst, "greedy").makespan >= b["release"]
+    assert lower_bounds(dataclasses.replace(inst, tasks=(inst.tasks[0], dataclasses.replace(inst.tasks[1], release=0.0)),
+                                            _cache={}))["release"] == 0.0
+    for i, base in enumerate(ScenarioGenerator("MA-AT", 9, 3, 20, 3).generate(5, 9)):
+        rng = np.random.default_rng(i)
+        inst = dataclasses.replace(base, tasks=tuple(dataclasses.replace(t, release=float(rng.random() * 40))
+                                                     for t in base.tasks), _cache={})
+        best = lower_bounds(inst)["best"]
+        for method in ("greedy", "greedy-coalition"):
+            assert solve(inst, method).makespan >= best - 1e-9, (i, method)
+
+
+def test_bound_reads_a_routes_file_as_evaluate_does(tmp_path, capsys):
+    import json
+
+    from hmrta.cli import main
+
+    example = Path(__file__).parent / "data" / "example.yaml"
+    sol = tmp_path / "s.json"
+    assert main(["solve", str(example), "--method", "greedy", "--out", str(sol)]) == 0
+    routes = tmp_path / "r.json"
+    routes.write_text(json.dumps({"routes": json.loads(sol.read_text())["routes"]}))
+    capsys.readouterr()
+    assert main(["bound", str(example), str(routes), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["solutions"][0]["makespan"] == pytest.approx(json.loads(sol.read_text())["makespan"])
