@@ -823,7 +823,7 @@ def cmd_schedules(args) -> int:
 
 def cmd_bound(args) -> int:
     from .bounds import bound_report, format_report
-    from .solution import check_solution
+    from .solution import check_planned_for, check_solution
 
     from tqdm import tqdm
 
@@ -844,7 +844,8 @@ def cmd_bound(args) -> int:
         for p in sol_args:
             path = str(_matching(p, f, "solution") if p.is_dir() else p)
             sols.append(_solution_or_routes(inst, path))
-            check_solution(inst, sols[-1], path)  # a solution of another instance has no gap here
+            check_planned_for(inst, sols[-1], path)  # a solution of another instance has no gap here
+            check_solution(inst, sols[-1], path)
         work.append((inst, sols))
     reports = []
     for inst, sols in tqdm(work, desc="bound", disable=not many or not _progress_on(args), unit="instance",
@@ -916,7 +917,7 @@ def cmd_render_recording(args) -> int:
 
 def cmd_render(args) -> int:
     from .render import check_gif_options, render
-    from .solution import SolutionError, final_instance
+    from .solution import SolutionError, check_planned_for, final_instance
 
     if args.from_ is not None:
         return cmd_render_recording(args)
@@ -929,6 +930,7 @@ def cmd_render(args) -> int:
     writable("--out", args.out, inputs=(args.instance, args.solution))
     inst = _load(args.instance)
     sol = _read_solution(args.solution)
+    check_planned_for(inst, sol, args.solution)
     animated = args.gif or Path(args.out).suffix.lower() == ".gif"
     if animated and _progress_on(args):  # a GIF: 0.05 to 0.3 s per frame
         from tqdm import tqdm

@@ -140,6 +140,16 @@ class Instance:
         return _ro(np.array([t.requirements for t in self.tasks], dtype=np.float64).reshape(-1, self.skills))
 
     @cached_property
+    def fingerprint(self) -> str:
+        """The sha256 of the mission as planned: its ``hmrta-instance/1`` mapping, its timed
+        events and the robots they add. A solution records it (``instance_sha256``), so that a
+        drawing or a bound refuses a solution of another version of the mission."""
+        import hashlib
+
+        d = {"instance": self.to_dict(), "events": list(self.events), "added_agents": list(self.added_agents)}
+        return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
+
+    @cached_property
     def cover_tol(self) -> float:
         """:func:`cover_tolerance` of this mission's robots and tasks."""
         return cover_tolerance(self.traits, self.requirements)

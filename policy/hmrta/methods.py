@@ -282,6 +282,7 @@ def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **
     fn = _resolve(m.solve)
     sol = fn(inst, seed=seed, **opts, **_progress_for(fn, progress))
     sol.method = label(name, opts, implied)
+    sol.extra["instance_sha256"] = inst.fingerprint  # the mission it plans (hmrta.solution.check_solution)
     return sol
 
 

@@ -306,6 +306,23 @@ def read_solution(path: str | Path) -> Solution:
     return Solution.from_dict(parse_json(read_text(path, SolutionError), str(path), SolutionError), str(path))
 
 
+def check_planned_for(inst: Instance, sol: Solution, source: str = "solution") -> None:
+    """Refuse a solution that records the mission it planned (``instance_sha256``, written by
+    ``hmrta solve``) when ``inst``, the mission as read from its file, is another version of it
+    (neither that mission nor, for one that grew, the mission as it ended: ``final_instance``)."""
+    sha = sol.extra.get("instance_sha256") if isinstance(sol.extra, dict) else None
+    if isinstance(sha, str) and sha != inst.fingerprint:
+        final = sol.extra.get("final_instance")  # or the mission as it ended (tasks and robots added)
+        if isinstance(final, dict):
+            try:
+                if instance_from_dict(final).to_dict() == inst.to_dict():
+                    return
+            except ValueError:
+                pass
+        raise _serr(source, f"solution does not match the instance {short(inst.name)}: it was planned for another "
+                            f"version of the mission (its instance_sha256 differs: the mission file changed since)")
+
+
 def check_solution(inst: Instance, sol: Solution, source: str = "solution") -> None:
     """Refuse a solution that does not belong to the instance: another instance name, other agent
     or task counts, or agents of other species."""

@@ -410,3 +410,29 @@ def test_the_drawing_of_a_mission_with_release_times_is_what_happened(method):
             assert segs[-1]["kind"] == "travel" and segs[-1]["t1"] == pytest.approx(sol.agents[a]["return_time"])
             assert np.allclose(segs[-1]["p1"], inst.depots[a])
     assert checked > 100 and detours > 0
+
+
+def test_a_solution_of_another_version_of_the_mission_is_refused(tmp_path, capsys):
+    """``hmrta solve`` records the mission it planned (instance_sha256): render and bound refuse
+    the solution for the same-named mission with other durations (exit 2, one line), and take it
+    for the mission it was planned for."""
+    from hmrta.cli import main
+
+    mission = tmp_path / "m.yaml"
+    mission.write_text(CHANGING if isinstance(CHANGING, str) else json.dumps(CHANGING))
+    sol = tmp_path / "m.json"
+    assert main(["solve", str(mission), "--method", "greedy", "--out", str(sol)]) == 0
+    assert json.loads(sol.read_text())["instance_sha256"]
+    other = tmp_path / "v2"
+    other.mkdir()
+    data = json.loads(json.dumps(__import__("yaml").safe_load(mission.read_text())))
+    for t in data["tasks"]:
+        t["duration"] = float(t["duration"]) + 1.0
+    (other / "m.yaml").write_text(json.dumps(data))
+    capsys.readouterr()
+    for argv in (["render", str(other / "m.yaml"), str(sol), "--out", str(tmp_path / "x.png")],
+                 ["bound", str(other / "m.yaml"), str(sol)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "planned for another version of the mission" in err[0]
+    assert main(["render", str(mission), str(sol), "--out", str(tmp_path / "x.png")]) == 0
