@@ -979,7 +979,9 @@ def cmd_keys(args) -> int:
     from .keys import KeystoreError, create_keystore, robot_key_path
 
     if args.instance:
-        robots = [f"robot_{a}" for a in range(_load(args.instance).n_agents)]
+        inst = _load(args.instance)  # (a scenario: the robots its add_robot events add too)
+        added = sum(e.get("type") == "add_agent" for e in inst.events)
+        robots = [f"robot_{a}" for a in range(inst.n_agents + added)]
     else:
         robots = [r.strip() for r in args.robots.split(",")]
         if not all(robots):

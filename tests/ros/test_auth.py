@@ -78,6 +78,37 @@ def test_missing_or_foreign_keys_are_user_errors(tmp_path, domain):
         assert len(p.stderr.strip().splitlines()) == 1, p.stderr
 
 
+def test_a_robot_a_scenario_adds_has_its_key_in_an_authenticated_mission(tmp_path, domain):
+    """``hmrta-mission --authenticate`` on a scenario that adds a robot: the keystore holds the
+    added robot's key too (and ``hmrta keys create --instance`` of the scenario), the board takes
+    it, the added robot's choices count (it takes the task only it completes), and the live
+    mission equals the offline rollout."""
+    mission = tmp_path / "two.yaml"
+    mission.write_text(json.dumps({
+        "format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2, "skills": 2,
+        "species": [{"traits": [1, 0], "count": 2, "depot": [0.0, 0.0]}, {"traits": [0, 1], "count": 2, "depot": [1.0, 1.0]}],
+        "tasks": [{"location": [0.5, 0.1], "requirements": [1, 0], "duration": 2},
+                  {"location": [0.2, 0.8], "requirements": [1, 1], "duration": 3}]}))
+    scen = tmp_path / "scen.yaml"
+    scen.write_text(json.dumps({"format": "hmrta-scenario/1", "instance": str(mission), "events": [
+        {"t": 0.5, "type": "add_robot", "species": 0},
+        {"t": 1.0, "type": "add_task", "id": "big", "location": [0.3, 0.3], "requirements": [3, 0], "duration": 1}]}))
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+           "ROS_LOG_DIR": str(tmp_path / "ros")}
+    from hmrta.cli import main
+
+    assert main(["keys", "create", "--instance", str(scen), "--out", str(tmp_path / "ks")]) == 0
+    assert sorted(K.load_keystore(tmp_path / "ks")) == [f"robot_{a}" for a in range(5)]
+    out = tmp_path / "m.json"
+    p = subprocess.run([sys.executable, "-m", "hmrta_coordinator.mission", "--scenario", str(scen), "--method",
+                        "greedy", "--authenticate", "--out", str(out), "--no-plot", "--quiet", "--check-offline",
+                        "--timeout", "120"], capture_output=True, text=True, timeout=200, env=env)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "same routes and makespan: yes" in p.stdout, p.stdout
+    sol = json.loads(out.read_text())
+    assert sol["success"] and sol["routes"][4] == [2], sol["routes"]  # the added robot did the added task
+
+
 # ---------------------------------------------------------------------------------------------
 # a live mission with a keystore: forged, unsigned and replayed choices change nothing
 # ---------------------------------------------------------------------------------------------

@@ -620,7 +620,7 @@ def _main(argv: list[str] | None = None) -> int:
         log_dir.mkdir(parents=True, exist_ok=True)
         keystore = log_dir / "keys"
         try:
-            hkeys.create_keystore(keystore, robots, force=True)
+            hkeys.create_keystore(keystore, robots + added, force=True)  # (the robots the scenario adds too)
         except hkeys.KeystoreError as e:
             print(f"hmrta-mission: {e}", file=sys.stderr)
             return 2

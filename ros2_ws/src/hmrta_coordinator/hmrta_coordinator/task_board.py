@@ -172,7 +172,11 @@ class TaskBoard(Node):
         if not clock_topic.startswith("/") or clock_topic.rstrip("/") == "/clock":
             raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {clock_topic!r}")
         # KeystoreError (a ValueError, one line naming the file and field) is a user error
-        verifier = Verifier(load_keystore(keystore, names)) if keystore else None
+        if keystore:  # a key for every robot of the mission; those of robots a scenario adds are taken too
+            load_keystore(keystore, names)
+            verifier = Verifier(load_keystore(keystore))
+        else:
+            verifier = None
         self.board = MissionBoard(inst, names, seed=self.seed, rules=rules, method=self.method, verifier=verifier,
                                   tolerance=tolerance / scale, scale=scale, leg_timeout_factor=leg_timeout_factor,
                                   leg_timeout_floor=leg_timeout_floor, heartbeat_timeout=heartbeat_timeout,
