@@ -61,9 +61,10 @@ _ENUM_LIMIT = 20000
 
 def _data(inst: Instance):
     S, M = inst.n_species, inst.n_tasks
-    if inst.additive:
+    if inst.additive:  # (requirements less the cover tolerance: what the state machine takes as met)
         c = np.asarray(inst.species_traits, dtype=np.float64)  # [S, K]
         q = np.asarray(inst.requirements, dtype=np.float64)  # [M, K]
+        q = np.where(q > 0, np.maximum(q - inst.cover_tol, 1e-300), 0.0)  # a need stays a need
     else:
         c = (np.asarray(inst.species_traits) > 0).astype(np.float64)
         q = (np.asarray(inst.requirements) > 0).astype(np.float64)

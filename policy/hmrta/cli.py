@@ -53,6 +53,25 @@ def _row_sizes(args) -> None:
         _positive(f"--{k}", getattr(args, k))
 
 
+def _with_scenario_missions(files) -> tuple:
+    """``files`` and, for each scenario among them, the mission file it names (its ``instance``
+    path, as given and beside the scenario): what the command reads."""
+    import yaml
+
+    out = list(files)
+    for f in files:
+        f = Path(f)
+        try:
+            if f.suffix.lower() not in (".yaml", ".yml") or "hmrta-scenario/1" not in f.read_text()[:4096]:
+                continue
+            name = (yaml.safe_load(f.read_text()) or {}).get("instance")
+        except (OSError, UnicodeDecodeError, yaml.YAMLError, AttributeError):
+            continue
+        if isinstance(name, str):
+            out += [Path(name), f.parent / name]
+    return tuple(out)
+
+
 def _not_an_input(flag: str, out: Path, inputs) -> None:
     """A UserError when the output file ``out`` is one of the files ``inputs`` (or a folder's
     config.json): writing it would destroy what the command reads."""
@@ -342,10 +361,10 @@ def cmd_solve(args) -> int:
     # one mission: a file unless --out is a folder or a name without a suffix (out.json, out.txt: files)
     to_folder = bool(out) and (many or out.is_dir() or not out.suffix or args.out.endswith(("/", "\\")))
     if out:
-        writable("--out", out, folder=to_folder, inputs=tuple(files))
+        writable("--out", out, folder=to_folder, inputs=_with_scenario_missions(files))
     if to_folder:  # DIR/<stem>.json is none of the inputs either
         for f in files:
-            _not_an_input("--out", out / f"{f.stem}.json", files)
+            _not_an_input("--out", out / f"{f.stem}.json", _with_scenario_missions(files))
     if to_folder:  # DIR/<stem>.json: two inputs of one stem would overwrite each other
         by_stem: dict[str, Path] = {}
         for f in files:
@@ -882,6 +901,9 @@ def _solution_or_routes(inst, path: str):
             routes = read_routes(inst, path)
         except RouteError:
             raise e from None
+    if inst.dynamic or bool((inst.releases > 0).any()):
+        raise UserError(f"{path}: routes are re-simulated without release times or events (as hmrta evaluate "
+                        f"does), which this mission has: give its solution file (hmrta solve --out)")
     return evaluate_routes(inst, routes)
 
 

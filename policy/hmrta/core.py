@@ -997,7 +997,8 @@ class MissionState:
         who = f"task {name!r}" if name is not None else "new task"
         req = np.array(task.requirements if self.additive else np.array(task.requirements) > 0, dtype=np.float64)
         team = self.cap[self.mode != LOST].sum(0)  # [K]
-        short_of = np.flatnonzero(req > (team if self.additive else (team > 0)))
+        tol = cover_tolerance(self.cap, np.vstack([self.req, req[None]])) if self.additive else 0.0
+        short_of = np.flatnonzero(req - tol > (team if self.additive else (team > 0)))
         if len(short_of):
             k = int(short_of[0])
             raise EventRejected(f"{who}: no robot left with skill {k}" if team[k] <= 0 else

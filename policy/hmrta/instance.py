@@ -44,14 +44,20 @@ def exact_arithmetic(*values: np.ndarray) -> bool:
     return all(bool((np.ldexp(np.asarray(v, dtype=np.float64), 24) % 1.0 == 0).all()) for v in values)
 
 
+def _whole_and_small(*values: np.ndarray) -> bool:
+    """Every entry a whole number and their absolute values summing below 2^53: sums exact too."""
+    total = sum(float(np.abs(v).sum()) for v in values)
+    return math.isfinite(total) and total < 2.0 ** 53 and all(bool((np.mod(v, 1.0) == 0).all()) for v in values)
+
+
 def cover_tolerance(cap: np.ndarray, req: np.ndarray) -> float:
     """By how much a coalition's summed capability may fall short of a requirement entry and
     still meet it, for capabilities ``cap`` [A, K] and requirements ``req`` [M, K]: 0 when the
-    arithmetic is exact (:func:`exact_arithmetic`: the generators' integers, halves, quarters),
-    otherwise 1e-9 of the largest entry. Decimal capabilities add up with rounding error (0.1
+    arithmetic is exact (:func:`exact_arithmetic`: the generators' integers, halves, quarters; or
+    whole numbers of any size up to 2^53 in all), otherwise 1e-9 of the largest entry. Decimal capabilities add up with rounding error (0.1
     added eight times is 0.7999999999999999, short of 0.8), and a coalition they complete must
     complete the task in the state machine, the route evaluation and the solvers alike."""
-    if exact_arithmetic(cap, req):
+    if exact_arithmetic(cap, req) or _whole_and_small(cap, req):
         return 0.0
     scale = max(float(np.abs(cap).max(initial=0.0)), float(np.abs(req).max(initial=0.0)))
     return COVER_RTOL * scale

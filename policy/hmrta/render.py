@@ -157,10 +157,11 @@ def _timeline_of_moves(inst: Instance, sol: Solution, a: int, moves, ch: Changes
 
     def close(leg, until: float) -> None:  # the segments of a leg, up to ``until`` (the next movement)
         td, p0, node, p1, ta = leg
-        m = node - 1 if node > 0 and node - 1 in route else None  # (a task it left: no longer its)
+        m = node - 1 if node > 0 else None
         end = min(ta, until)
-        if node >= 0 and (end > td or p0 != p1):
-            segs.append({"kind": "travel", "t0": td, "t1": end, "task": m, "p0": p0, "p1": at(leg, end)})
+        if node >= 0 and (end > td or p0 != p1):  # (a leg to a task it left, cancelled: no task label)
+            segs.append({"kind": "travel", "t0": td, "t1": end, "task": m if m in route else None, "p0": p0,
+                         "p1": at(leg, end)})
         if m is None or ta > until:
             return
         tk = sol.tasks[m]

@@ -311,6 +311,8 @@ def check_planned_for(inst: Instance, sol: Solution, source: str = "solution") -
     ``hmrta solve``) when ``inst``, the mission as read from its file, is another version of it
     (neither that mission nor, for one that grew, the mission as it ended: ``final_instance``)."""
     sha = sol.extra.get("instance_sha256") if isinstance(sol.extra, dict) else None
+    if sol.instance and sol.instance != inst.name:
+        return  # another mission by its name: check_solution says so
     if isinstance(sha, str) and sha != inst.fingerprint:
         final = sol.extra.get("final_instance")  # or the mission as it ended (tasks and robots added)
         if isinstance(final, dict):

@@ -125,3 +125,26 @@ def test_bound_reads_a_routes_file_as_evaluate_does(tmp_path, capsys):
     assert main(["bound", str(example), str(routes), "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
     assert rep["solutions"][0]["makespan"] == pytest.approx(json.loads(sol.read_text())["makespan"])
+
+
+def test_a_routes_file_of_a_mission_with_release_times_is_refused(tmp_path, capsys):
+    """Routes are re-simulated without release times (hmrta evaluate refuses them too): bound asks
+    for the solution file instead of reporting a makespan below its own bound."""
+    import json
+
+    from hmrta.cli import main
+
+    mission = tmp_path / "rel.yaml"
+    mission.write_text(json.dumps({"format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2,
+                                   "skills": 1, "species": [{"traits": [1], "count": 2, "depot": [0.1, 0.1]}],
+                                   "tasks": [{"location": [0.5, 0.5], "requirements": [1], "duration": 1},
+                                             {"location": [0.9, 0.1], "requirements": [2], "duration": 2,
+                                              "release": 20}]}))
+    sol = tmp_path / "s.json"
+    assert main(["solve", str(mission), "--method", "greedy", "--out", str(sol)]) == 0
+    routes = tmp_path / "r.json"
+    routes.write_text(json.dumps({"routes": json.loads(sol.read_text())["routes"]}))
+    capsys.readouterr()
+    assert main(["bound", str(mission), str(routes)]) == 2
+    assert "re-simulated without release times" in capsys.readouterr().err
+    assert main(["bound", str(mission), str(sol)]) == 0

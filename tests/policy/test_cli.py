@@ -625,3 +625,14 @@ def test_an_output_is_never_one_of_the_inputs(tmp_path, capsys):
     (ctas / "config.json").write_text((CTAS / "config.json").read_text())
     assert main(["solve", str(ctas / "config.json"), "--method", "greedy", "--out", str(ctas)]) == 2
     assert "is an input of this command" in _one_error_line(capsys)
+
+
+def test_an_output_is_never_the_mission_a_scenario_names(tmp_path, capsys):
+    mission = tmp_path / "m.yaml"
+    mission.write_text(EXAMPLE.read_text())
+    scen = tmp_path / "s.yaml"
+    scen.write_text("format: hmrta-scenario/1\ninstance: m.yaml\nevents:\n  - {t: 1.0, type: cancel_task, id: 0}\n")
+    before = mission.read_bytes()
+    capsys.readouterr()
+    assert main(["solve", str(scen), "--method", "greedy", "--out", str(mission)]) == 2
+    assert "is an input of this command" in _one_error_line(capsys) and mission.read_bytes() == before

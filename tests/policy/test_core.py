@@ -483,3 +483,32 @@ def test_decimal_capabilities_complete_the_task_they_add_up_to():
     # the tolerance is 0 where the arithmetic is exact: one robot short of 2 x 1 is short
     exact = make("additive", 1, [([1.0], 2, (0, 0))], [((1, 0), [2.0], 1.0)])
     assert exact.cover_tol == 0.0
+
+
+def test_decimal_capabilities_everywhere_a_sum_meets_a_requirement():
+    """The cover tolerance where capabilities are added up beyond the state machine: a task added
+    during the mission (three robots of 0.3 and an added task of 0.9), the lower bounds (finite,
+    below the makespan: 18 x 1000.3 against 18005.4), and CP-SAT, whose incumbent bound they are;
+    whole numbers of any size are exact (tolerance 0: one robot of 999999999 is short of 1e9)."""
+    from hmrta.bounds import lower_bounds
+    from hmrta.instance import InstanceError
+    from hmrta.methods import solve
+    from hmrta.scenario import scenario_from_dict
+
+    three = {"format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 1.0, "skills": 1,
+             "species": [{"traits": [0.3], "count": 3, "depot": [0.5, 0.5]}],
+             "tasks": [{"location": [0.5, 0.5], "requirements": [0.9], "duration": 10}]}
+    scen = scenario_from_dict({"format": "hmrta-scenario/1", "instance": three, "events": [
+        {"t": 1.0, "type": "add_task", "id": "extra", "location": [0.2, 0.2], "requirements": [0.9], "duration": 1}]},
+        "s.yaml")
+    sol = solve(scen, "greedy", 0)
+    assert sol.success and sol.extra["dynamic"]["tasks_lost"]["rejected"] == 0 and len(sol.tasks) == 2
+    dec = make("additive", 1, [([1000.3], 18, (4, 4))], [((4, 5), [18005.4], 10.0)])
+    b = lower_bounds(dec)
+    g = solve(dec, "greedy", 0)
+    assert g.success and 0 < b["best"] <= g.makespan + 1e-9
+    assert solve(dec, "cpsat", 0, time_limit=1.0).success
+    with pytest.raises(InstanceError, match="needs 1000000000 of skill 0 but the whole team has 999999999"):
+        instance_from_dict({"format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2,
+                            "skills": 1, "species": [{"traits": [999999999], "count": 1, "depot": [0.5, 0.5]}],
+                            "tasks": [{"location": [0.5, 0.6], "requirements": [1000000000], "duration": 1}]})

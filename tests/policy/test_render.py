@@ -436,3 +436,23 @@ def test_a_solution_of_another_version_of_the_mission_is_refused(tmp_path, capsy
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "planned for another version of the mission" in err[0]
     assert main(["render", str(mission), str(sol), "--out", str(tmp_path / "x.png")]) == 0
+
+
+def test_a_wait_at_a_task_cancelled_before_it_started_is_drawn():
+    """Robot 0 waits at task 0 for a second robot that never comes, until the task is cancelled at
+    1.0: the drawing shows that wait (the AWT counts it), its legs unlabelled (the task left its
+    route)."""
+    from hmrta.scenario import scenario_from_dict
+    from hmrta.solution import final_instance
+
+    scen = scenario_from_dict({"format": "hmrta-scenario/1", "instance": {
+        "format": "hmrta-instance/1", "name": "cx", "requirement_type": "additive", "velocity": 1.0, "skills": 1,
+        "species": [{"traits": [1], "count": 1, "depot": [0.0, 0.0]}, {"traits": [1], "count": 1, "depot": [1.0, 1.0]}],
+        "tasks": [{"location": [0.1, 0.0], "requirements": [2], "duration": 5},
+                  {"location": [0.9, 1.0], "requirements": [1], "duration": 1}]},
+        "events": [{"t": 1.0, "type": "cancel_task", "id": 0}]}, "s.yaml")
+    sol = Solution.from_dict(json.loads(json.dumps(solve(scen, "greedy", seed=0).to_dict())))
+    tl = agent_timeline(final_instance(scen, sol, "s"), sol)
+    assert [(s["kind"], s["task"]) for s in tl[0]] == [("travel", None), ("wait", 0), ("travel", None)]
+    assert tl[0][1]["t1"] == pytest.approx(1.0)
+    assert np.mean([sum(s["t1"] - s["t0"] for s in segs if s["kind"] == "wait") for segs in tl]) == pytest.approx(sol.awt)
