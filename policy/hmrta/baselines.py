@@ -177,13 +177,8 @@ class CoalitionGreedy:
             arr = free_at + np.hypot(pos[:, 0] - loc[:, 0:1], pos[:, 1] - loc[:, 1:2]) / v  # [N, B]
             has = cap > 0  # [B, K]
         else:
-            order = np.lexsort((idx, pos[:, 1], pos[:, 0], free_at))  # [B] by (free_at, x, y, index)
-            f, x, y = free_at[order], pos[order, 0], pos[order, 1]  # [B] each
-            new = np.ones(B, dtype=bool)  # [B] order[i] starts a group
-            new[1:] = (f[1:] != f[:-1]) | (x[1:] != x[:-1]) | (y[1:] != y[:-1])
-            first = np.flatnonzero(new)  # [S] the first robot of each set of equal (free_at, x, y)
+            order, new, first, arr = cls._places(free_at, pos, loc, v)  # [B], [B], [S], [N, S]
             same = np.cumsum(new) - 1  # [B] set of order[i]
-            arr = f[first] + np.hypot(x[first] - loc[:, 0:1], y[first] - loc[:, 1:2]) / v  # [N, S]
             width = min(cls.GROUP, int(np.diff(first, append=B).max()))  # robots in a group, at most
             new[(idx - first[same]) % width == 0] = True  # split the sets: at most width robots a group
             first = np.flatnonzero(new)  # [G]
@@ -211,6 +206,19 @@ class CoalitionGreedy:
 
         return cls._earliest_cover(arr, -(-cls.PARTIAL * len(members) // B), rem, robots_in_order)
 
+    @staticmethod
+    def _places(free_at: np.ndarray, pos: np.ndarray, loc: np.ndarray, v: float):
+        """The robots [B] sorted by (free_at, x, y), ties by index (``order``), where each set of
+        equal (free_at, x, y) starts (``new`` [B] over the order, ``first`` [S]), and each set's
+        arrival at each task at ``loc`` [N, 2] (``arr`` [N, S])."""
+        order = np.lexsort((pos[:, 1], pos[:, 0], free_at))  # [B] (lexsort is stable: ties by index)
+        f, x, y = free_at[order], pos[order, 0], pos[order, 1]  # [B] each
+        new = np.ones(len(order), dtype=bool)  # [B] order[i] starts a set
+        new[1:] = (f[1:] != f[:-1]) | (x[1:] != x[:-1]) | (y[1:] != y[:-1])
+        first = np.flatnonzero(new)  # [S]
+        arr = f[first] + np.hypot(x[first] - loc[:, 0:1], y[first] - loc[:, 1:2]) / v  # [N, S]
+        return order, new, first, arr
+
     @classmethod
     def _completing_arrival_by_place(cls, free_at: np.ndarray, pos: np.ndarray, loc: np.ndarray, v: float,
                                      cap: np.ndarray, rem: np.ndarray) -> np.ndarray:
@@ -230,14 +238,9 @@ class CoalitionGreedy:
         of them (L) is among them, so a cover before L is the answer, and so is a cover at L (the
         robots arriving by L include those looked at). Sets with none of the skills still needed
         are left out (their arrival set to inf): they add nothing to what is needed."""
-        B, N = len(free_at), len(loc)
-        order = np.lexsort((pos[:, 1], pos[:, 0], free_at))  # [B] by (free_at, x, y)
-        f, x, y = free_at[order], pos[order, 0], pos[order, 1]  # [B] each
-        new = np.ones(B, dtype=bool)  # [B] order[i] starts a set
-        new[1:] = (f[1:] != f[:-1]) | (x[1:] != x[:-1]) | (y[1:] != y[:-1])
-        first = np.flatnonzero(new)  # [S] the first robot of each set
+        B = len(free_at)
+        order, _, first, arr = cls._places(free_at, pos, loc, v)  # [B], [B], [S], [N, S]
         S = len(first)
-        arr = f[first] + np.hypot(x[first] - loc[:, 0:1], y[first] - loc[:, 1:2]) / v  # [N, S]
         cap_s = np.add.reduceat(cap[order], first, axis=0)  # [S, K] capability of each set (exact sums)
         useful = (cap_s > 0).astype(np.float64) @ (rem > 1e-9).T.astype(np.float64) > 0  # [S, N]
         arr = np.where(useful.T, arr, np.inf)  # [N, S]

@@ -314,7 +314,7 @@ class MissionState:
         self.depot_stops = np.zeros(A, dtype=np.int64)  # [A] returns home while work remained
         self.pool = self.cap.sum(0)  # [K] capability of agents not waiting at an open task
         self._exact = self._arithmetic_exact()  # masks may take the fast path of _safe
-        self._tol = cover_tolerance(self.cap, self.req)  # a remaining entry at most this is met
+        self._tol = 0.0 if self._exact else cover_tolerance(self.cap, self.req)  # a remaining entry at most this is met
         self.n_open = 0
         self.n_done = 0
         self.n_cancelled = 0  # tasks closed by drop_agent (no longer satisfiable)
@@ -1020,7 +1020,7 @@ class MissionState:
         self.names.append(name)
         self.by_operator = np.append(self.by_operator, False)
         self._exact = self._exact and self._arithmetic_exact()
-        self._tol = cover_tolerance(self.cap, self.req)
+        self._tol = tol
         return m, []
 
     def _task_id(self, rec: dict) -> int:
