@@ -20,7 +20,7 @@ disturb less than wall times (also printed); the machine load (``os.getloadavg``
 before and after. Greedy keeps the best of ``--repeat`` rollouts of each mission.
 
 usage: python benchmarks/scale_offline.py [--sizes 25,5,50 150,10,500 ...] [--count N ...]
-       [--methods greedy rl] [--repeat R] [--seed S] [--json PATH]
+       [--methods greedy rl] [--repeat R] [--rounds N] [--seed S] [--json PATH]
 """
 from __future__ import annotations
 
@@ -103,6 +103,20 @@ def run_rl(inst, seed: int, pol) -> dict:
             "parts": {"observe": spent["obs"], "network": model.seconds, "core": rest}}
 
 
+def summarise(runs: list[dict], A: int, S: int, M: int, n: int) -> dict:
+    """The figures of one size from its runs (``n`` missions' worth: per mission and per decision)."""
+    dec = sum(r["decisions"] for r in runs)
+    ok = [r["makespan"] for r in runs if r["success"]]
+    return {"robots": A, "species": S, "tasks": M, "missions": n, "decisions": dec,
+            "success": len(ok), "makespan": statistics.mean(ok) if ok else math.nan,
+            "seconds_per_mission": sum(r["total"] for r in runs) / n,
+            "wall_seconds_per_mission": sum(r["wall"] for r in runs) / n,
+            "wall_ms_per_decision": 1000.0 * sum(r["wall"] for r in runs) / dec,
+            "ms_per_decision": 1000.0 * sum(r["total"] - r["init"] for r in runs) / dec,
+            "init_ms": 1000.0 * sum(r["init"] for r in runs) / n,
+            "parts_ms_per_decision": {k: 1000.0 * sum(r["parts"][k] for r in runs) / dec for k in runs[0]["parts"]}}
+
+
 def network_floor(pol) -> dict:
     """FLOPs of one network call at the full observation window (counted on the network), the
     single-thread GEMM rate of this CPU, and the call's own time on a fixed observation: of the
@@ -158,6 +172,10 @@ def main() -> int:
                     help="missions per size (one value, or one per size; default 10 2 1 1 1)")
     ap.add_argument("--methods", nargs="+", default=["greedy", "rl"], choices=["greedy", "rl"])
     ap.add_argument("--repeat", type=int, default=3, help="greedy: timed repeats per mission, best kept")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="run every size this many times, one round after the other (figures over all "
+                         "rounds, and each round's ratio of 600/2000 to 25/50: on a machine whose speed "
+                         "drifts, sizes measured in the same round are compared on the same footing)")
     ap.add_argument("--seed", type=int, default=1, help="instance set seed (the missions' own seed is 0)")
     ap.add_argument("--checkpoint", default=None, help="policy checkpoint (default: the shipped one)")
     ap.add_argument("--json", default=None, help="also write the figures here")
@@ -166,8 +184,8 @@ def main() -> int:
     counts = args.count or (DEFAULT_COUNTS if len(sizes) == len(DEFAULT_COUNTS) else [1])
     if len(counts) == 1:
         counts = counts * len(sizes)
-    if len(counts) != len(sizes) or min(counts) < 1 or args.repeat < 1:
-        ap.error("--count: one positive value or one per size; --repeat: at least 1")
+    if len(counts) != len(sizes) or min(counts) < 1 or args.repeat < 1 or args.rounds < 1:
+        ap.error("--count: one positive value or one per size; --repeat, --rounds: at least 1")
 
     import torch
 
@@ -188,35 +206,38 @@ def main() -> int:
         pol = load_policy(args.checkpoint)
     results: dict[str, list[dict]] = {m: [] for m in args.methods}
     growth: dict[str, dict[str, float]] = {}
-    for (A, S, M), n in zip(sizes, counts):
-        insts = ScenarioGenerator("MA-AT", A, S, M, 5).generate(n, args.seed)
-        for method in args.methods:
-            runs = []
-            for inst in insts:
-                if method == "greedy":
-                    tries = [run_greedy(inst, 0) for _ in range(args.repeat + 1)][1:]  # first: warm-up
-                    runs.append(min(tries, key=lambda r: r["total"]))
-                else:
-                    if not results["rl"] and not runs:  # first rl mission: warm the network up once
-                        run_rl(ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(args.seed, 99), 0, pol)
-                    runs.append(run_rl(inst, 0, pol))
-            dec = sum(r["decisions"] for r in runs)
-            row = {"robots": A, "species": S, "tasks": M, "missions": n, "decisions": dec,
-                   "success": sum(r["success"] for r in runs),
-                   "makespan": statistics.mean(r["makespan"] for r in runs if r["success"]) if any(
-                       r["success"] for r in runs) else math.nan,
-                   "seconds_per_mission": sum(r["total"] for r in runs) / n,
-                   "wall_seconds_per_mission": sum(r["wall"] for r in runs) / n,
-                   "wall_ms_per_decision": 1000.0 * sum(r["wall"] for r in runs) / dec,
-                   "ms_per_decision": 1000.0 * sum(r["total"] - r["init"] for r in runs) / dec,
-                   "init_ms": 1000.0 * sum(r["init"] for r in runs) / n,
-                   "parts_ms_per_decision": {k: 1000.0 * sum(r["parts"][k] for r in runs) / dec
-                                             for k in runs[0]["parts"]}}
+    missions = {size: ScenarioGenerator("MA-AT", *size, 5).generate(n, args.seed) for size, n in zip(sizes, counts)}
+    pooled: dict[tuple, list[dict]] = {}  # (method, size) -> the runs of every round
+    per_round: dict[tuple, list[float]] = {}  # (method, size) -> ms/decision of each round
+    warm = False
+    for rnd in range(args.rounds):
+        if args.rounds > 1:
+            print(f"# round {rnd + 1} of {args.rounds}")
+        for (A, S, M), n in zip(sizes, counts):
+            for method in args.methods:
+                runs = []
+                for inst in missions[(A, S, M)]:
+                    if method == "greedy":
+                        tries = [run_greedy(inst, 0) for _ in range(args.repeat + 1)][1:]  # first: warm-up
+                        runs.append(min(tries, key=lambda r: r["total"]))
+                    else:
+                        if not warm:  # first rl mission: warm the network up once
+                            run_rl(ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(args.seed, 99), 0, pol)
+                            warm = True
+                        runs.append(run_rl(inst, 0, pol))
+                row = summarise(runs, A, S, M, n)
+                pooled.setdefault((method, (A, S, M)), []).extend(runs)
+                per_round.setdefault((method, (A, S, M)), []).append(row["ms_per_decision"])
+                parts = ", ".join(f"{k} {v:.3f}" for k, v in row["parts_ms_per_decision"].items())
+                print(f"  {method} {A}/{M}: {row['ms_per_decision']:.3f} ms/decision ({parts}; wall "
+                      f"{row['wall_ms_per_decision']:.3f}), {row['seconds_per_mission']:.2f} s/mission, "
+                      f"{row['decisions']} decisions, load {os.getloadavg()[0]:.2f}", flush=True)
+    for method in args.methods:
+        for (A, S, M), n in zip(sizes, counts):
+            row = summarise(pooled[(method, (A, S, M))], A, S, M, n * args.rounds)
+            row["missions"], row["rounds"] = n, args.rounds
+            row["ms_per_decision_by_round"] = per_round[(method, (A, S, M))]
             results[method].append(row)
-            parts = ", ".join(f"{k} {v:.3f}" for k, v in row["parts_ms_per_decision"].items())
-            print(f"  {method} {A}/{M}: {row['ms_per_decision']:.3f} ms/decision ({parts}; wall "
-                  f"{row['wall_ms_per_decision']:.3f}), {row['seconds_per_mission']:.2f} s/mission, {dec} decisions, "
-                  f"load {os.getloadavg()[0]:.2f}", flush=True)
     print()
     for method, rows in results.items():
         part_names = list(rows[0]["parts_ms_per_decision"])
@@ -225,8 +246,9 @@ def main() -> int:
               + " | ".join(f"{p} ms" for p in part_names) + " | s/mission | wall ms/decision | wall s/mission |")
         print("|---|---:|---:|---:|---:|" + "---:|" * len(part_names) + "---:|---:|---:|")
         for r in rows:
-            print(f"| {r['robots']} / {r['tasks']} | {r['missions']} | {r['decisions'] / r['missions']:.0f} | "
-                  f"{r['success']}/{r['missions']} | {r['ms_per_decision']:.3f} | "
+            runs = r["missions"] * r["rounds"]
+            print(f"| {r['robots']} / {r['tasks']} | {r['missions']} | {r['decisions'] / runs:.0f} | "
+                  f"{r['success']}/{runs} | {r['ms_per_decision']:.3f} | "
                   + " | ".join(f"{r['parts_ms_per_decision'][p]:.3f}" for p in part_names)
                   + f" | {r['seconds_per_mission']:.2f} | {r['wall_ms_per_decision']:.3f} | "
                   f"{r['wall_seconds_per_mission']:.2f} |")
@@ -235,9 +257,16 @@ def main() -> int:
         fits.update({f"{p} ms": slope(xs, [r["parts_ms_per_decision"][p] for r in rows]) for p in part_names})
         fits["s/mission"] = slope(xs, [r["seconds_per_mission"] for r in rows])
         print("\ngrowth (log-log slope against tasks): " + ", ".join(f"{k} {v:.2f}" for k, v in fits.items()))
-        first = {r["tasks"]: r["ms_per_decision"] for r in rows}
+        first = {r["tasks"]: r for r in rows}
         if 50 in first and 2000 in first:
-            print(f"ms/decision at 600/2000 over 25/50: {first[2000] / first[50]:.2f}x")
+            ratio = first[2000]["ms_per_decision"] / first[50]["ms_per_decision"]
+            line = f"ms/decision at 600/2000 over 25/50: {ratio:.2f}x"
+            if args.rounds > 1:  # each round's sizes ran minutes apart: the pairs see the same machine
+                each = [b / a for a, b in zip(first[50]["ms_per_decision_by_round"],
+                                              first[2000]["ms_per_decision_by_round"])]
+                line += (f" over all rounds; round by round {', '.join(f'{x:.2f}' for x in each)} "
+                         f"(median {statistics.median(each):.2f}x)")
+            print(line)
         print()
         growth[method] = fits
     floor = None

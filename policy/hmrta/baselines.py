@@ -88,9 +88,11 @@ class CoalitionGreedy:
             lo, size = lo + size, 2 * size
         return 1 + int(best[2])
 
-    def estimates(self, state: MissionState, tasks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def estimates(self, state: MissionState, tasks: np.ndarray | None = None,
+                  positions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(admissible tasks [C], estimated coalition start if the decider joins [C], the decider's
-        own arrival [C]) for the current decider; ``tasks`` (ids): only the admissible ones among them."""
+        own arrival [C]) for the current decider; ``tasks`` (ids): only the admissible ones among them;
+        ``positions``: ``state.positions()`` if the caller has it (not changed here)."""
         mask = state.mask()[1:]  # [M]
         cand = np.flatnonzero(mask) if tasks is None else tasks[mask[tasks]]  # [C]
         if len(cand) == 0:
@@ -98,7 +100,7 @@ class CoalitionGreedy:
         s, a, t = state, state.agent, state.clock
         v = s.inst.velocity
         loc = s.inst.task_locations[cand]  # [C, 2]
-        pos = s.positions()  # [A, 2]
+        pos = s.positions() if positions is None else positions.copy()  # [A, 2]
         free_at = np.full(s.A, t)  # [A]
         usable = s.mode != LOST  # [A]
         usable[a] = False
@@ -194,7 +196,7 @@ class CoalitionGreedy:
         arr = np.where(useful.T, arr, np.inf)  # [N, G]
         cap = np.vstack([cap, np.zeros((1, K))])  # [B + 1, K] (row B: no robot)
 
-        def robots_in_order(part, ga):  # the robots of the groups looked at, by arrival, then index
+        def robots_in_order(rows, part, ga):  # the robots of the groups looked at, by arrival, then index
             if part is not None:  # the earliest groups, expanded into their robots
                 robots = members[part].reshape(len(ga), -1)  # [R, q width]
                 ra = np.where(robots < B, np.repeat(ga, width, axis=1), np.inf) if width > 1 else ga  # [R, q width]
@@ -207,17 +209,23 @@ class CoalitionGreedy:
         return cls._earliest_cover(arr, -(-cls.PARTIAL * len(members) // B), rem, robots_in_order)
 
     @staticmethod
-    def _places(free_at: np.ndarray, pos: np.ndarray, loc: np.ndarray, v: float):
+    def _places(free_at: np.ndarray, pos: np.ndarray, loc: np.ndarray | None = None, v: float = 1.0):
         """The robots [B] sorted by (free_at, x, y), ties by index (``order``), where each set of
         equal (free_at, x, y) starts (``new`` [B] over the order, ``first`` [S]), and each set's
-        arrival at each task at ``loc`` [N, 2] (``arr`` [N, S])."""
+        arrival at each task at ``loc`` [N, 2] (``arr`` [N, S]; None without ``loc``)."""
         order = np.lexsort((pos[:, 1], pos[:, 0], free_at))  # [B] (lexsort is stable: ties by index)
         f, x, y = free_at[order], pos[order, 0], pos[order, 1]  # [B] each
         new = np.ones(len(order), dtype=bool)  # [B] order[i] starts a set
         new[1:] = (f[1:] != f[:-1]) | (x[1:] != x[:-1]) | (y[1:] != y[:-1])
         first = np.flatnonzero(new)  # [S]
-        arr = f[first] + np.hypot(x[first] - loc[:, 0:1], y[first] - loc[:, 1:2]) / v  # [N, S]
-        return order, new, first, arr
+        arr = None if loc is None else f[first] + np.hypot(x[first] - loc[:, 0:1], y[first] - loc[:, 1:2]) / v
+        return order, new, first, arr  # arr [N, S]
+
+    # the approximate arrivals of _completing_arrival_by_place are within a relative few 1e-16 of
+    # the exact ones (coordinates in the unit square, speed at least MIN_VELOCITY: no overflow, and
+    # an underflow moves an arrival by under 1e-144); the search allows a relative 1e-9
+    APPROX_RTOL = 1e-9
+    APPROX_ATOL = 1e-40
 
     @classmethod
     def _completing_arrival_by_place(cls, free_at: np.ndarray, pos: np.ndarray, loc: np.ndarray, v: float,
@@ -233,48 +241,74 @@ class CoalitionGreedy:
         that does not cover). Summing by sets, in order of arrival, finds that t: the running sum
         after every set arriving by t is the sum of the robots arriving by t, whatever the order
         among sets of equal arrival, and a set that covers midway through a run of sets of
-        equal arrival covers at that arrival. The earliest sets are looked at first (PARTIAL
-        robots' worth on average, then four times as many): every set arriving before the latest
-        of them (L) is among them, so a cover before L is the answer, and so is a cover at L (the
-        robots arriving by L include those looked at). Sets with none of the skills still needed
-        are left out (their arrival set to inf): they add nothing to what is needed."""
+        equal arrival covers at that arrival. Sets with none of the skills still needed are left
+        out (their arrival set to inf): they add nothing to what is needed.
+
+        The earliest sets are looked at first (PARTIAL robots' worth on average, then four times
+        as many), chosen by approximate arrivals (distances as sqrt(dx^2 + dy^2), a quarter of
+        np.hypot's cost, within ``d`` of the exact arrival: APPROX_RTOL x (|arrival| + the
+        largest |free_at|) + APPROX_ATOL), and summed in order of their exact arrivals (the full
+        sort's ``free_at + np.hypot(dx, dy) / v``, bit for bit). A cover at t by the sets looked
+        at is the answer when every other set arrives (exactly) at t or later, which holds when
+        the earliest of them arrives at t + d or later by its approximate arrival; otherwise four
+        times as many sets are looked at, up to all of them."""
         B = len(free_at)
-        order, _, first, arr = cls._places(free_at, pos, loc, v)  # [B], [B], [S], [N, S]
+        order, _, first, _ = cls._places(free_at, pos)  # [B], [B], [S]
         S = len(first)
+        f, x, y = free_at[order[first]], pos[order[first], 0], pos[order[first], 1]  # [S] each
         cap_s = np.add.reduceat(cap[order], first, axis=0)  # [S, K] capability of each set (exact sums)
         useful = (cap_s > 0).astype(np.float64) @ (rem > 1e-9).T.astype(np.float64) > 0  # [S, N]
-        arr = np.where(useful.T, arr, np.inf)  # [N, S]
+        dx, dy = x - loc[:, 0:1], y - loc[:, 1:2]  # [N, S] each
+        arr = np.where(useful.T, f + np.sqrt(dx * dx + dy * dy) / v, np.inf)  # [N, S] approximate
+        big = float(np.abs(f).max())
 
-        def sets_in_order(part, ga):  # the sets looked at, by arrival (ties in any order)
+        def sets_in_order(rows, part, ga):  # the sets looked at, by exact arrival (ties in any order)
             part = np.broadcast_to(np.arange(S), ga.shape) if part is None else part  # [R, q]
-            o = np.argsort(ga, axis=1)  # [R, q]
-            return np.take_along_axis(ga, o, 1), cap_s[np.take_along_axis(part, o, 1)]
+            ex = f[part] + np.hypot(x[part] - loc[rows, 0:1], y[part] - loc[rows, 1:2]) / v  # [R, q]
+            ex = np.where(np.isfinite(ga), ex, np.inf)  # sets left out stay out
+            o = np.argsort(ex, axis=1)  # [R, q]
+            return np.take_along_axis(ex, o, 1), cap_s[np.take_along_axis(part, o, 1)]
 
-        return cls._earliest_cover(arr, -(-cls.PARTIAL * S // B), rem, sets_in_order)
+        def slack(after):  # [R] how much earlier than ``after`` (approximate) a set may arrive exactly
+            return cls.APPROX_RTOL * (np.abs(after) + big) + cls.APPROX_ATOL
+
+        return cls._earliest_cover(arr, -(-cls.PARTIAL * S // B), rem, sets_in_order, slack)
 
     @classmethod
-    def _earliest_cover(cls, arr: np.ndarray, q: int, rem: np.ndarray, in_order) -> np.ndarray:
+    def _earliest_cover(cls, arr: np.ndarray, q: int, rem: np.ndarray, in_order, slack=None) -> np.ndarray:
         """[N] for each task (row of ``arr`` [N, G], the arrival of each group, inf for one left
         out) the arrival at which the groups looked at first cover ``rem`` [N, K], inf where they
         do not: first the ``q`` earliest groups, then four times as many for the tasks they leave
-        uncovered while groups remain, up to all of them. ``in_order(part [R, q] or None for all,
-        their arrivals [R, q])`` gives the arrivals and capabilities ([R, n], [R, n, K]) of what
-        those groups hold, in the order their capabilities are summed."""
+        uncovered while groups remain, up to all of them. ``in_order(rows [R], part [R, q] or None
+        for all, their arrivals [R, q])`` gives the arrivals and capabilities ([R, n], [R, n, K])
+        of what those groups hold at those tasks, in the order their capabilities are summed.
+
+        ``slack``: the arrivals ``arr`` are approximate (``slack(a)`` [R] bounds how much earlier
+        than a the exact arrival of a group approximately at a [R] may be) and ``in_order`` gives
+        exact ones; a cover is then taken only where the earliest group not looked at arrives no
+        earlier (exactly) than it, else more groups are looked at."""
         N, G = arr.shape
         last = np.full(N, np.inf)  # [N]
         rows = np.arange(N)  # [R] the tasks still undecided
         while len(rows):
             a = arr[rows]  # [R, G]
-            if q < G:  # the q earliest groups
+            if q < G and slack is None:  # the q earliest groups
                 part = np.argpartition(a, q - 1, axis=1)[:, :q]  # [R, q]
                 ga = np.take_along_axis(a, part, 1)  # [R, q] their arrivals
+                more = np.isfinite(ga.max(1))  # [R] groups not looked at yet may still count
+            elif q < G:  # the q earliest, and the earliest of the others
+                part = np.argpartition(a, q, axis=1)  # [R, G]
+                ga = np.take_along_axis(a, part[:, :q], 1)  # [R, q]
+                after = np.take_along_axis(a, part[:, q:q + 1], 1)[:, 0]  # [R] the earliest not looked at
+                part = part[:, :q]
+                more = np.isfinite(after)
             else:
-                part, ga = None, a
-            t, ok = cls._first_cover(*in_order(part, ga), rem[rows])
+                part, ga, more = None, a, np.zeros(len(rows), dtype=bool)
+            t, ok = cls._first_cover(*in_order(rows, part, ga), rem[rows])
+            if slack is not None and part is not None:  # every group not looked at arrives at t or later
+                ok &= ~more | (t <= np.where(more, after, 0.0) - slack(np.where(more, after, 0.0)))
             last[rows[ok]] = t[ok]
-            if q >= G:
-                break
-            rows = rows[~ok & np.isfinite(ga.max(1))]  # uncovered, with groups not looked at yet
+            rows = rows[~ok & more]  # undecided, with groups not looked at yet
             q *= 4
         return last
 

@@ -293,6 +293,51 @@ def test_coalition_completing_arrival_of_large_teams_equals_the_full_sort(seed, 
     assert np.isinf(got[0])
 
 
+@pytest.mark.parametrize("seed", range(8))
+def test_coalition_completing_arrival_by_place_with_arrivals_ulps_apart(seed, monkeypatch):
+    """Summed by place, the earliest sets are chosen by approximate arrivals (sqrt(dx^2 + dy^2))
+    and summed by exact ones (np.hypot): places a few ulps apart and mirror images (equal
+    distances), so that the two orders disagree, around the boundary of the sets looked at first
+    (small PARTIAL: many boundaries), still give the full sort's answer bit for bit."""
+    rng = np.random.default_rng(100 + seed)
+    monkeypatch.setattr(CoalitionGreedy, "PARTIAL", int(rng.choice([1, 2, 16])))
+    B, N, K = CoalitionGreedy.GROUPED + int(rng.integers(1, 120)), int(rng.integers(2, 40)), int(rng.integers(1, 4))
+    loc = rng.random((N, 2))  # [N, 2]
+    base = rng.random((int(rng.integers(2, 12)), 2))  # [P, 2]
+    ulps = rng.integers(-4, 5, (len(base), 6, 2)) * np.finfo(float).eps  # [P, 6, 2] relative nudges
+    spots = np.vstack([(base[:, None, :] * (1 + ulps)).reshape(-1, 2),  # places a few ulps apart
+                       np.column_stack([1 - base[:, 0], base[:, 1]]),  # mirrored: equal distances to x = 1/2
+                       loc[:3]])  # at a task
+    pos = spots[rng.integers(len(spots), size=B)]  # [B, 2]
+    free_at = rng.choice([0.0, 0.0, 0.25, 2.0], B) * (1 + rng.integers(-2, 3, B) * np.finfo(float).eps)  # [B]
+    cap = rng.choice([0.0, 0.25, 0.5, 1.0], (B, K))  # [B, K]
+    rem = rng.choice([0.25, 0.75, 1.5, 4.0], (N, K))  # [N, K]
+    rem[0] = cap.sum(0) + 0.5  # more than the team
+    got = CoalitionGreedy._completing_arrival(free_at, pos, loc, 0.2, cap, rem, exact=True)
+    assert np.array_equal(got, _completing_arrival_reference(free_at, pos, loc, 0.2, cap, rem))
+    assert np.isinf(got[0])
+
+
+def test_coalition_completing_arrival_by_place_when_approximate_and_exact_orders_disagree(monkeypatch):
+    """Two places whose approximate arrivals (sqrt) and exact ones (np.hypot) are in opposite
+    orders, either enough for the task: the one looked at first (approximately earlier) covers,
+    but the answer is the other's exact arrival, earlier, which only looking further finds."""
+    rng = np.random.default_rng(0)
+    loc, v = np.array([[0.5, 0.5]]), 0.2
+    p = rng.random((200_000, 2))  # [n, 2]
+    q = p * (1 + rng.integers(-3, 4, p.shape) * np.finfo(float).eps)  # [n, 2] a few ulps away
+    approx = [np.sqrt(((x - loc) ** 2).sum(1)) / v for x in (p, q)]
+    exact = [np.hypot(*(x - loc).T) / v for x in (p, q)]
+    i = int(np.flatnonzero((approx[0] < approx[1]) & (exact[1] < exact[0]))[0])
+    monkeypatch.setattr(CoalitionGreedy, "PARTIAL", 1)  # one place looked at first
+    B = CoalitionGreedy.GROUPED + 8  # summed by place
+    pos = np.vstack([p[i], q[i], np.ones((B - 2, 2))])  # [B, 2] the pair, then robots without the skill
+    cap = np.zeros((B, 1))
+    cap[:2] = 1.0
+    got = CoalitionGreedy._completing_arrival(np.zeros(B), pos, loc, v, cap, np.ones((1, 1)), exact=True)
+    assert got[0] == exact[1][i] < exact[0][i]
+
+
 @pytest.mark.parametrize("chunk", [1, 3, CoalitionGreedy.CHUNK])
 def test_coalition_choice_is_the_best_of_all_estimates(chunk, monkeypatch):
     """greedy-coalition estimates many admissible tasks nearest first, in chunks, and stops when

@@ -133,7 +133,7 @@ def observe(state: MissionState, a: int | None = None, max_tasks: int = MAX_TASK
     nodes = np.concatenate([[0], tasks + 1])  # [1+W]
     tf = _task_rows(state, a, here, tasks, sc, cap_unit)  # [1+W, Ft]
     if scale == "mission+coalition":
-        tf = np.concatenate([tf, _coalition_column(state, tasks, sc)[:, None]], axis=1)  # [1+W, Ft + 1]
+        tf = np.concatenate([tf, _coalition_column(state, tasks, sc, pos)[:, None]], axis=1)  # [1+W, Ft + 1]
     if A > max_agents:
         agents = _nearest(pos - here, max_agents, me=a)  # [N] ascending: the decider itself always
         row = int(np.flatnonzero(agents == a)[0])
@@ -217,14 +217,16 @@ def _task_rows(state: MissionState, a: int, me: np.ndarray, tasks: np.ndarray, s
     return tf
 
 
-def _coalition_column(state: MissionState, tasks: np.ndarray, sc: Scales) -> np.ndarray:
+def _coalition_column(state: MissionState, tasks: np.ndarray, sc: Scales,
+                      pos: np.ndarray | None = None) -> np.ndarray:
     """[1+W] greedy-coalition's estimate of when each task's coalition can start if the decider
     joins now, from now, in observation time units, clipped at COALITION_CAP (also a coalition that
-    cannot be completed); 0 for the depot row and the tasks it cannot take."""
+    cannot be completed); 0 for the depot row and the tasks it cannot take. ``pos``: the robots'
+    positions now [A, 2], if at hand."""
     from ..baselines import CoalitionGreedy
 
     col = np.zeros(len(tasks) + 1, dtype=np.float32)
-    cand, start, _ = CoalitionGreedy().estimates(state, tasks)  # [C]
+    cand, start, _ = CoalitionGreedy().estimates(state, tasks, pos)  # [C]
     if len(cand):
         row = np.searchsorted(tasks, cand)  # tasks is ascending
         col[1 + row] = np.minimum((start - state.clock) / sc.time, COALITION_CAP)
