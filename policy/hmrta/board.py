@@ -979,7 +979,7 @@ class MissionBoard(BoardCore):
         """When an event given now applies: the mission clock, or the instant of the pending
         decision (the clock is held at it until the decision is made)."""
         st = self.state
-        return float(st.clock) if st.agent is not None or st.done else max(float(self.clock), float(st.clock))
+        return float(st.clock) if st.agent is not None else max(float(self.clock), float(st.clock))
 
     def _sync_robots(self) -> None:
         """Give robots the state added (a scenario's add_robot, a robot that joined) a name and
@@ -1023,9 +1023,15 @@ class MissionBoard(BoardCore):
         if request_id:
             ans["request_id"] = request_id
         why = None
-        if not self.started or self.finished or st.done:
+        # every task done or cancelled, the robots going home: an operator's task reopens the
+        # mission (MissionState.add_task), unless a robot was lost since (the ended state no
+        # longer takes losses, so it would count on that robot)
+        closing = st.done and st.success and all(st.mode[a] == LOST for a in self.lost)
+        if not self.started or self.finished or (st.done and not (closing and op == "add")):
             why = ("the mission is not running" if not self.started else
                    "the mission is over" if self.finished or st.failure else
+                   "the mission is over (every task is done; the robots are going home, and a robot was "
+                   "lost on the way)" if op == "add" and st.success else
                    "the mission is over (every task is done or cancelled; the robots are going home)")
         elif op == "add" and rid in self.requests:
             why = f"task {rid!r}: a task with this id exists already"

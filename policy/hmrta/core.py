@@ -831,10 +831,37 @@ class MissionState:
         None); its id is the previous number of tasks, its release time ``now``. It is offered at
         the next decisions: the pending decision is recomputed and parked and waiting robots decide
         again at once. A task the remaining team cannot satisfy is rejected (EventRejected)."""
+        if self.done and self.success:  # every task done or cancelled, the robots on their way home
+            return self._reopen(task, now, name)
         rec = {"type": "add_task", "t": self._when(now), "task": _task_record(task, self.K)}
         if name is not None:
             rec["name"] = str(name)
         return self._event(rec)
+
+    def _reopen(self, task: Task, now: float | None, name: str | None) -> int:
+        """:meth:`add_task` on a mission that ended well (every task done or cancelled, every
+        robot sent home): the task is added at ``now`` and the mission goes on from there. The
+        robots went home at the same moments as in a mission that knew the task was coming (a
+        task still to come keeps a mission open; its robots, with nothing to join, go home all
+        the same), and nothing else happens before ``now``, so the clock moves there and the task
+        is added as such a mission adds it: the robots, parked or on their way home, decide at
+        once. A rejected task (EventRejected) leaves the ended mission as it was."""
+        t = self.clock if now is None else now
+        if not finite(t):
+            raise EventRejected(f"event time: expected a finite number, got {_short(t)}")
+        if t < self.clock:
+            raise EventRejected(f"event time {t} lies before the mission clock {self.clock}")
+        ended = (self.done, self.success, self.failure, self.clock)
+        self.done, self.success, self.failure = False, False, None
+        self.clock = float(t)
+        rec = {"type": "add_task", "t": float(t), "task": _task_record(task, self.K)}
+        if name is not None:
+            rec["name"] = str(name)
+        try:
+            return self._event(rec)
+        except EventRejected:
+            self.done, self.success, self.failure, self.clock = ended
+            raise
 
     def cancel_task(self, m: int | str, now: float | None = None) -> list[int] | None:
         """Cancel task m (an id, or the client id given to :meth:`add_task`) at ``now``; returns

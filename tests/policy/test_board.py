@@ -16,7 +16,7 @@ from hmrta import keys as K
 from hmrta.baselines import Greedy
 from hmrta.board import (JOURNAL_FORMAT, KEYFRAME_REPEAT, RESEND, JournalError, MissionBoard, board_header,
                          read_journal, state_digest)
-from hmrta.core import MissionState
+from hmrta.core import DONE, MissionState
 from hmrta.generators import ScenarioGenerator
 from hmrta.instance import instance_from_dict
 from hmrta.methods import decider, rules, solve
@@ -498,6 +498,42 @@ def test_operator_tasks_are_added_cancelled_answered_and_journaled(tmp_path):
     assert sol.extra["undone_tasks"] == [INST.n_tasks] and len(sol.tasks) == INST.n_tasks + 2
     assert sol.extra["live_events"] == {"add_task": 2, "cancel_task": 1}
     assert len(sol.extra["final_instance"]["tasks"]) == INST.n_tasks + 2
+
+
+@pytest.mark.parametrize("later", [0.0, 0.6])
+def test_an_operator_task_while_the_robots_drive_home_reopens_the_mission(tmp_path, later):
+    """Every task done, the robots driving home: an operator's task is accepted at the mission
+    clock and done, and the mission equals the offline one that knew the task would come then;
+    the journal rebuilds it. A robot lost on the way home closes the mission for good."""
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    while not b.state.done:
+        drive(b, steps=1, clock=b.clock + 0.05)
+    pump(b)
+    assert b.phase == "closing" and not b.finished
+    home = max(float(x) for x in b.state.arrive)
+    b.set_clock(b.state.clock + later * (home - b.state.clock))  # on the way home
+    pump(b)
+    task = {"location": [0.9, 0.1], "requirements": [1, 1, 0], "duration": 1.5}
+    ans = b.task_request("add", "late", task)
+    assert ans["event"] == "accepted" and ans["task"] == INST.n_tasks and ans["t"] == pytest.approx(b.clock)
+    assert not b.state.done
+    drive(b)
+    assert b.finished and b.state.success and b.state.status[INST.n_tasks] == DONE
+    ref = MissionState(INST, seed=SEED, rules=RULES)
+    ref.schedule({"type": "add_task", "t": ans["t"], "task": task, "name": "late"})
+    while not ref.done:
+        ref.step(Greedy()(ref))
+    assert b.state.routes == ref.routes and b.state.makespan == ref.makespan
+    assert b.result().extra["live_events"] == {"add_task": 1}
+    assert started_board(journal=j).state.snapshot() == b.state.snapshot()
+
+    b = started_board()
+    while not b.state.done:
+        drive(b, steps=1, clock=b.clock + 0.05)
+    b.lose(0, "silent")
+    refused = b.task_request("add", "late", task)
+    assert refused["event"] == "rejected" and "a robot was lost on the way" in refused["reason"]
 
 
 def test_an_added_task_is_accepted_exactly_when_a_mission_file_could_hold_it():

@@ -187,6 +187,51 @@ def test_events_after_everything_done_keep_the_mission_going():
     assert dyn["max_response"] == max(dyn["response"])
 
 
+@pytest.mark.parametrize("seed", range(12))
+def test_a_task_added_after_the_mission_ended_reopens_it_as_if_it_had_been_known(seed):
+    """Every task done, the robots on their way home (or home): a task added then (a live
+    operator's) reopens the mission, which then runs exactly as the same mission with the task
+    scheduled from the start (which stays open for it): same routes, finish times, makespan and
+    log, for greedy and greedy-coalition, added while robots drive home or once they are home."""
+    from hmrta.baselines import COALITION_RULES, CoalitionGreedy
+    from hmrta.generators import ScenarioGenerator
+
+    rng = np.random.default_rng(seed)
+    inst = ScenarioGenerator(["SA-AT", "MA-AT", "MA-BT"][seed % 3], 6, 3, 5, 2).instance(seed, 0)
+    policy, rules = (Greedy(), GREEDY_RULES) if seed % 2 else (CoalitionGreedy(), COALITION_RULES)
+    ended = _run(MissionState(inst, seed=seed, rules=rules), policy)
+    assert ended.success
+    home = float(ended.arrive.max())
+    t = float(ended.clock + rng.random() * (home - ended.clock + 2.0))  # driving home, or home
+    task = {"location": rng.random(2).round(3).tolist(), "requirements": list(inst.tasks[0].requirements),
+            "duration": 1.5}
+    known = MissionState(inst, seed=seed, rules=rules)
+    known.schedule({"type": "add_task", "t": t, "task": task, "name": "late"})
+    _run(known, policy)
+    m = ended.add_task(Task(tuple(task["location"]), tuple(task["requirements"]), task["duration"]), t, "late")
+    assert m == inst.n_tasks and not ended.done and ended.clock == t
+    _run(ended, policy)
+    assert ended.success and known.success and ended.status[m] == DONE
+    assert ended.routes == known.routes and ended.makespan == known.makespan
+    assert np.array_equal(ended.finish, known.finish) and np.array_equal(ended.arrive, known.arrive)
+    assert ended.log == known.log and ended.moves == known.moves
+
+
+def test_a_task_refused_after_the_mission_ended_leaves_it_ended():
+    inst = _inst([_t(0.5, 0.0, [1, 0], 1.0)])
+    s = _run(MissionState(inst, seed=0, rules=GREEDY_RULES))
+    before = json.dumps(s.snapshot())
+    with pytest.raises(EventRejected, match="needs 5 of skill 0"):
+        s.add_task(Task((0.0, 0.5), (5.0, 0.0), 1.0), s.clock + 1.0)
+    with pytest.raises(EventRejected, match="before the mission clock"):
+        s.add_task(Task((0.0, 0.5), (1.0, 0.0), 1.0), s.clock - 1.0)
+    assert s.done and s.success and json.dumps(s.snapshot()) == before
+    failed = _run(MissionState(inst, seed=0, rules=GREEDY_RULES))
+    failed.done, failed.success, failed.failure = True, False, "deadlock"
+    with pytest.raises(EventRejected, match="the mission is over"):
+        failed.add_task(Task((0.0, 0.5), (1.0, 0.0), 1.0))
+
+
 def test_scheduled_rejections_are_logged_not_raised():
     inst = _inst([_t(0.5, 0.0, [1, 0], 1.0)])
     s = MissionState(inst, seed=0, rules=GREEDY_RULES)

@@ -68,3 +68,38 @@ def test_tasks_added_and_cancelled_at_run_time(tmp_path, domain, graph, mission_
     assert len(result["tasks"]) == inst.n_tasks + 2
     assert result["tasks"][inst.n_tasks]["finish"] is not None
     assert result["undone_tasks"] == [inst.n_tasks + 1]  # the cancelled one
+
+
+def test_a_task_added_while_the_robots_drive_home_is_done(tmp_path, domain, graph, mission_procs):
+    """Every task done, the robots on their way home (board phase "closing"): an operator's task
+    reopens the mission; the robots turn round, do it, and go home."""
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots_of(inst), seed=1, time_scale=1.0,
+                          board_params={"progress_period": 0.0, "heartbeat_timeout": 10.0})
+    node = graph.node("operator_late")
+    watch = BoardWatch(node)
+    events: list[C.TaskEvent] = []
+    node.create_subscription(String, topics.TASK_EVENTS, lambda m: events.append(C.task_event_from_msg(m)),
+                             topics.TASK_EVENT_QOS)
+    requests = node.create_publisher(String, topics.TASK_REQUESTS, topics.TASK_REQUEST_QOS)  # found by the start
+    graph.spin_until(lambda: watch.board is not None and watch.board.phase == "closing", 120, "the robots going home")
+    task = {"location": [0.95, 0.95], "requirements": [1, 1, 0], "duration": 1.0}
+    requests.publish(C.task_request_to_msg(C.TaskRequest("add", "late", task, "n1")))
+    graph.spin_until(lambda: any(e.id == "late" for e in events), 20, "the answer to the request")
+    answer = next(e for e in events if e.id == "late")
+    assert answer.event == "accepted", answer
+    wait_board_exit(graph, procs, 120)
+    graph.spin_until(lambda: any(e.id == "late" and e.event == "done" for e in events), 10, "the late task done")
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert result["success"] and len(result["tasks"]) == inst.n_tasks + 1
+    assert result["tasks"][inst.n_tasks]["finish"] is not None and result["makespan"] > answer.t
+    # live == offline: the mission that knew the task would come at the time it was accepted
+    from hmrta.core import MissionState
+    from hmrta.methods import decider, rules
+
+    ref = MissionState(inst, seed=1, rules=rules("greedy"))
+    ref.schedule({"type": "add_task", "t": answer.t, "task": task, "name": "late"})
+    decide = decider("greedy", 1)[0]
+    while not ref.done:
+        ref.step(decide(ref))
+    assert result["routes"] == ref.routes and result["makespan"] == ref.makespan
