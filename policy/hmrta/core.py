@@ -945,7 +945,9 @@ class MissionState:
     def _outcome(self, rec: dict, out: Any) -> dict:
         """The outcome fields of an applied record (in the log): the id of a task or robot added,
         the tasks a robot's loss cancelled, where it stopped (``at``) and since when it was there
-        (``since``: the loss itself when it was on its way), the robots a cancellation freed."""
+        (``since``: the loss itself when it was on its way), the robots a cancellation freed (and,
+        set by the cancellation itself, ``started``: when a task in progress had started, or was
+        to start once its coalition arrived)."""
         kind = rec["type"]
         if kind == "add_task":
             return {"id": out}
@@ -1077,6 +1079,7 @@ class MissionState:
             self.events = [e for e in self.events if e[2] != m]
             heapq.heapify(self.events)
             start = float(self.start[m])
+            rec["started"] = start  # an outcome field of the logged record (its coalition worked from then)
             for b in self.members[m]:
                 if self.routes[b] and self.routes[b][-1] == m:
                     self.routes[b].pop()

@@ -63,6 +63,7 @@ class Changes:
     lost_at: dict[int, tuple[tuple[float, float], float]] = field(default_factory=dict)
     joined: dict[int, tuple[float, tuple[float, float]]] = field(default_factory=dict)  # robot -> (when, where)
     cancelled: dict[int, tuple[float, bool]] = field(default_factory=dict)  # task -> (when, by the operator)
+    stopped: dict[int, float] = field(default_factory=dict)  # task cancelled in progress -> when it had started
 
 
 def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> Changes:
@@ -71,7 +72,8 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
     ``drop_agent`` with the tasks it ``cancelled`` as unsatisfiable and where it stopped (``at``,
     ``since``), ``release`` of a task found unsatisfiable, ``add_agent`` with its ``id``
     and optional ``position``, ``cancel_task`` by ``task`` id or client ``name``, looked up in
-    ``dynamic["names"]``). Rejected events changed nothing and are skipped. A record that does not
+    ``dynamic["names"]``, with when a task it stopped in progress had ``started``). Rejected events
+    changed nothing and are skipped. A record that does not
     fit the instance raises :class:`~hmrta.solution.SolutionError` (one line naming ``source`` and
     the field)."""
     dyn = sol.extra.get("dynamic") if isinstance(sol.extra, dict) else None
@@ -119,6 +121,10 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
             else:
                 m = _index(e.get("task"), inst.n_tasks, f"{w}.task")
             out.cancelled[m] = (t, True)
+            if "started" in e:  # a task in progress, stopped: its coalition worked from its start
+                if not finite(e["started"]):
+                    raise SolutionError(f"{w}.started: expected a finite time, got {short(e['started'])}")
+                out.stopped[m] = float(e["started"])
     return out
 
 
@@ -140,7 +146,8 @@ def _timeline_of_moves(inst: Instance, sol: Solution, a: int, moves, ch: Changes
     at t towards node, 0 its depot, 1 + m task m, -1 a stop where it was): each leg travels in a
     straight line at the mission's speed and is cut short where the next movement starts; at a
     task the robot waits for the coalition and works from the task's start to its finish (the
-    planned finish for a task under way when a run stopped)."""
+    planned finish for a task under way when a run stopped; the next movement, for a task
+    cancelled in progress: the cancellation freed the robot then)."""
     home = tuple(float(x) for x in inst.depots[a])
     here = ch.joined[a][1] if a in ch.joined else home
     segs: list[dict[str, Any]] = []
@@ -168,6 +175,8 @@ def _timeline_of_moves(inst: Instance, sol: Solution, a: int, moves, ch: Changes
         st, fin, planned = tk.get("start", math.nan), tk.get("finish", math.nan), False
         if not (st == st and fin == fin) and m in running:
             st, fin, planned = running[m]["start"], running[m]["finish"], True
+        elif not (st == st and fin == fin) and m in ch.stopped:  # cancelled in progress: work until freed
+            st, fin = ch.stopped[m], until
         wait_end = min(st, until) if st == st else until
         if math.isfinite(wait_end) and wait_end > ta + 1e-9:
             segs.append({"kind": "wait", "t0": ta, "t1": wait_end, "task": m, "p0": p1, "p1": p1})

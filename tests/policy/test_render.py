@@ -456,3 +456,29 @@ def test_a_wait_at_a_task_cancelled_before_it_started_is_drawn():
     assert [(s["kind"], s["task"]) for s in tl[0]] == [("travel", None), ("wait", 0), ("travel", None)]
     assert tl[0][1]["t1"] == pytest.approx(1.0)
     assert np.mean([sum(s["t1"] - s["t0"] for s in segs if s["kind"] == "wait") for segs in tl]) == pytest.approx(sol.awt)
+
+
+def test_work_at_a_task_cancelled_in_progress_is_drawn_until_the_cancellation():
+    """Both robots work at task 0 from its start (robot 1's arrival) until the operator cancels it
+    at 3.0 (the log's cancel record says when it had ``started``): drawn as work, not as a wait,
+    so the drawn waits are the AWT."""
+    from hmrta.scenario import scenario_from_dict
+    from hmrta.solution import final_instance
+
+    scen = scenario_from_dict({"format": "hmrta-scenario/1", "instance": {
+        "format": "hmrta-instance/1", "name": "cx", "requirement_type": "additive", "velocity": 1.0, "skills": 1,
+        "species": [{"traits": [1], "count": 1, "depot": [0.0, 0.0]}, {"traits": [1], "count": 1, "depot": [1.0, 1.0]}],
+        "tasks": [{"location": [0.1, 0.0], "requirements": [2], "duration": 5},
+                  {"location": [0.9, 1.0], "requirements": [1], "duration": 1}]},
+        "events": [{"t": 3.0, "type": "cancel_task", "id": 0}]}, "s.yaml")
+    sol = Solution.from_dict(json.loads(json.dumps(solve(scen, "greedy-coalition", seed=0).to_dict())))
+    cancel = next(e for e in sol.extra["dynamic"]["events"] if e["type"] == "cancel_task")
+    start = float(np.hypot(0.9, 1.0))  # robot 1's arrival completes the coalition
+    assert cancel["started"] == pytest.approx(start) and sorted(cancel["freed"]) == [0, 1]
+    tl = agent_timeline(final_instance(scen, sol, "s"), sol)
+    for segs in tl:
+        work = [s for s in segs if s["kind"] == "work" and s["task"] == 0]
+        assert len(work) == 1 and work[0]["t0"] == pytest.approx(start) and work[0]["t1"] == pytest.approx(3.0)
+        for x, y in zip(segs, segs[1:]):
+            assert y["t0"] >= x["t1"] - 1e-9 and np.allclose(y["p0"], x["p1"])
+    assert np.mean([sum(s["t1"] - s["t0"] for s in segs if s["kind"] == "wait") for segs in tl]) == pytest.approx(sol.awt)
