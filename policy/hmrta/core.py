@@ -51,6 +51,9 @@ MODE_NAMES = ("free", "task", "home", "wait", "lost")
 # robot loss; UNRELEASED: an instance task whose release time lies ahead, hidden from every policy)
 EMPTY, OPEN, IN_PROGRESS, DONE, CANCELLED, UNRELEASED = 0, 1, 2, 3, 4, 5
 STATUS_NAMES = ("empty", "open", "in_progress", "done", "cancelled", "unreleased")
+# the rejection of a robot's event scheduled after a mission's end (MissionState._events_ahead); a
+# task added after the end (MissionState._reopen) schedules such events again
+AFTER_END = "after the mission's end"
 EVENT_TYPES = ("add_task", "cancel_task", "add_agent", "drop_agent", "release")
 
 
@@ -721,7 +724,7 @@ class MissionState:
         if self.pending[0][0] <= end:
             return True
         for _, _, rec in sorted(self.pending):
-            self.log.append({**rec, "rejected": f"after the mission's end at {end:g} (every task done or cancelled, "
+            self.log.append({**rec, "rejected": f"{AFTER_END} at {end:g} (every task done or cancelled, "
                                                 f"every robot home)"})
         self.pending = []
         return False
@@ -840,27 +843,48 @@ class MissionState:
 
     def _reopen(self, task: Task, now: float | None, name: str | None) -> int:
         """:meth:`add_task` on a mission that ended well (every task done or cancelled, every
-        robot sent home): the task is added at ``now`` and the mission goes on from there. The
-        robots went home at the same moments as in a mission that knew the task was coming (a
-        task still to come keeps a mission open; its robots, with nothing to join, go home all
-        the same), and nothing else happens before ``now``, so the clock moves there and the task
-        is added as such a mission adds it: the robots, parked or on their way home, decide at
-        once. A rejected task (EventRejected) leaves the ended mission as it was."""
+        robot sent home): the task is added at ``now`` and the mission goes on from there, exactly
+        as the mission that knew the task would come then. That mission stays open for it (a task
+        still to come keeps a mission open, :meth:`_events_ahead`) and its robots, with nothing to
+        join, go home at the same moments. So the robots' events dropped as coming after the end
+        are scheduled again, the task is scheduled at ``now``, and the mission runs there as that
+        mission runs: the robots, parked or on their way home, then decide at once.
+
+        A task added at the very instant the mission ended comes one ulp later
+        (``np.nextafter``): at that instant the robots freed by the last completion have already
+        decided to go home, while in a mission that knew of the task they would have seen it. A
+        task after the time limit (``rules.t_max``) is rejected. A rejected task (EventRejected, or
+        any other error) leaves the ended mission as it was."""
         t = self.clock if now is None else now
         if not finite(t):
             raise EventRejected(f"event time: expected a finite number, got {_short(t)}")
         if t < self.clock:
             raise EventRejected(f"event time {t} lies before the mission clock {self.clock}")
-        ended = (self.done, self.success, self.failure, self.clock)
-        self.done, self.success, self.failure = False, False, None
-        self.clock = float(t)
-        rec = {"type": "add_task", "t": float(t), "task": _task_record(task, self.K)}
+        t = float(t) if t > self.clock else float(np.nextafter(self.clock, math.inf))
+        if t > self.rules.t_max:
+            raise EventRejected(f"new task: at {t:g}, after the mission's time limit {self.rules.t_max:g}")
+        rec = {"type": "add_task", "t": t, "task": _task_record(task, self.K)}
         if name is not None:
             rec["name"] = str(name)
+        ended = self.clone()
         try:
-            return self._event(rec)
-        except EventRejected:
-            self.done, self.success, self.failure, self.clock = ended
+            self.done, self.success, self.failure = False, False, None
+            n = len(self.log)
+            while n and str(self.log[n - 1].get("rejected", "")).startswith(AFTER_END):
+                n -= 1
+            for old in self.log[n:]:  # the robots' events after the end: they belong to the mission again
+                self._schedule({k: v for k, v in old.items() if k != "rejected"})
+            del self.log[n:]
+            self._schedule(rec)
+            hold, self.until = self.until, t
+            self._advance()  # as the mission that knew: the robots' events, then the task at t
+            self.until = hold
+            added = next(e for e in reversed(self.log) if e["type"] == "add_task")
+            if "rejected" in added:
+                raise EventRejected(added["rejected"])
+            return added["id"]
+        except BaseException:
+            self.__dict__.update(ended.__dict__)
             raise
 
     def cancel_task(self, m: int | str, now: float | None = None) -> list[int] | None:

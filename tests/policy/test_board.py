@@ -16,7 +16,7 @@ from hmrta import keys as K
 from hmrta.baselines import Greedy
 from hmrta.board import (JOURNAL_FORMAT, KEYFRAME_REPEAT, RESEND, JournalError, MissionBoard, board_header,
                          read_journal, state_digest)
-from hmrta.core import DONE, MissionState
+from hmrta.core import DONE, EMPTY, OPEN, MissionState
 from hmrta.generators import ScenarioGenerator
 from hmrta.instance import instance_from_dict
 from hmrta.methods import decider, rules, solve
@@ -500,16 +500,24 @@ def test_operator_tasks_are_added_cancelled_answered_and_journaled(tmp_path):
     assert len(sol.extra["final_instance"]["tasks"]) == INST.n_tasks + 2
 
 
-@pytest.mark.parametrize("later", [0.0, 0.6])
+@pytest.mark.parametrize("later", [None, 0.0, 0.6])
 def test_an_operator_task_while_the_robots_drive_home_reopens_the_mission(tmp_path, later):
     """Every task done, the robots driving home: an operator's task is accepted at the mission
-    clock and done, and the mission equals the offline one that knew the task would come then;
-    the journal rebuilds it. A robot lost on the way home closes the mission for good."""
+    clock (``later`` None: the board clock at the last completion itself) and done, and the
+    mission equals the offline one that knew the task would come then; the journal rebuilds it.
+    A robot lost on the way home closes the mission for good."""
     j = tmp_path / "journal.jsonl"
     b = started_board(journal=j)
     while not b.state.done:
-        drive(b, steps=1, clock=b.clock + 0.05)
+        st = b.state
+        if later is None and st.agent is None and not ((st.status == EMPTY) | (st.status == OPEN)).any():
+            drive(b, clock=max(float(e[0]) for e in st.events))  # the board clock stops at the last completion
+        else:
+            drive(b, steps=1, clock=b.clock + 0.05)
     pump(b)
+    if later is None:
+        assert b.clock == b.state.clock
+        later = 0.0
     assert b.phase == "closing" and not b.finished
     home = max(float(x) for x in b.state.arrive)
     b.set_clock(b.state.clock + later * (home - b.state.clock))  # on the way home

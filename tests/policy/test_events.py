@@ -2,6 +2,7 @@
 external events): hand-built cases for each rule of docs/semantics.md, "Events during a mission"."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -203,18 +204,54 @@ def test_a_task_added_after_the_mission_ended_reopens_it_as_if_it_had_been_known
     assert ended.success
     home = float(ended.arrive.max())
     t = float(ended.clock + rng.random() * (home - ended.clock + 2.0))  # driving home, or home
+    if seed % 4 == 0:  # the instant the mission ended: the task comes one ulp later
+        t = float(np.nextafter(ended.clock, np.inf))
     task = {"location": rng.random(2).round(3).tolist(), "requirements": list(inst.tasks[0].requirements),
             "duration": 1.5}
     known = MissionState(inst, seed=seed, rules=rules)
     known.schedule({"type": "add_task", "t": t, "task": task, "name": "late"})
     _run(known, policy)
     m = ended.add_task(Task(tuple(task["location"]), tuple(task["requirements"]), task["duration"]), t, "late")
-    assert m == inst.n_tasks and not ended.done and ended.clock == t
+    assert m == inst.n_tasks and not ended.done and ended.clock == t and ended.release[m] == t
     _run(ended, policy)
     assert ended.success and known.success and ended.status[m] == DONE
     assert ended.routes == known.routes and ended.makespan == known.makespan
     assert np.array_equal(ended.finish, known.finish) and np.array_equal(ended.arrive, known.arrive)
     assert ended.log == known.log and ended.moves == known.moves
+
+
+def test_a_task_added_after_the_end_brings_back_the_robots_events_dropped_at_the_end():
+    """Robot events scheduled after a mission's end are dropped (logged as rejected); a task added
+    later reopens the mission, and those before it apply at their own times again, as in the
+    mission that knew the task would come; a task added at the instant the mission ended (the
+    default time) comes one ulp later, as that mission would have it."""
+    inst = _inst([_t(0.5, 0.0, [1, 0], 1.0)])
+    late = [{"type": "drop_agent", "t": 50.0, "agent": 2},
+            {"type": "add_agent", "t": 55.0, "species": 1}]
+    task = {"location": [0.6, 0.0], "requirements": [0.0, 1.0], "duration": 1.0}
+    ended = MissionState(inst, seed=0, rules=GREEDY_RULES)
+    known = MissionState(inst, seed=0, rules=GREEDY_RULES)
+    for rec in late:
+        ended.schedule(dict(rec))
+        known.schedule(dict(rec))
+    known.schedule({"type": "add_task", "t": 60.0, "task": task})
+    _run(ended)
+    assert ended.success and [e["type"] for e in ended.log if "rejected" in e] == ["drop_agent", "add_agent"]
+    ended.add_task(Task(tuple(task["location"]), tuple(task["requirements"]), task["duration"]), 60.0)
+    _run(ended)
+    _run(known)
+    assert ended.success and known.success and ended.A == known.A == 4
+    assert ended.routes == known.routes and ended.makespan == known.makespan and ended.log == known.log
+    assert json.dumps(ended.snapshot()) == json.dumps(known.snapshot())
+
+    now = _run(MissionState(inst, seed=1, rules=GREEDY_RULES))
+    end = now.clock
+    m = now.add_task(Task((0.5, 0.5), (1.0, 0.0), 1.0))  # default: the mission clock
+    assert now.release[m] == np.nextafter(end, np.inf)
+    ref = MissionState(inst, seed=1, rules=GREEDY_RULES)
+    ref.schedule({"type": "add_task", "t": float(np.nextafter(end, np.inf)),
+                  "task": {"location": [0.5, 0.5], "requirements": [1.0, 0.0], "duration": 1.0}})
+    assert _run(now).routes == _run(ref).routes and now.makespan == ref.makespan
 
 
 def test_a_task_refused_after_the_mission_ended_leaves_it_ended():
@@ -225,6 +262,12 @@ def test_a_task_refused_after_the_mission_ended_leaves_it_ended():
         s.add_task(Task((0.0, 0.5), (5.0, 0.0), 1.0), s.clock + 1.0)
     with pytest.raises(EventRejected, match="before the mission clock"):
         s.add_task(Task((0.0, 0.5), (1.0, 0.0), 1.0), s.clock - 1.0)
+    capped = _run(MissionState(inst, seed=0, rules=dataclasses.replace(GREEDY_RULES, t_max=50.0)))
+    with pytest.raises(EventRejected, match="after the mission's time limit 50"):
+        capped.add_task(Task((0.0, 0.5), (1.0, 0.0), 1.0), 60.0)
+    assert capped.done and capped.success
+    with pytest.raises(ValueError):  # not a task at all: an error, the mission still as it was
+        s.add_task(Task((0.0, 0.5), (1.0, "x"), 1.0), s.clock + 2.0)
     assert s.done and s.success and json.dumps(s.snapshot()) == before
     failed = _run(MissionState(inst, seed=0, rules=GREEDY_RULES))
     failed.done, failed.success, failed.failure = True, False, "deadlock"
