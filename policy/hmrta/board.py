@@ -1032,6 +1032,8 @@ class MissionBoard(BoardCore):
                    "the mission is over" if self.finished or st.failure else
                    "the mission is over (every task is done; the robots are going home, and a robot was "
                    "lost on the way)" if op == "add" and st.success else
+                   "nothing to cancel: every task is done or cancelled (the robots are going home; a task "
+                   "added now reopens the mission)" if op == "cancel" and closing else
                    "the mission is over (every task is done or cancelled; the robots are going home)")
         elif op == "add" and rid in self.requests:
             why = f"task {rid!r}: a task with this id exists already"

@@ -347,6 +347,9 @@ def _draw_map(ax, inst: Instance, sol: Solution, colors: list, changes: Changes 
         else:  # home, unless the run stopped (where it went after that is not known)
             end = [inst.depots[a]] if sol.success else []
         pts = np.array([starts[a]] + [inst.task_locations[m] for m in route] + end)  # [n, 2]
+        if isinstance(sol.extra, dict) and "moves" in sol.extra:  # as it moved: detours, stops, cancelled tasks
+            path = [tuple(starts[a])] + [tuple(g["p1"]) for g in tl[a] if g["kind"] == "travel"]
+            pts = np.array([p for i, p in enumerate(path) if i == 0 or p != path[i - 1]], dtype=float)  # [n, 2]
         if len(pts) < 2:
             continue
         k, off = idx_in_species[a], offsets[a]
