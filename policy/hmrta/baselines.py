@@ -246,8 +246,10 @@ class CoalitionGreedy:
 
         The earliest sets are looked at first (PARTIAL robots' worth on average, then four times
         as many), chosen by approximate arrivals (distances as sqrt(dx^2 + dy^2), a quarter of
-        np.hypot's cost, within ``d`` of the exact arrival: APPROX_RTOL x (|arrival| + the
-        largest |free_at|) + APPROX_ATOL), and summed in order of their exact arrivals (the full
+        np.hypot's cost, within ``d`` of the exact arrival: APPROX_RTOL x |arrival| +
+        APPROX_ATOL, since with free_at >= 0 an arrival is at least each of its two terms; with a
+        negative free_at, APPROX_RTOL x (|arrival| + the largest |free_at|) + APPROX_ATOL), and
+        summed in order of their exact arrivals (the full
         sort's ``free_at + np.hypot(dx, dy) / v``, bit for bit). A cover at t by the sets looked
         at is the answer when every other set arrives (exactly) at t or later, which holds when
         the earliest of them arrives at t + d or later by its approximate arrival; otherwise four
@@ -260,7 +262,7 @@ class CoalitionGreedy:
         useful = (cap_s > 0).astype(np.float64) @ (rem > 1e-9).T.astype(np.float64) > 0  # [S, N]
         dx, dy = x - loc[:, 0:1], y - loc[:, 1:2]  # [N, S] each
         arr = np.where(useful.T, f + np.sqrt(dx * dx + dy * dy) / v, np.inf)  # [N, S] approximate
-        big = float(np.abs(f).max())
+        big = 0.0 if f.min() >= 0 else float(np.abs(f).max())  # (times in a mission are never negative)
 
         def sets_in_order(rows, part, ga):  # the sets looked at, by exact arrival (ties in any order)
             part = np.broadcast_to(np.arange(S), ga.shape) if part is None else part  # [R, q]
