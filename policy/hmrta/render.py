@@ -507,6 +507,8 @@ def _draw_gantt(ax, inst: Instance, sol: Solution, colors: list, timeline, chang
     release = inst.releases  # [M]
     late = [(release[m], sol.tasks[m]["start"], A - 1 - a + h / 2) for m in np.flatnonzero(release > 0).tolist()
             if m not in ch.cancelled for a in sol.tasks[m]["members"]]
+    late += [(release[m], start, A - 1 - a + h / 2) for m, start in ch.stopped.items() if release[m] > 0
+             for a, segs in enumerate(timeline) if any(g["kind"] == "work" and g["task"] == m for g in segs)]
     if late:  # the release time of a task known only after the start, on its coalition's rows, dotted to its start
         rel = np.array(late, dtype=float)  # [R, 3] (release, start, y)
         ax.scatter(rel[:, 0], rel[:, 2], marker="v", s=22, color="black", zorder=6)
