@@ -1379,7 +1379,9 @@ class MissionBoard(BoardCore):
         """The mission's hmrta-solution/1 (final once ``finished``)."""
         st = self.state
         wall = self.wall_seconds()
-        sol = solution_from_state(st, self.method, self.seed, wall)
+        # compute: what the agents spent deciding (each choice's compute_ms, journaled), as a
+        # solve's compute is its planning time; the mission's own time is mission_wall_seconds
+        sol = solution_from_state(st, self.method, self.seed, round(sum(self.agent_ms) / 1000.0, 6))
         alive = [a for a in range(st.A) if a not in self.lost]
         sol.extra.update({
             "transport": "ros2",

@@ -450,7 +450,7 @@ def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: 
         state, b = None, None
     if state is None:  # no board seen: nothing was done
         state = MissionState(inst, seed=seed)
-    sol = solution_from_state(state, method, seed, wall)
+    sol = solution_from_state(state, method, seed, 0.0)  # the agents' compute is the board's to know
     sol.success = False
     sol.makespan = math.nan
     for ag in sol.agents:
