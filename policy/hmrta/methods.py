@@ -257,7 +257,7 @@ def check_instance(method: str, inst) -> None:
                           f"change over time (use greedy, greedy-coalition or an rl method)")
     if m.rules == _RL["rules"] and inst.skills > MAX_SKILLS:
         raise MethodError(f"method {name}: the learned policy handles at most {MAX_SKILLS} skills, the mission "
-                          f"has {inst.skills}")
+                          f"has {inst.skills} (greedy, greedy-coalition, cpsat and portfolio take any number)")
 
 
 def check_runnable(method: str, inst) -> None:
