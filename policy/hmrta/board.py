@@ -1411,3 +1411,36 @@ class MissionBoard(BoardCore):
     def close(self) -> None:
         if self.journal is not None:
             self.journal.close()
+
+
+class _Replay(BoardCore):
+    """A board's state machine from the mission's initial state, as the board builds it."""
+
+    def __init__(self, inst: Instance, seed: int, rules: Rules):
+        self.state = BoardState(inst, seed=seed, rules=rules)
+        self.rev, self.lost = 0, {}
+
+
+def check_journal_decisions(inst: Instance, path: str | os.PathLike, decide: Callable[[MissionState], int],
+                            seed: int, rules: Rules) -> tuple[int, str | None]:
+    """Replay a board's journal from the mission's initial state (``inst``, ``seed``, ``rules``:
+    what the board was started with) and ask ``decide`` at every choice it records, on the state
+    the robot decided on: (choices that agree, the first that does not, described, or None).
+
+    The offline check of a live mission that changed while it ran (operators' tasks, robots lost
+    or joining): the events come from the journal, in the order the board applied them, so the
+    check holds every decision to the method's, whatever the events. Raises JournalError for a
+    journal that cannot be read and ValueError for one that does not fit the mission."""
+    _, records, _, _ = read_journal(path)
+    core = _Replay(inst, seed, rules)
+    agree = 0
+    for rec in records:
+        for ev in rec.get("ev", ()):
+            if ev.get("type") == "choice":
+                want = int(decide(core.state))
+                if want != int(ev["node"]):
+                    return agree, (f"board version {rec.get('v')}, mission time {float(core.state.clock):.3f}: robot "
+                                   f"{ev['robot']} chose node {ev['node']}, the method node {want}")
+                agree += 1
+            core.apply_event(ev)
+    return agree, None

@@ -545,6 +545,42 @@ def test_an_operator_task_while_the_robots_drive_home_reopens_the_mission(tmp_pa
     assert refused["event"] == "rejected" and "a robot was lost on the way" in refused["reason"]
 
 
+def test_the_journal_of_a_changed_mission_checks_every_decision_against_the_method(tmp_path):
+    """A mission with an operator's task, a cancellation, a task added while the robots drive home
+    and a robot lost: replaying its journal, every recorded choice is greedy's on the same state;
+    a journal whose choice was changed is caught at that choice; another method disagrees."""
+    from hmrta.board import check_journal_decisions
+
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    drive(b, steps=3)
+    assert b.task_request("add", "x", {"location": [0.5, 0.5], "requirements": [1, 0, 0], "duration": 1.0})["event"] == "accepted"
+    drive(b, steps=4)
+    b.lose(1, "silent")
+    drive(b, steps=2)
+    assert b.task_request("cancel", "x")["event"] == "accepted"
+    while not b.state.done:
+        drive(b, steps=1, clock=b.clock + 0.05)
+    assert b.task_request("add", "late", {"location": [0.9, 0.1], "requirements": [1, 1, 0],
+                                          "duration": 1.5})["event"] == "accepted"
+    drive(b)
+    n = sum(1 for line in j.read_text().splitlines()[1:] for ev in json.loads(line).get("ev", ()) if ev["type"] == "choice")
+    assert check_journal_decisions(INST, j, Greedy(), SEED, RULES) == (n, None) and n > 10
+    agree, first = check_journal_decisions(INST, j, decider("greedy-coalition", SEED)[0], SEED, RULES)
+    assert first is not None and agree < n
+    lines = j.read_text().splitlines()
+    for i, line in enumerate(lines[1:], 1):  # the fifth choice made otherwise
+        rec = json.loads(line)
+        choices = [ev for ev in rec.get("ev", ()) if ev["type"] == "choice"]
+        if choices and sum(1 for x in lines[1:i] for ev in json.loads(x).get("ev", ()) if ev["type"] == "choice") == 4:
+            choices[0]["node"] = 0 if choices[0]["node"] else 1
+            lines[i] = json.dumps(rec)
+            break
+    j.write_text("\n".join(lines) + "\n")
+    agree, first = check_journal_decisions(INST, j, Greedy(), SEED, RULES)
+    assert agree == 4 and "chose node" in first
+
+
 def test_an_added_task_is_accepted_exactly_when_a_mission_file_could_hold_it():
     """The board's check of an add request and a mission file's validation take the same bounds
     (duration and requirements in [0, MAX_VALUE], the location in the unit square), integers beyond

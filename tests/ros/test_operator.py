@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -103,3 +104,34 @@ def test_a_task_added_while_the_robots_drive_home_is_done(tmp_path, domain, grap
     while not ref.done:
         ref.step(decide(ref))
     assert result["routes"] == ref.routes and result["makespan"] == ref.makespan
+
+
+def test_check_offline_replays_the_journal_of_a_mission_an_operator_changed(tmp_path, domain):
+    """``hmrta-mission --check-offline`` on a mission that an operator changed (a task added while it
+    runs): no offline rollout has that task, so the board's journal is replayed and every decision
+    checked against the method's on the same state."""
+    out = tmp_path / "mission.json"
+    env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_LOG_DIR": str(tmp_path / "ros")}
+    env.pop("ROS_DOMAIN_ID", None)
+    proc = subprocess.Popen([str(BIN / "hmrta-mission"), "--method", "greedy", "--time-scale", "2.0",
+                             "--agents-per-process", "5", "--out", str(out), "--no-plot", "--quiet",
+                             "--check-offline", "--domain-id", str(domain), "--timeout", "120"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 90
+        while True:  # the board accepts once the mission has started (before: "not running", exit 3)
+            add = task_cli(domain, tmp_path, "add", "--location", "0.5,0.5", "--requirements", "1,0,0,0,0",
+                           "--duration", "1", "--id", "op-1")
+            if add.returncode == 0 or proc.poll() is not None or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+        assert add.returncode == 0, add.stdout + add.stderr
+        so, se = proc.communicate(timeout=150)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, 9)
+            proc.wait(10)
+    assert proc.returncode == 0, so + se
+    assert "offline replay of the journal (greedy; the mission changed while it ran: 1 add_task)" in so, so
+    assert "decisions the method's on the same state: yes" in so
+    assert json.loads(out.read_text())["live_events"] == {"add_task": 1}

@@ -16,9 +16,9 @@ interrupted) ends the mission: the launcher
 stops the rest at once and writes a partial result (``success`` false, ``partial`` true, the
 ``failure`` reason, and the routes and completed tasks of the latest board it saw). Exit status:
 0 mission completed, 3 completed without success (e.g. lost robots left tasks undone), 4 completed
-but differs from the offline rollout (``--check-offline``; not compared when operators, joining
-or dropped robots changed the mission), 1 did not complete (partial result), 130 interrupted
-(partial result), 2 user error.
+but differs from the offline rollout (``--check-offline``; when operators, joining or dropped
+robots changed the mission: a decision in the journal differs from the method's on the same
+state), 1 did not complete (partial result), 130 interrupted (partial result), 2 user error.
 
 DDS discovery stays on this machine unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is already set
 (e.g. SUBNET for a real multi-machine fleet); without ``ROS_DOMAIN_ID`` a random domain in
@@ -534,7 +534,9 @@ def _main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-plot", action="store_true", help="do not draw the picture")
     p.add_argument("--check-offline", action="store_true",
                    help="also run the offline rollout (hmrta solve) and compare routes and makespan (exit 4 "
-                        "when they differ; not compared when operators, joining or dropped robots changed the mission)")
+                        "when they differ); when operators, joining or dropped robots changed the mission, "
+                        "replay the board's journal and check every decision against the method's on the same "
+                        "state instead")
     p.add_argument("--timeout", type=float, default=600.0, help="give up after this many wall seconds")
     auth = p.add_mutually_exclusive_group()
     auth.add_argument("--keystore", default=None, metavar="DIR",
@@ -680,12 +682,26 @@ def _main(argv: list[str] | None = None) -> int:
     differs = False
     if args.check_offline:
         changed = sol.extra.get("live_events") or {}
-        if changed:  # operator tasks, robots joining or dropped: the offline rollout has none of them
-            print("offline rollout: not compared: the mission changed while it ran ("
-                  + ", ".join(f"{n} {kind}" for kind, n in sorted(changed.items())) + ")")
-        elif args.method == "rl-sample":  # each robot samples its own decisions: no rollout repeats them
+        if args.method == "rl-sample":  # each robot samples its own decisions: no rollout repeats them
             print("offline rollout: not compared: live, rl-sample samples each decision on the deciding robot "
                   "(offline it keeps the best of several sampled rollouts)")
+        elif changed:  # operator tasks, robots joining or dropped: no rollout has them; the journal has
+            what = ", ".join(f"{n} {kind}" for kind, n in sorted(changed.items()))
+            if procs.journal is None or not procs.journal.exists():
+                print(f"offline rollout: not compared: the mission changed while it ran ({what}) and no "
+                      f"journal was kept")
+            else:
+                from hmrta.board import JournalError, check_journal_decisions
+                from hmrta.methods import decider
+
+                decide, rules = decider(args.method, seed=args.seed, **method_options)
+                try:
+                    agree, first = check_journal_decisions(inst, procs.journal, decide, args.seed, rules)
+                except (JournalError, ValueError, KeyError, TypeError, IndexError) as e:
+                    agree, first = 0, f"the journal does not replay ({type(e).__name__}: {e})"
+                print(f"offline replay of the journal ({args.method}; the mission changed while it ran: {what}): "
+                      f"{agree} decisions the method's on the same state" + (f"; NOT {first}" if first else ": yes"))
+                differs = first is not None
         else:
             from hmrta.methods import solve
 
