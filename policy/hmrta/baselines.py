@@ -294,21 +294,18 @@ class CoalitionGreedy:
         rows = np.arange(N)  # [R] the tasks still undecided
         while len(rows):
             a = arr[rows]  # [R, G]
-            if q < G and slack is None:  # the q earliest groups
-                part = np.argpartition(a, q - 1, axis=1)[:, :q]  # [R, q]
-                ga = np.take_along_axis(a, part, 1)  # [R, q] their arrivals
-                more = np.isfinite(ga.max(1))  # [R] groups not looked at yet may still count
-            elif q < G:  # the q earliest, and the earliest of the others
+            if q < G:  # the q earliest groups, and the earliest of the others
                 part = np.argpartition(a, q, axis=1)  # [R, G]
-                ga = np.take_along_axis(a, part[:, :q], 1)  # [R, q]
                 after = np.take_along_axis(a, part[:, q:q + 1], 1)[:, 0]  # [R] the earliest not looked at
-                part = part[:, :q]
-                more = np.isfinite(after)
+                part = part[:, :q]  # [R, q]
+                ga = np.take_along_axis(a, part, 1)  # [R, q] their arrivals
+                more = np.isfinite(after)  # [R] groups not looked at yet may still count
             else:
                 part, ga, more = None, a, np.zeros(len(rows), dtype=bool)
             t, ok = cls._first_cover(*in_order(rows, part, ga), rem[rows])
-            if slack is not None and part is not None:  # every group not looked at arrives at t or later
-                ok &= ~more | (t <= np.where(more, after, 0.0) - slack(np.where(more, after, 0.0)))
+            if slack is not None and more.any():  # every group not looked at arrives at t or later
+                after = np.where(more, after, 0.0)
+                ok &= ~more | (t <= after - slack(after))
             last[rows[ok]] = t[ok]
             rows = rows[~ok & more]  # undecided, with groups not looked at yet
             q *= 4

@@ -1012,6 +1012,26 @@ class MissionBoard(BoardCore):
     # ------------------------------------------------------------------------------------------
     # operator requests (hmrta-task-request/1) and task events (hmrta-task-event/1)
     # ------------------------------------------------------------------------------------------
+    def _not_taking(self, op: str) -> str | None:
+        """Why the mission takes no operator request ``op`` now, or None. Once every task is done
+        or cancelled, while the robots go home, an add reopens the mission
+        (MissionState.add_task), unless a robot was lost since (the ended state no longer takes
+        losses, so it would count on that robot)."""
+        st = self.state
+        if not self.started:
+            return "the mission is not running"
+        if not (st.done or self.finished):
+            return None
+        if self.finished or st.failure:
+            return "the mission is over"
+        lost_on_the_way = any(st.mode[a] != LOST for a in self.lost)
+        if op == "add":
+            return ("the mission is over (every task is done; the robots are going home, and a robot was lost on "
+                    "the way)" if lost_on_the_way else None)
+        return ("the mission is over (every task is done or cancelled; the robots are going home)" if lost_on_the_way
+                else "nothing to cancel: every task is done or cancelled (the robots are going home; a task added "
+                     "now reopens the mission)")
+
     def task_request(self, op: str, rid: str, task: dict[str, Any] | None = None,
                      request_id: str = "") -> dict[str, Any]:
         """Add (``op`` "add", ``task`` {location, requirements, duration}) or cancel a task by
@@ -1022,25 +1042,13 @@ class MissionBoard(BoardCore):
         ans: dict[str, Any] = {"id": rid, "op": op}
         if request_id:
             ans["request_id"] = request_id
-        why = None
-        # every task done or cancelled, the robots going home: an operator's task reopens the
-        # mission (MissionState.add_task), unless a robot was lost since (the ended state no
-        # longer takes losses, so it would count on that robot)
-        closing = st.done and st.success and all(st.mode[a] == LOST for a in self.lost)
-        if not self.started or self.finished or (st.done and not (closing and op == "add")):
-            why = ("the mission is not running" if not self.started else
-                   "the mission is over" if self.finished or st.failure else
-                   "the mission is over (every task is done; the robots are going home, and a robot was "
-                   "lost on the way)" if op == "add" and st.success else
-                   "nothing to cancel: every task is done or cancelled (the robots are going home; a task "
-                   "added now reopens the mission)" if op == "cancel" and closing else
-                   "the mission is over (every task is done or cancelled; the robots are going home)")
-        elif op == "add" and rid in self.requests:
+        why = self._not_taking(op)
+        if why is None and op == "add" and rid in self.requests:
             why = f"task {rid!r}: a task with this id exists already"
-        elif op == "add" and rid.isascii() and rid.isdigit():
+        elif why is None and op == "add" and rid.isascii() and rid.isdigit():
             why = (f"task {rid!r}: an id of decimal digits names a task of the mission by its index (hmrta-task "
                    f"cancel {rid}): choose an id with a letter")
-        elif op == "cancel" and rid not in self.requests and _task_index(rid, st.M) is None:
+        elif why is None and op == "cancel" and rid not in self.requests and _task_index(rid, st.M) is None:
             why = (f"task {rid!r}: no task with this id (an operator's task by its id, a task of the mission "
                    f"by its index 0..{st.M - 1})")
         if why is None:

@@ -360,11 +360,12 @@ def cmd_solve(args) -> int:
         raise UserError(f"--out {out}: with several instances, --out must be a folder")
     # one mission: a file unless --out is a folder or a name without a suffix (out.json, out.txt: files)
     to_folder = bool(out) and (many or out.is_dir() or not out.suffix or args.out.endswith(("/", "\\")))
+    inputs = _with_scenario_missions(files) if out else ()
     if out:
-        writable("--out", out, folder=to_folder, inputs=_with_scenario_missions(files))
+        writable("--out", out, folder=to_folder, inputs=inputs)
     if to_folder:  # DIR/<stem>.json is none of the inputs either
         for f in files:
-            _not_an_input("--out", out / f"{f.stem}.json", _with_scenario_missions(files))
+            _not_an_input("--out", out / f"{f.stem}.json", inputs)
     if to_folder:  # DIR/<stem>.json: two inputs of one stem would overwrite each other
         by_stem: dict[str, Path] = {}
         for f in files:

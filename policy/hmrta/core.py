@@ -855,12 +855,8 @@ class MissionState:
         decided to go home, while in a mission that knew of the task they would have seen it. A
         task after the time limit (``rules.t_max``) is rejected. A rejected task (EventRejected, or
         any other error) leaves the ended mission as it was."""
-        t = self.clock if now is None else now
-        if not finite(t):
-            raise EventRejected(f"event time: expected a finite number, got {_short(t)}")
-        if t < self.clock:
-            raise EventRejected(f"event time {t} lies before the mission clock {self.clock}")
-        t = float(t) if t > self.clock else float(np.nextafter(self.clock, math.inf))
+        t = self._time(now)
+        t = t if t > self.clock else float(np.nextafter(self.clock, math.inf))
         if t > self.rules.t_max:
             raise EventRejected(f"new task: at {t:g}, after the mission's time limit {self.rules.t_max:g}")
         rec = {"type": "add_task", "t": t, "task": _task_record(task, self.K)}
@@ -936,6 +932,10 @@ class MissionState:
     def _when(self, now: Any) -> float:
         if self.done:
             raise EventRejected("the mission is over")
+        return self._time(now)
+
+    def _time(self, now: Any) -> float:
+        """The time of an event given ``now`` (default: the clock): a finite time, not before the clock."""
         t = self.clock if now is None else now
         if not finite(t):
             raise EventRejected(f"event time: expected a finite number, got {_short(t)}")

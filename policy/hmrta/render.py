@@ -342,14 +342,15 @@ def _draw_map(ax, inst: Instance, sol: Solution, colors: list, changes: Changes 
     starts = _starts(inst, ch)
     for a, route in enumerate(sol.routes):
         s = int(inst.agent_species[a])
-        if a in ch.lost:  # it never came back: its last leg ends where it stopped, where recorded
-            end = [ch.lost_at[a][0]] if a in ch.lost_at else []
-        else:  # home, unless the run stopped (where it went after that is not known)
-            end = [inst.depots[a]] if sol.success else []
-        pts = np.array([starts[a]] + [inst.task_locations[m] for m in route] + end)  # [n, 2]
         if isinstance(sol.extra, dict) and "moves" in sol.extra:  # as it moved: detours, stops, cancelled tasks
             path = [tuple(starts[a])] + [tuple(g["p1"]) for g in tl[a] if g["kind"] == "travel"]
             pts = np.array([p for i, p in enumerate(path) if i == 0 or p != path[i - 1]], dtype=float)  # [n, 2]
+        else:  # its route
+            if a in ch.lost:  # it never came back: its last leg ends where it stopped, where recorded
+                end = [ch.lost_at[a][0]] if a in ch.lost_at else []
+            else:  # home, unless the run stopped (where it went after that is not known)
+                end = [inst.depots[a]] if sol.success else []
+            pts = np.array([starts[a]] + [inst.task_locations[m] for m in route] + end)  # [n, 2]
         if len(pts) < 2:
             continue
         k, off = idx_in_species[a], offsets[a]

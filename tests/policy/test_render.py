@@ -438,20 +438,27 @@ def test_a_solution_of_another_version_of_the_mission_is_refused(tmp_path, capsy
     assert main(["render", str(mission), str(sol), "--out", str(tmp_path / "x.png")]) == 0
 
 
-def test_a_wait_at_a_task_cancelled_before_it_started_is_drawn():
-    """Robot 0 waits at task 0 for a second robot that never comes, until the task is cancelled at
-    1.0: the drawing shows that wait (the AWT counts it), its legs unlabelled (the task left its
-    route)."""
+def _cancelled_at(t: float, method: str):
+    """(scenario, its solution by ``method``, read back): robot 0 at (0, 0) and robot 1 at (1, 1),
+    both needed at task 0 (near robot 0), which the operator cancels at ``t``; task 1 needs one."""
     from hmrta.scenario import scenario_from_dict
-    from hmrta.solution import final_instance
 
     scen = scenario_from_dict({"format": "hmrta-scenario/1", "instance": {
         "format": "hmrta-instance/1", "name": "cx", "requirement_type": "additive", "velocity": 1.0, "skills": 1,
         "species": [{"traits": [1], "count": 1, "depot": [0.0, 0.0]}, {"traits": [1], "count": 1, "depot": [1.0, 1.0]}],
         "tasks": [{"location": [0.1, 0.0], "requirements": [2], "duration": 5},
                   {"location": [0.9, 1.0], "requirements": [1], "duration": 1}]},
-        "events": [{"t": 1.0, "type": "cancel_task", "id": 0}]}, "s.yaml")
-    sol = Solution.from_dict(json.loads(json.dumps(solve(scen, "greedy", seed=0).to_dict())))
+        "events": [{"t": t, "type": "cancel_task", "id": 0}]}, "s.yaml")
+    return scen, Solution.from_dict(json.loads(json.dumps(solve(scen, method, seed=0).to_dict())))
+
+
+def test_a_wait_at_a_task_cancelled_before_it_started_is_drawn():
+    """Robot 0 waits at task 0 for a second robot that never comes, until the task is cancelled at
+    1.0: the drawing shows that wait (the AWT counts it), its legs unlabelled (the task left its
+    route)."""
+    from hmrta.solution import final_instance
+
+    scen, sol = _cancelled_at(1.0, "greedy")
     tl = agent_timeline(final_instance(scen, sol, "s"), sol)
     assert [(s["kind"], s["task"]) for s in tl[0]] == [("travel", None), ("wait", 0), ("travel", None)]
     assert tl[0][1]["t1"] == pytest.approx(1.0)
@@ -462,16 +469,9 @@ def test_work_at_a_task_cancelled_in_progress_is_drawn_until_the_cancellation():
     """Both robots work at task 0 from its start (robot 1's arrival) until the operator cancels it
     at 3.0 (the log's cancel record says when it had ``started``): drawn as work, not as a wait,
     so the drawn waits are the AWT."""
-    from hmrta.scenario import scenario_from_dict
     from hmrta.solution import final_instance
 
-    scen = scenario_from_dict({"format": "hmrta-scenario/1", "instance": {
-        "format": "hmrta-instance/1", "name": "cx", "requirement_type": "additive", "velocity": 1.0, "skills": 1,
-        "species": [{"traits": [1], "count": 1, "depot": [0.0, 0.0]}, {"traits": [1], "count": 1, "depot": [1.0, 1.0]}],
-        "tasks": [{"location": [0.1, 0.0], "requirements": [2], "duration": 5},
-                  {"location": [0.9, 1.0], "requirements": [1], "duration": 1}]},
-        "events": [{"t": 3.0, "type": "cancel_task", "id": 0}]}, "s.yaml")
-    sol = Solution.from_dict(json.loads(json.dumps(solve(scen, "greedy-coalition", seed=0).to_dict())))
+    scen, sol = _cancelled_at(3.0, "greedy-coalition")
     cancel = next(e for e in sol.extra["dynamic"]["events"] if e["type"] == "cancel_task")
     start = float(np.hypot(0.9, 1.0))  # robot 1's arrival completes the coalition
     assert cancel["started"] == pytest.approx(start) and sorted(cancel["freed"]) == [0, 1]

@@ -32,15 +32,22 @@ def task_cli(domain: int, tmp_path: Path, *args: str) -> subprocess.CompletedPro
                           timeout=60, env=env)
 
 
-def test_tasks_added_and_cancelled_at_run_time(tmp_path, domain, graph, mission_procs):
+def watched_mission(tmp_path: Path, graph, mission_procs, time_scale: float, name: str):
+    """(instance, processes, watching node, its BoardWatch, the task events it hears) of a started
+    6-robot, 10-task greedy mission (seed 1) paced at ``time_scale``."""
     inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
-    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots_of(inst), seed=1, time_scale=1.5,
+    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots_of(inst), seed=1, time_scale=time_scale,
                           board_params={"progress_period": 0.0, "heartbeat_timeout": 10.0})
-    node = graph.node("operator_watch")
+    node = graph.node(name)
     watch = BoardWatch(node)
     events: list[C.TaskEvent] = []
     node.create_subscription(String, topics.TASK_EVENTS, lambda m: events.append(C.task_event_from_msg(m)),
                              topics.TASK_EVENT_QOS)
+    return inst, procs, node, watch, events
+
+
+def test_tasks_added_and_cancelled_at_run_time(tmp_path, domain, graph, mission_procs):
+    inst, procs, node, watch, events = watched_mission(tmp_path, graph, mission_procs, 1.5, "operator_watch")
     graph.spin_until(lambda: watch.board is not None and watch.board.phase in ("decide", "wait"), 60, "the start")
     add = task_cli(domain, tmp_path, "add", "--location", "0.3,0.7", "--requirements", "1,0,0", "--duration", "1",
                    "--id", "inspect-7")
@@ -74,14 +81,7 @@ def test_tasks_added_and_cancelled_at_run_time(tmp_path, domain, graph, mission_
 def test_a_task_added_while_the_robots_drive_home_is_done(tmp_path, domain, graph, mission_procs):
     """Every task done, the robots on their way home (board phase "closing"): an operator's task
     reopens the mission; the robots turn round, do it, and go home."""
-    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
-    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots_of(inst), seed=1, time_scale=1.0,
-                          board_params={"progress_period": 0.0, "heartbeat_timeout": 10.0})
-    node = graph.node("operator_late")
-    watch = BoardWatch(node)
-    events: list[C.TaskEvent] = []
-    node.create_subscription(String, topics.TASK_EVENTS, lambda m: events.append(C.task_event_from_msg(m)),
-                             topics.TASK_EVENT_QOS)
+    inst, procs, node, watch, events = watched_mission(tmp_path, graph, mission_procs, 1.0, "operator_late")
     requests = node.create_publisher(String, topics.TASK_REQUESTS, topics.TASK_REQUEST_QOS)  # found by the start
     graph.spin_until(lambda: watch.board is not None and watch.board.phase == "closing", 120, "the robots going home")
     task = {"location": [0.95, 0.95], "requirements": [1, 1, 0], "duration": 1.0}
