@@ -65,6 +65,7 @@ def test_tasks_added_and_cancelled_at_run_time(tmp_path, domain, graph, mission_
     assert cancel.returncode == 0, cancel.stderr
     listed = task_cli(domain, tmp_path, "list")
     assert listed.returncode == 0 and "inspect-7" in listed.stdout and "spare" in listed.stdout
+    assert "mission clock " in listed.stdout and "not heard" not in listed.stdout, listed.stdout
     bad = task_cli(domain, tmp_path, "add", "--location", "x", "--requirements", "1", "--duration", "1")
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
     wait_board_exit(graph, procs, 120)

@@ -63,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--id", default=None, help="client task id (default: a random one)")
     c = sub.add_parser("cancel", help="cancel a task by its id")
     c.add_argument("id", help="an operator's task id, or a task of the mission by its index (hmrta-task list)")
-    sub.add_parser("list", help="the mission's tasks and their status")
+    ls = sub.add_parser("list", help="the mission's tasks and their status, the board's state clock and the mission clock")
+    ls.add_argument("--clock-topic", default=None, help="the mission clock's topic, if the mission renamed it "
+                                                        "(its nodes' clock_topic; default /hmrta/clock)")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if args.timeout <= 0:
         p.error("--timeout: expected a positive number")
@@ -92,8 +94,14 @@ def main(argv: list[str] | None = None) -> int:
     deadline = time.monotonic() + args.timeout
     try:
         if args.cmd == "list":
+            from rosgraph_msgs.msg import Clock
+
+            from hmrta_msgs_py.codec import clock_from_msg
+
             got: list = []
+            now: list = []  # the mission clock (latched): the state's clock stays at the last completion while closing
             node.create_subscription(String, topics.KEYFRAME, got.append, topics.KEYFRAME_QOS)
+            node.create_subscription(Clock, args.clock_topic or topics.CLOCK, lambda m: now.append(clock_from_msg(m)), topics.CLOCK_QOS)
             ask = node.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
             while not got and time.monotonic() < deadline:
                 rclpy.spin_once(node, timeout_sec=0.1)
@@ -122,7 +130,10 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             t = b.state["tasks"]
             names = t.get("names") or [None] * len(t["status"])
-            print(f"board {b.version}, phase {b.phase}, t={b.clock:.3f}: {b.n_done}/{b.n_tasks} tasks done")
+            rclpy.spin_once(node, timeout_sec=0.05)  # the latched clock, if not heard yet
+            clock = f"mission clock {now[-1]:.3f}" if now else "mission clock not heard"
+            print(f"board {b.version}, phase {b.phase}, state at t={b.clock:.3f}, {clock}: "
+                  f"{b.n_done}/{b.n_tasks} tasks done")
             for m, status in enumerate(t["status"]):
                 when = f" finish {t['finish'][m]:.3f}" if t["finish"][m] is not None else ""
                 print(f"  {m:4d} {names[m] or '-':>16} {status}{when}")
