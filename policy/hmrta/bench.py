@@ -171,6 +171,12 @@ def summarise(results: list[dict]) -> dict:
         "compute_seconds": float(np.mean([r["compute_seconds"] for r in results])) if results else math.nan,
         "gap_to_bound": ms("gap") if ok and all("gap" in r for r in ok) else None,
     }
+    left: dict[str, dict] = {}  # a portfolio's candidates left out: on how many missions, and why
+    for r in results:
+        for c, why in (r.get("left_out") or {}).items():
+            left.setdefault(c, {"missions": 0, "reason": why})["missions"] += 1
+    if left:
+        out["left_out"] = left
     resp = [r["response"] for r in results if r.get("response")]
     if any(x["dynamic"] for x in resp):
         out["dynamic"] = {
@@ -335,24 +341,29 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def provenance(methods: list[str], solve_opts: dict[str, Any], command: str | None = None) -> dict:
+def provenance(methods: list[str], solve_opts: dict[str, Any], command: str | None = None,
+               not_run: Iterable[str] = ()) -> dict:
     """What produced a results file: code version, checkpoint (for rl methods: file name and
-    sha256), library versions, CPU model and cores, torch threads, command line, UTC date."""
+    sha256), library versions, CPU model and cores, torch threads, command line, UTC date.
+    ``not_run``: a portfolio's candidates left out on every mission (no checkpoint of theirs
+    is listed; nor the default one when nothing that reads it ran)."""
     from . import __version__
+    from .methods import parse
 
-    checkpoint = None
-    own: dict[str, dict] = {}
-    if any(uses_checkpoint(m) for m in methods):
+    def describe(ck: str | None) -> dict:
         from .rl.checkpoint_info import SHIPPED_DIR, checkpoint_path
 
-        def describe(path: Path) -> dict:
-            return {"name": path.name, "sha256": file_sha256(path) if path.is_file() else None,
-                    "shipped": path.resolve().parent == SHIPPED_DIR.resolve()}
+        path = checkpoint_path(ck)
+        return {"name": path.name, "sha256": file_sha256(path) if path.is_file() else None,
+                "shipped": path.resolve().parent == SHIPPED_DIR.resolve()}
 
-        checkpoint = describe(checkpoint_path(solve_opts.get("checkpoint")))
-        for m in methods:
-            for spec, ck in own_checkpoints(m, solve_opts).items():
-                own[spec] = describe(checkpoint_path(ck))
+    not_run = set(not_run)
+    ran = [s for m in methods for s in run_specs(m, solve_opts) if s not in not_run]  # specs that solved
+    # the default checkpoint: read by a spec that ran without one of its own (rl, not rl@broad)
+    reads_default = any(uses_checkpoint(s) and "checkpoint" not in parse(s)[1] for s in ran)
+    checkpoint = describe(solve_opts.get("checkpoint")) if reads_default else None
+    own = {spec: describe(ck) for m in methods for spec, ck in own_checkpoints(m, solve_opts).items()
+           if spec not in not_run}
     torch_threads = sys.modules["torch"].get_num_threads() if "torch" in sys.modules else None
     return {
         "code_version": code_version(),
@@ -473,6 +484,9 @@ def _solve_record(job: tuple) -> dict:
     lb = sol.extra.get("lower_bound")
     if lb is not None:
         r["solver_bound"] = lb
+    left_out = (sol.extra.get("portfolio") or {}).get("left_out")
+    if left_out:  # a portfolio's default candidates that could not run on this mission, with the reason
+        r["left_out"] = dict(left_out)
     return r
 
 
@@ -597,10 +611,35 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
         fan.close()
         if fh:
             fh.close()
-    summary["provenance"] = provenance(methods, solve_opts, command)
+    left = left_out_summary(summary)
+    for (n, of, why), cs in _grouped(left).items():
+        log(f"portfolio: left out {', '.join(cs)} on {n} of {of} mission(s) ({why})")
+    n_all = sum(len(insts) for _, insts in sets)
+    summary["provenance"] = provenance(methods, solve_opts, command,
+                                       not_run=[c for c, (n, _, _) in left.items() if n == n_all])
     if fan.distributed:  # solves ran side by side: their compute seconds shared the machine(s)
         summary["provenance"]["fanout"] = {"workers": workers, "ray_address": ray_address}
     return summary
+
+
+def _grouped(left: dict[str, Any]) -> dict[Any, list[str]]:
+    """The candidates of ``left`` (candidate -> what is said of it, hashable) by what is said of them."""
+    by: dict[Any, list[str]] = {}
+    for c, said in left.items():
+        by.setdefault(said, []).append(c)
+    return by
+
+
+def left_out_summary(summary: dict) -> dict[str, tuple[int, int, str]]:
+    """{candidate: (missions it was left out of, missions of the rows it was, a reason)} over every
+    row and method of a summary (a portfolio's default candidates that could not run)."""
+    left: dict[str, tuple[int, int, str]] = {}
+    for r in summary["rows"]:
+        for res in r["results"].values():
+            for c, x in (res.get("left_out") or {}).items():
+                n, of, _ = left.get(c, (0, 0, ""))
+                left[c] = (n + x["missions"], of + res["n"], x["reason"])
+    return left
 
 
 # ---------------------------------------------------------------------------------------------
@@ -758,6 +797,14 @@ def to_markdown(summary: dict) -> str:
                         cells += ["—"] * (4 + show_red)
                 out.append("| " + " | ".join(cells) + " |")
         out.append("")
+        for r in rows:  # a portfolio that could not simulate every candidate says which, and why
+            for method, res in r["results"].items():
+                for (n, why), cs in _grouped({c: (x["missions"], x["reason"])
+                                              for c, x in (res.get("left_out") or {}).items()}).items():
+                    out.append(f"- {_method_name(method, show_paper)} ({_row_label(r)}): left out {', '.join(cs)} on "
+                               f"{n} of {res['n']} mission(s): {why}")
+        if out[-1] != "":
+            out.append("")
         out += comparisons_markdown(rows, show_paper)
     return "\n".join(out) + "\n"
 

@@ -939,6 +939,7 @@ def cmd_render_recording(args) -> int:
 
 
 def cmd_render(args) -> int:
+    from .deps import require
     from .render import check_gif_options, render
     from .solution import SolutionError, check_planned_for, final_instance
 
@@ -946,6 +947,7 @@ def cmd_render(args) -> int:
         return cmd_render_recording(args)
     if args.instance is None or args.solution is None:
         raise UserError("render: give INSTANCE and SOLUTION (or --from FILE.mcap, a recorded mission)")
+    require("matplotlib", "hmrta render")  # before anything is read
     try:  # before anything is read or drawn, also for a PNG only
         check_gif_options(args.frames, args.fps)
     except ValueError as e:

@@ -8,7 +8,7 @@ from types import ModuleType
 from .errors import MethodError
 
 # importable module -> the hmrta extra that installs it
-EXTRAS = {"torch": "rl", "ortools": "cpsat", "ray": "ray"}
+EXTRAS = {"torch": "rl", "ortools": "cpsat", "ray": "ray", "matplotlib": "plot"}
 
 
 class MissingDependency(MethodError):

@@ -568,9 +568,11 @@ def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool =
     ``out_path`` itself ends in .gif only the animation is written). Returns the written paths.
     ``progress(done, total)`` is called after each frame of the animation. A solution that does
     not belong to the instance (name, agent and task counts, species, task ids, the robots and
-    tasks its events name) raises :class:`~hmrta.solution.SolutionError` naming ``source``."""
-    import matplotlib
+    tasks its events name) raises :class:`~hmrta.solution.SolutionError` naming ``source``;
+    without matplotlib, :class:`~hmrta.deps.MissingDependency` naming the extra."""
+    from .deps import require
 
+    matplotlib = require("matplotlib", "drawing a mission (hmrta render)")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -281,3 +281,29 @@ def test_missions_with_events_have_no_gap_to_bound(tmp_path):
     s = run_bench(rows, ["greedy"], 1, 0, None, {}, progress=False, log=lambda s: None, with_bounds=True)
     scen, plain = (r["results"]["greedy"]["gap_to_bound"] for r in s["rows"])
     assert scen is None and plain is not None and plain[0] > 0
+
+
+def test_a_portfolio_names_the_candidates_it_left_out(tmp_path):
+    """On 6-skill missions the learned candidates cannot run: the portfolio row says which were
+    left out, on how many missions and why, and the provenance lists no checkpoint none of them read."""
+    from hmrta.bench import MissionSet
+    from hmrta.generators import ScenarioGenerator
+
+    files = []
+    for i in range(2):
+        files.append(tmp_path / f"six-{i}.yaml")
+        ScenarioGenerator("MA-AT", 6, 3, 8, 6).instance(3, i).save(files[-1])
+    logged: list[str] = []
+    s = run_bench([MissionSet.load("six", files)], ["greedy", "portfolio"], 1, 0, tmp_path / "out", {},
+                  progress=False, log=logged.append)
+    res = s["rows"][0]["results"]["portfolio"]
+    assert set(res["left_out"]) == {"rl", "rl@broad", "rl@coalition-team"}
+    assert all(x["missions"] == 2 and "at most 5 skills" in x["reason"] for x in res["left_out"].values())
+    assert any(line.startswith("portfolio: left out rl, rl@broad, rl@coalition-team on 2 of 2 mission(s) (method rl: "
+                               "the learned policy handles at most 5 skills") for line in logged), logged
+    md = to_markdown(s)
+    assert "- Portfolio (six): left out rl, rl@broad, rl@coalition-team on 2 of 2 mission(s): method rl: " in md, md
+    assert s["provenance"]["checkpoint"] is None and "own_checkpoints" not in s["provenance"]
+    assert "checkpoint" not in md.split("###")[0]
+    # where the learned candidates do run, they are listed as before
+    assert provenance(["portfolio"], {}, not_run=["rl@broad"])["own_checkpoints"].keys() == {"rl@coalition-team"}

@@ -206,6 +206,17 @@ def test_missing_ortools_is_a_one_line_error_naming_the_extra(monkeypatch, capsy
         assert "ortools" in line and "pip install 'hmrta[cpsat]'" in line, line
 
 
+def test_missing_matplotlib_is_a_one_line_error_naming_the_extra(tmp_path, monkeypatch, capsys):
+    sol = tmp_path / "sol.json"
+    assert main(["solve", str(EXAMPLE), "--method", "greedy", "--out", str(sol)]) == 0
+    capsys.readouterr()
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    assert main(["render", str(EXAMPLE), str(sol), "--out", str(tmp_path / "fig.png")]) == 2
+    line = _one_error_line(capsys)
+    assert "matplotlib" in line and "pip install 'hmrta[plot]'" in line, line
+    assert not (tmp_path / "fig.png").exists()
+
+
 # ---------------------------------------------------------------------------------------------
 # progress
 # ---------------------------------------------------------------------------------------------
