@@ -66,7 +66,9 @@ class Recording:
         """Per robot (mission agent order), per task of its planned route: ``task``, planned
         ``arrival`` / ``start`` / ``finish`` (NaN when unknown) and ``actual_arrival`` (the first
         pose within ``tolerance`` mission units of the task after the previous visit's; NaN if
-        none). ``tolerance`` defaults to 1 % of the mission area's diagonal."""
+        none, and NaN when no pose of the robot away from the task was recorded before it: a
+        recorder that heard the robot first when it was already there saw no arrival).
+        ``tolerance`` defaults to 1 % of the mission area's diagonal."""
         if self.plan is None:
             return [[] for _ in self.robots]
         from .render import agent_timeline
@@ -81,12 +83,13 @@ class Recording:
             for m in route:
                 tk = self.plan.tasks[m]
                 loc = self.instance.task_locations[m]
-                actual = math.nan
+                actual, away = math.nan, False  # away: a pose on the way here was recorded
                 while i < len(track):
                     t, x, y = track[i]
                     if math.hypot(x - loc[0], y - loc[1]) <= tol:
-                        actual = t
+                        actual = t if away else math.nan
                         break
+                    away = True
                     i += 1
                 rows.append({"task": m, "arrival": arrive.get(m, math.nan), "start": _num(tk.get("start")),
                              "finish": _num(tk.get("finish")), "actual_arrival": actual})

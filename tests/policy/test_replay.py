@@ -68,6 +68,9 @@ def write_recording(path: Path, *, mission=True, result=True, board=False, poses
     elif board:  # the board stream and its keyframes, up to the board's version ``board``
         msgs += board_messages(inst, board)
     for a, segs in enumerate(agent_timeline(inst, sol)):
+        if poses:  # where each robot is when the recording starts (a simulated robot publishes at once)
+            msgs.append((0.0, f"/{robots[a]}/pose", "geometry_msgs/msg/PoseStamped",
+                         _pose(T0 * 1e-9 if wall_stamps else 0.0, *inst.depots[a])))
         for s in segs:
             if s["kind"] == "travel" and poses:
                 t = s["t1"] + late
@@ -122,9 +125,10 @@ def test_reads_back_mission_plan_tracks_and_counts(tmp_path):
     assert rec.counts["/hmrta/mission"] == 1 and rec.counts["/hmrta/result"] == 1
     assert rec.types["/robot_0/pose"] == "geometry_msgs/msg/PoseStamped"
     n_travel = sum(s["kind"] == "travel" for segs in agent_timeline(inst, sol) for s in segs)
-    assert sum(rec.counts[f"/{r}/pose"] for r in robots if f"/{r}/pose" in rec.counts) == n_travel
+    assert sum(rec.counts[f"/{r}/pose"] for r in robots if f"/{r}/pose" in rec.counts) == n_travel + inst.n_agents
     # tracks in mission coordinates (the wire carries x scale) and mission time
-    t, x, y = rec.tracks["robot_0"][0]
+    assert rec.tracks["robot_0"][0] == pytest.approx((0.0, *inst.depots[0]))
+    t, x, y = rec.tracks["robot_0"][1]
     first = agent_timeline(inst, sol)[0][0]
     assert (x, y) == pytest.approx(first["p1"]) and t == pytest.approx(first["t1"], abs=1e-9)
     visits = rec.visits()
@@ -132,6 +136,21 @@ def test_reads_back_mission_plan_tracks_and_counts(tmp_path):
     for rows in visits:
         for v in rows:
             assert v["actual_arrival"] == pytest.approx(v["arrival"], abs=1e-6)
+
+
+def test_no_arrival_is_read_from_a_robot_first_heard_at_its_task(tmp_path):
+    """A recorder that hears a robot first when it is already at its task (it subscribed late)
+    saw no arrival: that visit's is NaN, the robot's later visits are seen."""
+    inst, sol, robots = write_recording(tmp_path / "r.mcap")
+    rec = read_recording(tmp_path / "r.mcap")
+    a = next(a for a, route in enumerate(sol.routes) if len(route) >= 2)
+    track = rec.tracks[robots[a]]
+    rec.tracks[robots[a]] = [(t + 5.0, x, y) for t, x, y in track[1:2]] + track[2:]  # heard first at its task, late
+    rows = rec.visits()[a]
+    assert math.isnan(rows[0]["actual_arrival"])
+    assert rows[1]["actual_arrival"] == pytest.approx(rows[1]["arrival"], abs=1e-6)
+    assert all(v["actual_arrival"] == pytest.approx(v["arrival"], abs=1e-6) for b, vs in enumerate(rec.visits())
+               if b != a for v in vs)
 
 
 def test_late_robots_and_wall_clock_stamps_map_through_the_clock(tmp_path):
