@@ -793,12 +793,11 @@ def cmd_checkpoint(args) -> int:
     from .deps import require
 
     require("torch", "hmrta checkpoint")
+    from .bench import file_sha256
     from .rl.checkpoint import average
     from .rl.checkpoint_info import checkpoint_path
 
     out = writable("--out", args.out)
-    if not out.parent.is_dir():
-        raise UserError(f"--out {out}: no such folder {out.parent}")
     if out.exists():
         for src in map(checkpoint_path, args.checkpoints):
             if src.exists() and out.samefile(src):
@@ -806,9 +805,16 @@ def cmd_checkpoint(args) -> int:
                                 f"file and move it into place")
         if not args.force:
             raise UserError(f"--out {out}: exists (pass --force to replace it)")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"--out {out}: cannot create its folder ({e.strerror or e})") from None
     entry = average(args.checkpoints, out, window=args.window, greedy_depot=args.greedy_depot)
-    print(json.dumps({"out": str(out), **entry}))
-    print(f"averaged {len(entry['sources'])} checkpoint(s) into {out}", file=sys.stderr)
+    if args.json:
+        print(json.dumps({"out": str(out), **entry}))
+    else:
+        print(f"averaged {len(entry['sources'])} checkpoint(s) into {out} (sha256 {file_sha256(out)}; its "
+              f"lineage: hmrta checkpoint info {out})")
     return 0
 
 
@@ -905,7 +911,10 @@ def _solution_or_routes(inst, path: str):
     if inst.dynamic or bool((inst.releases > 0).any()):
         raise UserError(f"{path}: routes are re-simulated without release times or events (as hmrta evaluate "
                         f"does), which this mission has: give its solution file (hmrta solve --out)")
-    return evaluate_routes(inst, routes)
+    try:
+        return evaluate_routes(inst, routes)
+    except RouteError as e:  # e.g. a deadlock: named by the file, as hmrta evaluate does
+        raise RouteError(f"{path}: {e}") from None
 
 
 def cmd_render_recording(args) -> int:
@@ -1185,6 +1194,8 @@ def build_parser() -> argparse.ArgumentParser:
     ca.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT", help="checkpoint files (.pt)")
     ca.add_argument("--out", required=True, help="checkpoint to write (atomically); never one of the sources")
     ca.add_argument("--force", action="store_true", help="replace an existing --out file")
+    ca.add_argument("--json", action="store_true",
+                    help="print the lineage entry written (sources with sha256, window, greedy decoding) as JSON")
     ca.add_argument("--window", nargs=2, type=int, metavar=("TASKS", "ROBOTS"),
                     help="observation window of the written checkpoint: a mission with more tasks or robots "
                          "is observed through the decider's nearest TASKS tasks and ROBOTS robots (default: "

@@ -184,6 +184,20 @@ def test_evaluate_and_bound_accept_folders(tmp_path, capsys):
     assert f"{sols / one.stem}.json: no such file" in _one_error_line(capsys)
 
 
+def test_deadlocking_routes_are_named_by_their_file_in_evaluate_and_bound(tmp_path, capsys):
+    mission = tmp_path / "dl.yaml"
+    mission.write_text("format: hmrta-instance/1\nrequirement_type: additive\nvelocity: 0.2\nskills: 1\n"
+                       "species:\n  - {traits: [1], count: 2, depot: [0.1, 0.8]}\n"
+                       "tasks:\n  - {location: [0.5, 0.9], requirements: [2], duration: 1}\n"
+                       "  - {location: [0.2, 0.2], requirements: [2], duration: 1}\n")
+    routes = tmp_path / "crossed.json"
+    routes.write_text('{"routes": [[0, 1], [1, 0]]}')  # each robot waits at the task the other does last
+    for cmd in ("evaluate", "bound"):
+        assert main([cmd, str(mission), str(routes)]) == 2, cmd
+        line = _one_error_line(capsys)
+        assert line.startswith(f"hmrta: error: {routes}: deadlock"), line
+
+
 # ---------------------------------------------------------------------------------------------
 # missing optional dependencies
 # ---------------------------------------------------------------------------------------------

@@ -3,6 +3,7 @@ deterministic greedy rollouts, a tiny training run that improves, checkpoint rou
 from __future__ import annotations
 
 import copy
+import json
 import math
 import re
 
@@ -981,6 +982,15 @@ def test_checkpoint_average_never_overwrites_a_source_and_replaces_a_file_only_w
     assert main(["checkpoint", "average", str(a), str(b), "--out", str(other), "--force"]) == 0
     capsys.readouterr()
     assert load_policy(other) is not None
+    # one line by default, the lineage entry with --json; a missing folder of --out is created
+    new = tmp_path / "new" / "ab.pt"
+    assert main(["checkpoint", "average", str(a), str(b), "--out", str(new)]) == 0
+    said = capsys.readouterr().out
+    assert said == (f"averaged 2 checkpoint(s) into {new} (sha256 {hashlib.sha256(new.read_bytes()).hexdigest()}; "
+                    f"its lineage: hmrta checkpoint info {new})\n")
+    assert main(["checkpoint", "average", str(a), "--out", str(tmp_path / "a2.pt"), "--json"]) == 0
+    entry = json.loads(capsys.readouterr().out)
+    assert entry["out"] == str(tmp_path / "a2.pt") and [s["sha256"] for s in entry["sources"]] == [sha[a]]
 
 
 def test_checkpoint_average_uses_the_moving_average_and_refuses_other_networks(tmp_path, capsys):
@@ -1271,7 +1281,6 @@ def test_checkpoint_info_reads_a_checkpoint_without_building_it(tmp_path, capsys
     decoding, rules, lineage), as JSON with ``--json``; a missing or foreign file exits 2 with
     one line."""
     import hashlib
-    import json
 
     from hmrta.cli import main
     from hmrta.rl.checkpoint_info import describe, lineage_lines
