@@ -86,6 +86,7 @@ HEADER_REPEAT = 0.25  # seconds: an idle board streams its latest header again (
 CHECK_GATE = False  # tests: every incremental arrival gate is compared with the full scan
 GATE_RESCAN = 0.5  # seconds: while the arrival gate holds the mission clock, every robot is rescanned this often
 STALL_GAP = 1.0  # seconds: a watchdog tick (every 0.1 s on the node) later than this after the previous one: the board stalled
+NEVER_REPORTED = "never reported"  # why a robot silent until the start-up timeout is dropped
 LIVE_EVENTS = frozenset(("add_task", "cancel_task", "add_agent", "drop_agent"))  # journaled events from outside the mission file
 HEADER_BYTES = 330  # about the bytes of a stream header without its events (for the automatic keyframe period)
 
@@ -854,7 +855,7 @@ class MissionBoard(BoardCore):
             if self.startup_timeout > 0 and now - max(self.t_created, self._resumed) > self.startup_timeout:
                 for a in range(self.state.A):
                     if self.seen_status[a] is None or self.seen_pose[a] is None:
-                        self.lose(a, "never reported")
+                        self.lose(a, NEVER_REPORTED)
                 self.start()
             return
         T = self.heartbeat_timeout
@@ -1012,11 +1013,12 @@ class MissionBoard(BoardCore):
     # ------------------------------------------------------------------------------------------
     # operator requests (hmrta-task-request/1) and task events (hmrta-task-event/1)
     # ------------------------------------------------------------------------------------------
-    def _not_taking(self, op: str) -> str | None:
-        """Why the mission takes no operator request ``op`` now, or None. Once every task is done
-        or cancelled, while the robots go home, an add reopens the mission
+    def _not_taking(self, op: str, rid: str) -> str | None:
+        """Why the mission takes no operator request ``op`` (of task id ``rid``) now, or None. Once
+        every task is done or cancelled, while the robots go home, an add reopens the mission
         (MissionState.add_task), unless a robot was lost since (the ended state no longer takes
-        losses, so it would count on that robot)."""
+        losses, so it would count on that robot); a cancel there of an id the mission does not
+        know is left to the check of ids (no such task)."""
         st = self.state
         if not self.started:
             return "the mission is not running"
@@ -1028,6 +1030,8 @@ class MissionBoard(BoardCore):
         if op == "add":
             return ("the mission is over (every task is done; the robots are going home, and a robot was lost on "
                     "the way)" if lost_on_the_way else None)
+        if rid not in self.requests and _task_index(rid, st.M) is None:
+            return None  # no such task: said as such
         return ("the mission is over (every task is done or cancelled; the robots are going home)" if lost_on_the_way
                 else "nothing to cancel: every task is done or cancelled (the robots are going home; a task added "
                      "now reopens the mission)")
@@ -1042,7 +1046,7 @@ class MissionBoard(BoardCore):
         ans: dict[str, Any] = {"id": rid, "op": op}
         if request_id:
             ans["request_id"] = request_id
-        why = self._not_taking(op)
+        why = self._not_taking(op, rid)
         if why is None and op == "add" and rid in self.requests:
             why = f"task {rid!r}: a task with this id exists already"
         elif why is None and op == "add" and rid.isascii() and rid.isdigit():
@@ -1414,6 +1418,13 @@ class MissionBoard(BoardCore):
             sol.extra["board_restarts"] = self.restarts
         if self.lost and alive:
             sol.extra["home_time"] = max(float(st.arrive[a]) for a in alive)
+        never = [self.names[a] for a, r in sorted(self.lost.items()) if r == NEVER_REPORTED]
+        if not sol.success and never:  # the likely cause: processes that never came up on this domain
+            sol.extra["failure"] = (
+                f"{sol.extra.get('failure') or 'the mission did not succeed'}; {len(never)} of {st.A} robot(s) "
+                f"never reported within the start-up timeout ({self.startup_timeout:g} s): "
+                f"{', '.join(never[:5])}{', ...' if len(never) > 5 else ''} (is sim_robot or the robots' driver "
+                f"running, and an agent for each robot, on this ROS domain?)")
         return sol
 
     def close(self) -> None:

@@ -42,6 +42,7 @@ def _jobs(args) -> None:
 
 
 ROW_SIZES = ("agents", "species", "tasks", "skills")  # the options of a generated row's size (_row_args)
+BENCH_COUNT, BENCH_SEED = 50, 1000  # hmrta bench's generated rows: missions per row, the test-set seed
 MAX_SET_TASKS = 1_000_000  # tasks in all of a generated set (hmrta generate draws it in memory, ~0.5 KB a task)
 
 
@@ -569,6 +570,11 @@ def cmd_bench(args) -> int:
     if len(given) > 1:
         raise UserError(f"bench: give your missions (INSTANCE...), --suite, or one --scenario row, not both "
                         f"{given[0]} and {given[1]}")
+    if args.instances and (args.count is not None or args.seed is not None):
+        raise UserError(f"{'--count' if args.count is not None else '--seed'}: only applies to generated rows "
+                        f"(--suite, --scenario); your missions are benchmarked as they are")
+    args.count = BENCH_COUNT if args.count is None else args.count
+    args.seed = BENCH_SEED if args.seed is None else args.seed
     _positive("--count", args.count)
     _positive("--max-tasks", args.max_tasks)
     _seed(args.seed)
@@ -1095,8 +1101,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default=None, help="solution file (one instance, a name with a suffix: sol.json) or "
                                                "folder (DIR/<stem>.json; a name without a suffix, an existing "
                                                "folder, or several instances)")
-    s.add_argument("--json", action="store_true", help="print the solution JSON instead of a summary")
-    s.add_argument("--schedule", action="store_true", help="also print the per-task schedule and routes")
+    shown = s.add_mutually_exclusive_group()
+    shown.add_argument("--json", action="store_true", help="print the solution JSON instead of a summary")
+    shown.add_argument("--schedule", action="store_true",
+                       help="also print the per-task schedule and routes (the JSON holds them: not with --json)")
     s.add_argument("--no-progress", action="store_true",
                    help="no progress bars (per instance with several, per decision or second in a long solve, "
                         "per candidate of the portfolio; drawn only when stderr is a terminal)")
@@ -1137,9 +1145,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--max-tasks", type=int, default=None, help="with --suite: skip rows with more tasks (at least "
                                                               "one row must remain)")
     _row_args(b, required=False)
-    b.add_argument("--count", type=int, default=50, help="instances per generated row (not used on your missions)")
-    b.add_argument("--seed", type=int, default=1000, help="test-set seed of the generated rows (never used in "
-                                                          "training/validation; not used on your missions)")
+    b.add_argument("--count", type=int, default=None,
+                   help=f"instances per generated row, not for your missions (default: {BENCH_COUNT})")
+    b.add_argument("--seed", type=int, default=None,
+                   help=f"test-set seed of the generated rows (never used in training or validation), not for "
+                        f"your missions (default: {BENCH_SEED})")
     add_method_arguments(b, methods_flag=True)
     b.add_argument("--bounds", action="store_true",
                    help="also report each method's gap to the best lower bound, (makespan - bound) / makespan as "

@@ -265,6 +265,24 @@ def test_a_repeated_pose_keeps_the_robot_alive_and_changes_nothing_to_publish():
     assert b.pose(2, x + 0.01, y) is True and b._gate_dirty == {2}
 
 
+def test_robots_that_never_report_fail_the_mission_naming_the_start_up_timeout():
+    """No process of the mission's robots came up: at the start-up timeout every robot is dropped
+    as never reported, and the failure says so (not only that the tasks became unsatisfiable)."""
+    now = FakeTime()
+    b = MissionBoard(INST, seed=SEED, rules=RULES, now=now, startup_timeout=3.0)
+    b.poll()
+    for _ in range(40):  # 4 s of ticks every 0.1 s
+        now.t += 0.1
+        b.tick()
+        b.poll()
+    assert b.started and set(b.lost.values()) == {"never reported"} and len(b.lost) == INST.n_agents
+    sol = b.result()
+    assert not sol.success
+    assert f"{INST.n_agents} of {INST.n_agents} robot(s) never reported within the start-up timeout (3 s)" \
+        in sol.extra["failure"], sol.extra["failure"]
+    assert "on this ROS domain?" in sol.extra["failure"]
+
+
 def test_silent_robot_is_lost_and_the_others_finish():
     now = FakeTime()
     b = started_board(now=now, heartbeat_timeout=5.0)
@@ -524,6 +542,7 @@ def test_an_operator_task_while_the_robots_drive_home_reopens_the_mission(tmp_pa
     pump(b)
     task = {"location": [0.9, 0.1], "requirements": [1, 1, 0], "duration": 1.5}
     assert b.task_request("cancel", "3")["reason"].startswith("nothing to cancel: every task is done")
+    assert b.task_request("cancel", "nosuch")["reason"].startswith("task 'nosuch': no task with this id")
     ans = b.task_request("add", "late", task)
     assert ans["event"] == "accepted" and ans["task"] == INST.n_tasks and ans["t"] == pytest.approx(b.clock)
     assert not b.state.done

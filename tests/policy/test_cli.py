@@ -355,6 +355,8 @@ HOPELESS = ["--scenario", "MA-AT", "--agents", "1", "--species", "1", "--tasks",
                                                       "with --suite"]),
     (["bench", str(EXAMPLE), "--tasks", "5"], ["--tasks: only applies with --scenario (a generated row), not with "
                                                "INSTANCE"]),
+    (["bench", str(EXAMPLE), "--count", "3"], ["--count: only applies to generated rows"]),
+    (["bench", str(EXAMPLE), "--seed", "5"], ["--seed: only applies to generated rows"]),
     # option values are checked before the cache is written
     (["bench", *ROW, "--methods", "greedy,cpsat", "--heuristic-seconds", "3", "--time-limit", "1"],
      ["option heuristic_seconds (--heuristic-seconds) 3 is more than option time_limit (--time-limit) 1"]),
@@ -377,6 +379,12 @@ def test_bad_counts_seeds_and_teams_leave_nothing(argv, needles, tmp_path, monke
     out = tmp_path / ("s.jsonl" if argv[0] == "schedules" else "out")
     _exit2([*argv, "--out", str(out), *(["--no-progress"] if argv[0] != "generate" else [])], capsys, *needles)
     assert list(tmp_path.iterdir()) == []  # no folder, no schedules header, no cache
+
+
+def test_solve_json_and_schedule_are_exclusive(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["solve", str(EXAMPLE), "--json", "--schedule"])
+    assert e.value.code == 2 and "--schedule: not allowed with argument --json" in capsys.readouterr().err
 
 
 def test_jobs_above_the_local_cores_are_refused_unless_on_a_cluster(tmp_path, monkeypatch, capsys):

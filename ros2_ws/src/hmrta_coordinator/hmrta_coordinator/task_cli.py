@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     from hmrta.instance import MAX_VALUE
 
     p = Parser(prog="hmrta-task", description=__doc__.split("\n\n")[0])
-    p.add_argument("--timeout", type=_number, default=10.0, help="seconds to wait for the board")
+    p.add_argument("--timeout", type=_number, default=10.0, help="seconds to wait for the board (default 10)")
     p.add_argument("--domain-id", type=int, default=None, help="ROS domain 0..232 (default: $ROS_DOMAIN_ID)")
     sub = p.add_subparsers(dest="cmd", required=True)
     a = sub.add_parser("add", help="submit a task")
