@@ -321,6 +321,10 @@ def check_planned_for(inst: Instance, sol: Solution, source: str = "solution") -
                     return
             except ValueError:
                 pass
+        if isinstance(sol.extra.get("dynamic"), dict) and not inst.dynamic:  # a scenario's, given its base mission
+            raise _serr(source, f"solution does not match the instance {short(inst.name)}: it is the solution of a "
+                                f"mission with events (a scenario, or a mission changed while it ran), this is the "
+                                f"mission without them: give the scenario file it was solved from")
         raise _serr(source, f"solution does not match the instance {short(inst.name)}: it was planned for another "
                             f"version of the mission (its instance_sha256 differs: the mission file changed since)")
 

@@ -307,7 +307,7 @@ def test_lost_robots_and_cancelled_tasks_are_marked(changed):
         plt.close(f.fig)
 
 
-def test_a_changed_mission_renders_png_and_gif(tmp_path, changed):
+def test_a_changed_mission_renders_png_and_gif(tmp_path, changed, capsys):
     import yaml
     from PIL import Image
 
@@ -324,6 +324,13 @@ def test_a_changed_mission_renders_png_and_gif(tmp_path, changed):
     (tmp_path / "sol.json").write_text(json.dumps(sol.to_dict()))
     assert main(["render", str(tmp_path / "s.yaml"), str(tmp_path / "sol.json"), "--out", str(tmp_path / "d.png")]) == 0
     assert (tmp_path / "d.png").stat().st_size > 20000
+    # the scenario's solution given with the mission without its events: said as such
+    (tmp_path / "base.yaml").write_text(yaml.safe_dump(CHANGING))
+    assert main(["solve", str(tmp_path / "s.yaml"), "--method", "greedy", "--out", str(tmp_path / "s.json")]) in (0, 3)
+    capsys.readouterr()
+    assert main(["render", str(tmp_path / "base.yaml"), str(tmp_path / "s.json"), "--out", str(tmp_path / "e.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "it is the solution of a mission with events" in err[0], err
 
 
 @pytest.mark.parametrize("event, expect", [
