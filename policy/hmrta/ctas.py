@@ -83,6 +83,8 @@ def instance_from_ctas_config(data: Any, source: str = "config.json") -> Instanc
     robots_d = _get(data, "robots", source)
     if not isinstance(tasks_d, dict) or not isinstance(robots_d, dict):
         raise InstanceError(f"{source}: tasks and robots: expected objects keyed by index")
+    if not robots_d:
+        raise InstanceError(f"{source}: robots: expected at least one robot, got none")
     for key, n in (("robots", len(robots_d)), ("tasks", len(tasks_d))):
         if key in setup and setup[key] != n:
             raise InstanceError(f"{source}: setup.{key} = {short(setup[key])} but {n} {key} are listed")

@@ -201,6 +201,8 @@ def load_keystore(path: str | os.PathLike, robots: Sequence[str] | None = None) 
     those (each must have a key)."""
     p = Path(path)
     f = p / KEYS_FILE if p.is_dir() else p
+    if p.is_dir() and not f.exists():
+        raise KeystoreError(f"{p}: not a keystore (no {KEYS_FILE} in it; create one with hmrta keys)")
     d = _read_private(f)
     if d.get("format") != KEYSTORE_FORMAT:
         raise KeystoreError(f"{f}: format: expected {KEYSTORE_FORMAT!r}, got {d.get('format')!r}")

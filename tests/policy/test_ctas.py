@@ -82,6 +82,7 @@ def _mut(cfg, path, value=None, delete=False):
 @pytest.mark.parametrize("path,value,delete,expect", [
     (("setup",), None, True, "missing key 'setup'"),
     (("robots",), None, True, "missing key 'robots'"),
+    (("robots",), {}, False, "robots: expected at least one robot, got none"),
     (("setup", "num_skills"), 0, False, "setup.num_skills: expected a positive integer"),
     (("setup", "robots"), 4, False, "setup.robots = 4 but 5 robots are listed"),
     (("setup", "tasks"), 7, False, "setup.tasks = 7 but 3 tasks are listed"),

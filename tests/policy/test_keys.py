@@ -217,6 +217,9 @@ def test_loading_refuses_readable_or_malformed_key_files(store, tmp_path):
         assert str(e.value).startswith(str(p)) and "\n" not in str(e.value), name
     with pytest.raises(K.KeystoreError, match="no such file"):
         K.load_keystore(tmp_path / "nope")
+    (tmp_path / "folder").mkdir()
+    with pytest.raises(K.KeystoreError, match=r"folder: not a keystore \(no keys.json in it; create one with hmrta keys\)"):
+        K.load_keystore(tmp_path / "folder")
     with pytest.raises(K.KeystoreError, match="format: expected 'hmrta-robot-key/1'"):
         K.load_key_file(path / "keys.json")
 
