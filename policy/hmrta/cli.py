@@ -376,11 +376,20 @@ def cmd_solve(args) -> int:
             by_stem[f.stem] = f
     insts = [_load(str(f)) for f in files]  # every input is read before anything is solved or written
     _plannable([method], [(str(f), inst) for f, inst in zip(files, insts)])  # ... and can be planned
+    import contextlib
+
+    from .methods import parse
+
+    # an anytime solver stopped by Ctrl-C keeps the best it found (written, then exit 130)
+    anytime = parse(method)[0] == "cpsat"
     sols = []
     for f, inst in tqdm(list(zip(files, insts)), desc="solve", disable=not many or not _progress_on(args),
                         unit="instance", file=sys.stderr, delay=SolveProgress.DELAY):
         with SolveProgress(f"{method} {inst.name}", _progress_on(args)) as prog:
-            sol = solve(inst, method, seed=args.seed, progress=prog, **_solve_opts(args))
+            if anytime:
+                from .solvers.cpsat import keep_best_on_interrupt
+            with keep_best_on_interrupt() if anytime else contextlib.nullcontext():
+                sol = solve(inst, method, seed=args.seed, progress=prog, **_solve_opts(args))
         sols.append(sol)
         if out:
             sol.save(out / f"{f.stem}.json" if to_folder else out)
@@ -388,9 +397,17 @@ def cmd_solve(args) -> int:
             print(sol.summary())
             if args.schedule:
                 print(schedule_text(inst, sol))
+        if sol.extra.get("interrupted"):
+            where = f"; written to {out / f'{f.stem}.json' if to_folder else out}" if out else ""
+            print(f"interrupted: {inst.name}: the best schedule found in {sol.compute_seconds:.1f} s{where}"
+                  + (f"; {len(files) - len(sols)} mission(s) not solved" if len(sols) < len(files) else ""),
+                  file=sys.stderr)
+            break
     if args.json:
         data = [s.to_dict() for s in sols]
         print(json.dumps(data[0] if len(data) == 1 else data, indent=1))
+    if any(s.extra.get("interrupted") for s in sols):
+        return 130
     return 0 if all(s.success for s in sols) else 3
 
 
@@ -1366,6 +1383,9 @@ def _main(argv: list[str] | None) -> int:
     except BrokenPipeError:
         return 0
     except Exception as e:  # noqa: BLE001
+        if isinstance(e, ImportError) and _interrupted(e):  # a Ctrl-C while an extension module loaded
+            print("interrupted", file=sys.stderr)
+            return 130
         if isinstance(e, _user_errors()):
             print(f"hmrta: error: {' '.join(str(e).splitlines())}", file=sys.stderr)  # always one line
             return 2
@@ -1375,6 +1395,18 @@ def _main(argv: list[str] | None) -> int:
     finally:
         if threads is not None:
             threads.remove()
+
+
+def _interrupted(e: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is among the exceptions that led to ``e`` (an extension
+    module interrupted while it loaded raises ImportError from it)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 if __name__ == "__main__":

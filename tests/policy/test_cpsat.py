@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import itertools
+import json
 import math
 
 import pytest
@@ -218,7 +219,8 @@ def test_routes_are_valid_for_evaluate():
 def test_ctrl_c_during_the_cp_sat_search_stops_the_command(tmp_path):
     """CP-SAT's own SIGINT handler would end the search and hand back the incumbent as a normal
     result (the command went on and exited 0; bench cached it). A Ctrl-C in the CP-SAT phase
-    stops `hmrta solve` at once: "interrupted", exit 130, no result printed or written."""
+    stops `hmrta solve` at once with the best schedule so far, written and marked interrupted,
+    and exit 130."""
     import signal
     import subprocess
     import sys
@@ -269,6 +271,46 @@ def test_ctrl_c_during_the_cp_sat_search_stops_the_command(tmp_path):
     text = read(1.0).replace("\r", "\n")
     os.close(master)
     assert p.returncode == 130, text
-    assert text.rstrip().endswith("interrupted") and "Traceback" not in text
-    assert stdout == "" and not out.exists()
+    assert text.rstrip().endswith(f"written to {out}") and "interrupted: " in text and "Traceback" not in text
+    assert "cpsat makespan" in stdout and json.loads(out.read_text())["interrupted"] is True
     assert stopped < 10.0  # not the 120 s time limit
+
+
+def _interrupt_after(seconds: float):
+    """A Ctrl-C to the main thread after ``seconds`` (as SIGINT raises KeyboardInterrupt there)."""
+    import _thread
+    import threading
+
+    t = threading.Timer(seconds, _thread.interrupt_main)
+    t.start()
+    return t
+
+
+def test_a_ctrl_c_keeps_the_best_solution_only_where_asked():
+    """Within keep_best_on_interrupt (``hmrta solve``), a Ctrl-C in the CP-SAT phase or in the
+    heuristic phase ends the solve with the best so far, marked interrupted; elsewhere (bench, a
+    library call) it is raised."""
+    import time
+
+    from hmrta.solvers.cpsat import keep_best_on_interrupt, solve_cpsat
+
+    inst = ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(3, 0)
+    greedy = solve(inst, "greedy", 0).makespan
+    for heuristic, at in ((0.3, 2.0), (15.0, 1.5)):  # Ctrl-C in CP-SAT, then in the annealing
+        timer = _interrupt_after(at)
+        t0 = time.perf_counter()
+        try:
+            with keep_best_on_interrupt():
+                sol = solve_cpsat(inst, 0, time_limit=30.0, heuristic_seconds=heuristic)
+        finally:
+            timer.cancel()
+        assert time.perf_counter() - t0 < at + 5.0
+        assert sol.extra["interrupted"] and sol.success and sol.makespan <= greedy
+        assert sol.extra["lower_bound"] <= sol.makespan
+        assert evaluate_routes(inst, sol.routes).makespan == sol.makespan
+    timer = _interrupt_after(1.5)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            solve_cpsat(inst, 0, time_limit=30.0, heuristic_seconds=0.3)
+    finally:
+        timer.cancel()

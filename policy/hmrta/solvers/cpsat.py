@@ -37,7 +37,10 @@ Phases (all within ``time_limit`` seconds of wall time):
    it stalls or meets the cheap lower bound;
 2. CP-SAT (``workers`` threads) on the model above, hinted with the best solution so far, for the
    rest of the time.
-The result is the best of all of them, re-evaluated, so never worse than the warm start. Models
+The result is the best of all of them, re-evaluated, so never worse than the warm start. Inside
+:func:`keep_best_on_interrupt` (``hmrta solve`` of one mission), a Ctrl-C in either phase ends
+the solve with the best so far (``extra["interrupted"]``; the bound is what was proven by then);
+elsewhere (``hmrta bench``, a library call) it is raised as usual. Models
 with more than ``MAX_ARCS`` species arcs (about 110 tasks with 5 species) are not built: the whole
 time goes to the heuristic, the status is ``none`` and the bound is the cheap one.
 
@@ -50,9 +53,11 @@ optimum is then within ``slack / 1000`` of the returned makespan (0.04 for 20 ta
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -62,6 +67,19 @@ from ..solution import Solution, evaluate_routes
 from .listsched import SerialDecoder, best_list_schedule, order_of, parallel_anneal, prune_routes
 
 SCALE = 1000
+_KEEP_BEST = contextvars.ContextVar("hmrta_cpsat_keep_best", default=False)
+
+
+@contextlib.contextmanager
+def keep_best_on_interrupt() -> Iterator[None]:
+    """Within it, a Ctrl-C (KeyboardInterrupt) during a solve ends it with the best solution found
+    so far, marked ``extra["interrupted"]``, instead of raising (once a first solution exists:
+    greedy's; before, it is raised)."""
+    token = _KEEP_BEST.set(True)
+    try:
+        yield
+    finally:
+        _KEEP_BEST.reset(token)
 
 
 def _ceil_scaled(x: float) -> int:
@@ -447,13 +465,15 @@ def _ProgressCallback(report: Callable[[str], None]):
     return _CB()
 
 
-def _interruptible_solve(solver, model, callback):
-    """``solver.Solve(model, callback)`` in a worker thread, so that a Ctrl-C reaches the caller.
+def _interruptible_solve(solver, model, callback, keep: bool = False) -> tuple[Any, bool]:
+    """(``solver.Solve(model, callback)`` run in a worker thread so that a Ctrl-C reaches the
+    caller, whether it was interrupted).
 
     CP-SAT's own SIGINT handler ends the search and returns the incumbent as if the time limit
     had passed: the caller could not tell a cut-short solve from a finished one. Here the solver
     leaves SIGINT alone; the calling thread waits, and on KeyboardInterrupt stops the search, waits
-    for the worker (it stops within ~0.2 s) and re-raises."""
+    for the worker (it stops within ~0.2 s) and re-raises, or (``keep``) returns the status of
+    the stopped search."""
     import threading
 
     solver.parameters.catch_sigint_signal = False
@@ -473,11 +493,12 @@ def _interruptible_solve(solver, model, callback):
             pass
     except KeyboardInterrupt:
         solver.StopSearch()
-        done.wait(30.0)
-        raise
+        if not done.wait(30.0) or not keep or "code" not in out:
+            raise
+        return out["code"], True
     if "error" in out:
         raise out["error"]
-    return out["code"]
+    return out["code"], False
 
 
 def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_start: str | None = None,
@@ -521,14 +542,20 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
             progress(time.perf_counter() - t0, float(time_limit), "s", note)
 
     report("heuristic" + (f", best {best0.makespan:.3f}" if best0 is not None else ""))
-    ls = best_list_schedule(inst, seed, min(1.0, 0.1 * hs), incumbent=best0)
-    if ls is not None:
-        cands.append(ls)
-        left = hs - (time.perf_counter() - t0)
-        if left > 0:
-            _, order = parallel_anneal(inst, order_of(ls), seed, left, int(workers), target=cheap)
-            _, r = SerialDecoder(inst).decode(order, routes_out=True)
-            cands.append(evaluate_routes(inst, r, "cpsat", seed))
+    interrupted = False
+    try:
+        ls = best_list_schedule(inst, seed, min(1.0, 0.1 * hs), incumbent=best0)
+        if ls is not None:
+            cands.append(ls)
+            left = hs - (time.perf_counter() - t0)
+            if left > 0:
+                _, order = parallel_anneal(inst, order_of(ls), seed, left, int(workers), target=cheap)
+                _, r = SerialDecoder(inst).decode(order, routes_out=True)
+                cands.append(evaluate_routes(inst, r, "cpsat", seed))
+    except KeyboardInterrupt:
+        if not (_KEEP_BEST.get() and cands):
+            raise
+        interrupted = True  # no model: the best so far, as for a model too large to build
     # model hint: the best candidate, pruned to minimal coalitions
     hint_sol, hint_routes, hint_C = None, None, None
     for c in sorted(cands, key=lambda c: c.makespan):
@@ -542,12 +569,16 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
             hint_sol, hint_routes, hint_C = evaluate_routes(inst, r, "cpsat", seed), r, sch[1]
     if hint_C is None:  # no usable hint: a trivial horizon (all tasks one after another by everyone)
         hint_C = sum(D.dur) + sum(max(max(D.t_out[s]) for s in range(D.S)) for _ in range(D.M + 1)) * 2 + 10
-    if too_big:  # too large to build: the heuristic's solution, cheap bounds only
+    if too_big or interrupted:  # too large to build, or stopped: the heuristic's solution, cheap bounds only
         best = min(cands, key=lambda c: c.makespan)
         out = evaluate_routes(inst, [list(r) for r in best.routes], "cpsat", seed)
         out.compute_seconds = time.perf_counter() - t0
+        note = ("interrupted in the heuristic phase: its best solution so far" if interrupted else
+                f"model not built: {n_arcs} arcs > MAX_ARCS={MAX_ARCS}; heuristic solution")
+        if interrupted:
+            out.extra["interrupted"] = True
         out.extra.update({"status": "none", "lower_bound": float(cheap), "objective": None,
-                          "note": f"model not built: {n_arcs} arcs > MAX_ARCS={MAX_ARCS}; heuristic solution",
+                          "note": note,
                           "time_limit": float(time_limit), "workers": int(workers),
                           "warm_start": warm_start,
                           "warm_start_makespan": None if warm_eval is None else float(warm_eval.makespan),
@@ -564,7 +595,8 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     solver.parameters.log_search_progress = LOG_SEARCH
     report(f"CP-SAT, best {min(c.makespan for c in cands):.3f}" if cands else "CP-SAT")
     t1 = time.perf_counter()
-    code = _interruptible_solve(solver, md, _ProgressCallback(report) if progress is not None else None)
+    code, interrupted = _interruptible_solve(solver, md, _ProgressCallback(report) if progress is not None else None,
+                                             keep=_KEEP_BEST.get())
     solve_wall = time.perf_counter() - t1
     status = {cp_model.OPTIMAL: "optimal", cp_model.FEASIBLE: "feasible"}.get(code, "none")
     slack = D.slack()
@@ -602,5 +634,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
         "hint_makespan": None if hint_sol is None else float(hint_sol.makespan),
         "source": "model" if best is model_sol else "heuristic",
     })
+    if interrupted:  # stopped by a Ctrl-C: the best so far, the bound proven by then
+        out.extra["interrupted"] = True
     return out
 

@@ -341,7 +341,14 @@ def parallel_anneal(inst: Instance, order: list[int], seed: int, seconds: float,
             for p, rx in procs:
                 p.terminate()
             procs = []
-    best = anneal(inst, order, seed, seconds, target=target)
+    try:
+        best = anneal(inst, order, seed, seconds, target=target)
+    except BaseException:  # e.g. a Ctrl-C: the other runs end with this one
+        for p, rx in procs:
+            p.terminate()
+            p.join(timeout=0.5)
+            rx.close()
+        raise
     deadline = time.perf_counter() + 2.0
     for p, rx in procs:
         try:
