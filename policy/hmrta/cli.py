@@ -1383,7 +1383,9 @@ def _main(argv: list[str] | None) -> int:
     except BrokenPipeError:
         return 0
     except Exception as e:  # noqa: BLE001
-        if isinstance(e, ImportError) and _interrupted(e):  # a Ctrl-C while an extension module loaded
+        from .errors import caused_by_interrupt
+
+        if isinstance(e, ImportError) and caused_by_interrupt(e):  # a Ctrl-C while an extension module loaded
             print("interrupted", file=sys.stderr)
             return 130
         if isinstance(e, _user_errors()):
@@ -1395,18 +1397,6 @@ def _main(argv: list[str] | None) -> int:
     finally:
         if threads is not None:
             threads.remove()
-
-
-def _interrupted(e: BaseException) -> bool:
-    """Whether a KeyboardInterrupt is among the exceptions that led to ``e`` (an extension
-    module interrupted while it loaded raises ImportError from it)."""
-    seen = set()
-    while e is not None and id(e) not in seen:
-        if isinstance(e, KeyboardInterrupt):
-            return True
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
-    return False
 
 
 if __name__ == "__main__":

@@ -20,7 +20,9 @@ def run(prog: str, module: str, func: str = "main") -> None:
     except KeyboardInterrupt:
         _interrupted(prog)
     except ImportError as e:
-        if not _caused_by_interrupt(e):
+        from hmrta.errors import caused_by_interrupt  # a leaf module: nothing heavy
+
+        if not caused_by_interrupt(e):
             raise
         _interrupted(prog)  # a C extension (rclpy's) interrupted while it initialises
     raise SystemExit(code)
@@ -29,15 +31,3 @@ def run(prog: str, module: str, func: str = "main") -> None:
 def _interrupted(prog: str):
     print(f"{prog}: interrupted", file=sys.stderr)
     raise SystemExit(130) from None
-
-
-def _caused_by_interrupt(e: BaseException) -> bool:
-    """Whether a KeyboardInterrupt is among the causes of ``e`` (pybind11 turns a Ctrl-C while an
-    extension module initialises into ``ImportError: initialization failed`` caused by it)."""
-    seen = set()
-    while e is not None and id(e) not in seen:
-        if isinstance(e, KeyboardInterrupt):
-            return True
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
-    return False
