@@ -586,6 +586,9 @@ def _main(argv: list[str] | None = None) -> int:
     asked, keystore = args.method, None
     try:
         inst = load_instance(path)
+        if args.scenario and not inst.dynamic:  # --scenario of a plain mission file: said, then run
+            print(f"hmrta-mission: note: --scenario {path} has no timed events or releases: it runs as a plain "
+                  f"mission", file=sys.stderr)
         robots = [f"robot_{a}" for a in range(inst.n_agents)]
         if args.keystore:  # every robot of the mission has a key (checked before any simulation runs)
             keystore = Path(args.keystore).absolute()
