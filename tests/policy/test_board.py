@@ -397,6 +397,34 @@ def test_a_board_replayed_from_its_journal_continues_like_the_uninterrupted_miss
     assert again.compute_seconds == sol.compute_seconds and again.extra["lost_robots"] == []
 
 
+def test_a_restarted_board_gives_robots_it_has_not_heard_yet_the_start_up_timeout(tmp_path):
+    """A board restarted on its journal is found by the agents' publishers only after discovery
+    (heartbeats sent before are lost): a robot it has not heard yet is dropped only after the
+    start-up timeout, as at the first start; one it heard and then not is dropped after the
+    heartbeat timeout."""
+    j = tmp_path / "journal.jsonl"
+    b = started_board(journal=j)
+    for a in range(INST.n_agents):
+        b.heartbeat(b.session, [b.names[a]])
+    drive(b, steps=5)
+    b.poll()
+    now = FakeTime()
+    b2 = started_board(journal=j, now=now, heartbeat_timeout=5.0, startup_timeout=30.0)
+    assert b2.restarts == 1 and b2.started and not b2.lost
+    late = {1, 2}  # their agents' processes are discovered late
+    for k in range(200):  # 20 s of ticks every 0.1 s, heartbeats every second
+        now.t += 0.1
+        if k % 10 == 9:
+            b2.heartbeat(b2.session, [n for a, n in enumerate(b2.names) if a not in late and (a != 3 or k < 20)])
+        b2.tick()
+    assert set(b2.lost) == {3} and b2.lost[3] == "no agent heartbeat for 5 s"  # heard, then silent
+    for _ in range(110):  # past the start-up timeout of the restart
+        now.t += 0.1
+        b2.heartbeat(b2.session, [n for a, n in enumerate(b2.names) if a not in late | {3}])
+        b2.tick()
+    assert set(b2.lost) == {1, 2, 3} and b2.lost[1] == "no agent heartbeat since the board started (30 s)"
+
+
 def test_losses_are_journaled_and_replayed(tmp_path):
     j = tmp_path / "journal.jsonl"
     b = started_board(journal=j, heartbeat_timeout=0.0)
