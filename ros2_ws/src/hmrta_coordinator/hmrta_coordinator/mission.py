@@ -660,7 +660,7 @@ def _main(argv: list[str] | None = None) -> int:
             status = "the task board exited without writing the result"
         sol = partial_result(inst, procs, args.method, args.seed, wall, status)
         sol.save(out)
-        print(f"hmrta-mission: the mission did not complete ({status}); {sol.extra['tasks_done']}/{inst.n_tasks} "
+        print(f"hmrta-mission: the mission did not complete ({status}); {sol.extra['tasks_done']}/{len(sol.tasks)} "
               f"tasks were done; wrote the partial result {out}; board log tail:\n{log_tail(procs.board.log)}",
               file=sys.stderr)
         if procs.record is not None and procs.record.exists():

@@ -130,7 +130,9 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             t = b.state["tasks"]
             names = t.get("names") or [None] * len(t["status"])
-            rclpy.spin_once(node, timeout_sec=0.05)  # the latched clock, if not heard yet
+            heard = min(deadline, time.monotonic() + 2.0)  # the latched clock, if not heard yet (discovery)
+            while not now and time.monotonic() < heard:
+                rclpy.spin_once(node, timeout_sec=0.05)
             clock = f"mission clock {now[-1]:.3f}" if now else "mission clock not heard"
             print(f"board {b.version}, phase {b.phase}, state at t={b.clock:.3f}, {clock}: "
                   f"{b.n_done}/{b.n_tasks} tasks done")
