@@ -866,13 +866,13 @@ class MissionBoard(BoardCore):
                 # liveness is the agent's heartbeat: a silent pose (a robot standing still whose
                 # driver reports only on updates, as amcl does) drops nobody
                 seen = self.seen_status[a]
-                if seen is None:  # not heard by this board process yet: a board restarted on its
-                    # journal is found by the agents' publishers only after DDS discovery (seconds,
-                    # more on a loaded machine; heartbeats sent before are not delivered), so the
-                    # start-up timeout applies, as at the first start
+                if seen is None and self.restarts:  # not heard by this process of a board restarted
+                    # on its journal: it is found by the agents' publishers only after DDS discovery
+                    # (seconds, more on a loaded machine; heartbeats sent before are not delivered),
+                    # so the start-up timeout applies, as at the first start
                     if self.startup_timeout > 0 and now - max(self.t_start, self._resumed) > self.startup_timeout:
-                        self.lose(a, f"no agent heartbeat since the board started ({self.startup_timeout:g} s)")
-                elif now - max(seen, self.t_start, self._resumed) > T:
+                        self.lose(a, f"no agent heartbeat since the board restarted ({self.startup_timeout:g} s)")
+                elif now - max(seen or 0.0, self.t_start, self._resumed) > T:
                     self.lose(a, f"no agent heartbeat for {T:g} s")
         if (self.decision_timeout > 0 and self.phase == "decide"
                 and now - max(self.released_at, self._resumed) > self.decision_timeout):

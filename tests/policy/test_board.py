@@ -422,7 +422,7 @@ def test_a_restarted_board_gives_robots_it_has_not_heard_yet_the_start_up_timeou
         now.t += 0.1
         b2.heartbeat(b2.session, [n for a, n in enumerate(b2.names) if a not in late | {3}])
         b2.tick()
-    assert set(b2.lost) == {1, 2, 3} and b2.lost[1] == "no agent heartbeat since the board started (30 s)"
+    assert set(b2.lost) == {1, 2, 3} and b2.lost[1] == "no agent heartbeat since the board restarted (30 s)"
 
 
 def test_losses_are_journaled_and_replayed(tmp_path):
