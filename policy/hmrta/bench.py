@@ -612,11 +612,16 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
         if fh:
             fh.close()
     left = left_out_summary(summary)
-    for (n, of, why), cs in _grouped(left).items():
-        log(f"portfolio: left out {', '.join(cs)} on {n} of {of} mission(s) ({why})")
-    n_all = sum(len(insts) for _, insts in sets)
-    summary["provenance"] = provenance(methods, solve_opts, command,
-                                       not_run=[c for c, (n, _, _) in left.items() if n == n_all])
+    for m, lo in left.items():
+        for (n, of, why), cs in _grouped(lo).items():
+            log(f"{m}: left out {', '.join(cs)} on {n} of {of} mission(s) ({why})")
+
+    def ran_nowhere(spec: str) -> bool:  # every run that holds it left it out of all its missions
+        holders = [m for m in methods if spec in run_specs(m, solve_opts)]
+        return all(spec in left.get(m, {}) and left[m][spec][0] == left[m][spec][1] for m in holders)
+
+    specs = {s for m in methods for s in run_specs(m, solve_opts)}
+    summary["provenance"] = provenance(methods, solve_opts, command, not_run=sorted(filter(ran_nowhere, specs)))
     if fan.distributed:  # solves ran side by side: their compute seconds shared the machine(s)
         summary["provenance"]["fanout"] = {"workers": workers, "ray_address": ray_address}
     return summary
@@ -630,16 +635,20 @@ def _grouped(left: dict[str, Any]) -> dict[Any, list[str]]:
     return by
 
 
-def left_out_summary(summary: dict) -> dict[str, tuple[int, int, str]]:
-    """{candidate: (missions it was left out of, missions of the rows it was, a reason)} over every
-    row and method of a summary (a portfolio's default candidates that could not run)."""
-    left: dict[str, tuple[int, int, str]] = {}
-    for r in summary["rows"]:
-        for res in r["results"].values():
-            for c, x in (res.get("left_out") or {}).items():
-                n, of, _ = left.get(c, (0, 0, ""))
-                left[c] = (n + x["missions"], of + res["n"], x["reason"])
-    return left
+def left_out_summary(summary: dict) -> dict[str, dict[str, tuple[int, int, str]]]:
+    """{method: {candidate: (missions it was left out of, the method's missions in every row, a
+    reason)}} of a summary: a portfolio's default candidates that could not run."""
+    out: dict[str, dict[str, tuple[int, int, str]]] = {}
+    for m in summary["methods"]:
+        res = [r["results"][m] for r in summary["rows"] if m in r["results"]]
+        total = sum(x["n"] for x in res)
+        left: dict[str, tuple[int, int, str]] = {}
+        for x in res:
+            for c, lo in (x.get("left_out") or {}).items():
+                left[c] = (left.get(c, (0, 0, ""))[0] + lo["missions"], total, lo["reason"])
+        if left:
+            out[m] = left
+    return out
 
 
 # ---------------------------------------------------------------------------------------------

@@ -610,6 +610,7 @@ class MissionBoard(BoardCore):
             except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as e:
                 raise JournalError(f"{path}: line {i + 2} cannot be replayed ({e})") from None
         self.restarts += 1
+        self.seen_status = [None] * len(self.names)  # no agent heard by this process yet (robots that joined too)
         self.journal = Journal(path, keep)
         self._events.append({"type": "resume", "t": float(self.state.clock)})
         self._keyframe_due = "resumed"  # replicas of the previous board process may have missed its last versions

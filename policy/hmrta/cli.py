@@ -403,9 +403,9 @@ def cmd_solve(args) -> int:
                   + (f"; {len(files) - len(sols)} mission(s) not solved" if len(sols) < len(files) else ""),
                   file=sys.stderr)
             break
-    if args.json:
+    if args.json:  # one object for one mission, a list for several (however many were solved)
         data = [s.to_dict() for s in sols]
-        print(json.dumps(data[0] if len(data) == 1 else data, indent=1))
+        print(json.dumps(data[0] if len(files) == 1 else data, indent=1))
     if any(s.extra.get("interrupted") for s in sols):
         return 130
     return 0 if all(s.success for s in sols) else 3

@@ -66,8 +66,9 @@ class Recording:
         """Per robot (mission agent order), per task of its planned route: ``task``, planned
         ``arrival`` / ``start`` / ``finish`` (NaN when unknown) and ``actual_arrival`` (the first
         pose within ``tolerance`` mission units of the task after the previous visit's; NaN if
-        none, and NaN when no pose of the robot away from the task was recorded before it: a
-        recorder that heard the robot first when it was already there saw no arrival).
+        none, and NaN when no pose of the robot away from the task was recorded before it, unless
+        it set off from within the tolerance of the task: a recorder that heard the robot first
+        when it was already there saw no arrival).
         ``tolerance`` defaults to 1 % of the mission area's diagonal."""
         if self.plan is None:
             return [[] for _ in self.robots]
@@ -77,13 +78,18 @@ class Recording:
         timeline = agent_timeline(self.instance, self.plan)
         out = []
         for a, route in enumerate(self.plan.routes):
-            arrive = {s["task"]: s["t1"] for s in timeline[a] if s["kind"] == "travel" and s["task"] is not None}
+            legs = [s for s in timeline[a] if s["kind"] == "travel" and s["task"] is not None]
+            arrive = {s["task"]: s["t1"] for s in legs}
+            leaves = {s["task"]: s["p0"] for s in legs}  # where the robot set off for each task
             track = self.tracks.get(self.robots[a], [])
             i, rows = 0, []
             for m in route:
                 tk = self.plan.tasks[m]
                 loc = self.instance.task_locations[m]
-                actual, away = math.nan, False  # away: a pose on the way here was recorded
+                # away: a pose on the way here was recorded (or there is no way: it set off within
+                # the tolerance of the task, from a task or depot at the same place)
+                p0 = leaves.get(m)
+                actual, away = math.nan, p0 is not None and math.hypot(p0[0] - loc[0], p0[1] - loc[1]) <= tol
                 while i < len(track):
                     t, x, y = track[i]
                     if math.hypot(x - loc[0], y - loc[1]) <= tol:

@@ -307,3 +307,13 @@ def test_a_portfolio_names_the_candidates_it_left_out(tmp_path):
     assert "checkpoint" not in md.split("###")[0]
     # where the learned candidates do run, they are listed as before
     assert provenance(["portfolio"], {}, not_run=["rl@broad"])["own_checkpoints"].keys() == {"rl@coalition-team"}
+    # beside a mission they run on, and with a method of their own: counted per method, listed
+    three = tmp_path / "three.yaml"
+    ScenarioGenerator("MA-AT", 6, 3, 8, 3).instance(3, 0).save(three)
+    logged.clear()
+    s = run_bench([MissionSet.load("mixed", [files[0], three])], ["greedy", "portfolio"], 1, 0, None, {},
+                  progress=False, log=logged.append)
+    assert any(line.startswith("portfolio: left out rl, rl@broad, rl@coalition-team on 1 of 2 mission(s)")
+               for line in logged), logged
+    assert s["provenance"]["checkpoint"] is not None and set(s["provenance"]["own_checkpoints"]) == {
+        "rl@broad", "rl@coalition-team"}

@@ -407,11 +407,12 @@ def test_a_restarted_board_gives_robots_it_has_not_heard_yet_the_start_up_timeou
     for a in range(INST.n_agents):
         b.heartbeat(b.session, [b.names[a]])
     drive(b, steps=5)
+    assert b.join("newbie", species=0) is None and "newbie" in b.names  # joined at run time
     b.poll()
     now = FakeTime()
     b2 = started_board(journal=j, now=now, heartbeat_timeout=5.0, startup_timeout=30.0)
-    assert b2.restarts == 1 and b2.started and not b2.lost
-    late = {1, 2}  # their agents' processes are discovered late
+    assert b2.restarts == 1 and b2.started and not b2.lost and b2.names[-1] == "newbie"
+    late = {1, 2, len(b2.names) - 1}  # their agents' processes are discovered late (the joined robot's too)
     for k in range(200):  # 20 s of ticks every 0.1 s, heartbeats every second
         now.t += 0.1
         if k % 10 == 9:
@@ -422,7 +423,7 @@ def test_a_restarted_board_gives_robots_it_has_not_heard_yet_the_start_up_timeou
         now.t += 0.1
         b2.heartbeat(b2.session, [n for a, n in enumerate(b2.names) if a not in late | {3}])
         b2.tick()
-    assert set(b2.lost) == {1, 2, 3} and b2.lost[1] == "no agent heartbeat since the board restarted (30 s)"
+    assert set(b2.lost) == late | {3} and b2.lost[1] == "no agent heartbeat since the board restarted (30 s)"
 
 
 def test_losses_are_journaled_and_replayed(tmp_path):

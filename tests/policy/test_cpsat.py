@@ -286,6 +286,23 @@ def _interrupt_after(seconds: float):
     return t
 
 
+def test_a_ctrl_c_while_the_model_is_built_keeps_the_heuristics_best(monkeypatch):
+    from hmrta.solvers import cpsat
+    from hmrta.solvers.cpsat import keep_best_on_interrupt, solve_cpsat
+
+    def interrupted(*a, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cpsat, "_build", interrupted)
+    inst = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(3, 0)
+    with keep_best_on_interrupt():
+        sol = solve_cpsat(inst, 0, time_limit=5.0, heuristic_seconds=0.2)
+    assert sol.extra["interrupted"] and sol.success and sol.extra["note"].startswith("interrupted before the CP-SAT")
+    assert sol.makespan <= solve(inst, "greedy", 0).makespan
+    with pytest.raises(KeyboardInterrupt):
+        solve_cpsat(inst, 0, time_limit=5.0, heuristic_seconds=0.2)
+
+
 def test_a_ctrl_c_keeps_the_best_solution_only_where_asked():
     """Within keep_best_on_interrupt (``hmrta solve``), a Ctrl-C in the CP-SAT phase or in the
     heuristic phase ends the solve with the best so far, marked interrupted; elsewhere (bench, a

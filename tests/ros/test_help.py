@@ -168,6 +168,8 @@ def test_param_parse_rejects(typ, text):
     ("hmrta-mission", ["--domain-id", "500"], "--domain-id"),
     ("hmrta-mission", ["--seed", "-1"], "--seed"),
     ("hmrta-task", ["--domain-id", "500", "list"], "--domain-id"),
+    ("hmrta-task", ["list", "--clock-topic", "/clock"], "--clock-topic: expected an absolute topic other than /clock"),
+    ("hmrta-task", ["list", "--clock-topic", "/my clock"], "--clock-topic: '/my clock' is not a topic name"),
     ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "1,0", "--duration", "nan"], "--duration"),
     ("hmrta-task", ["add", "--location", "0.1,0.2", "--requirements", "1,0", "--duration", "inf"], "--duration"),
     ("hmrta-task", ["add", "--location", "nan,0.2", "--requirements", "1,0", "--duration", "1"], "--location"),

@@ -543,7 +543,8 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
 
     report("heuristic" + (f", best {best0.makespan:.3f}" if best0 is not None else ""))
     interrupted = False
-    try:
+    hint_sol, hint_routes, hint_C = None, None, None
+    try:  # a Ctrl-C from here up to the search keeps the heuristic's best (keep_best_on_interrupt)
         ls = best_list_schedule(inst, seed, min(1.0, 0.1 * hs), incumbent=best0)
         if ls is not None:
             cands.append(ls)
@@ -552,28 +553,30 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
                 _, order = parallel_anneal(inst, order_of(ls), seed, left, int(workers), target=cheap)
                 _, r = SerialDecoder(inst).decode(order, routes_out=True)
                 cands.append(evaluate_routes(inst, r, "cpsat", seed))
+        # model hint: the best candidate, pruned to minimal coalitions
+        for c in sorted(cands, key=lambda c: c.makespan):
+            r = prune_routes(inst, c.routes)
+            if not _hint_valid(D, r):
+                continue
+            sch = _int_schedule(D, r)
+            if sch is None:
+                continue
+            if hint_C is None or sch[1] < hint_C:
+                hint_sol, hint_routes, hint_C = evaluate_routes(inst, r, "cpsat", seed), r, sch[1]
+        if hint_C is None:  # no usable hint: a trivial horizon (all tasks one after another by everyone)
+            hint_C = sum(D.dur) + sum(max(max(D.t_out[s]) for s in range(D.S)) for _ in range(D.M + 1)) * 2 + 10
+        if not too_big:
+            lb_C = min(max(0, int(math.floor(cheap * SCALE * (1 - 1e-12)))), hint_C)
+            md, Cv, start, f = _build(D, hint_C, lb_C, hint_routes)
     except KeyboardInterrupt:
         if not (_KEEP_BEST.get() and cands):
             raise
-        interrupted = True  # no model: the best so far, as for a model too large to build
-    # model hint: the best candidate, pruned to minimal coalitions
-    hint_sol, hint_routes, hint_C = None, None, None
-    for c in sorted(cands, key=lambda c: c.makespan):
-        r = prune_routes(inst, c.routes)
-        if not _hint_valid(D, r):
-            continue
-        sch = _int_schedule(D, r)
-        if sch is None:
-            continue
-        if hint_C is None or sch[1] < hint_C:
-            hint_sol, hint_routes, hint_C = evaluate_routes(inst, r, "cpsat", seed), r, sch[1]
-    if hint_C is None:  # no usable hint: a trivial horizon (all tasks one after another by everyone)
-        hint_C = sum(D.dur) + sum(max(max(D.t_out[s]) for s in range(D.S)) for _ in range(D.M + 1)) * 2 + 10
+        interrupted = True  # no search: the best so far, as for a model too large to build
     if too_big or interrupted:  # too large to build, or stopped: the heuristic's solution, cheap bounds only
         best = min(cands, key=lambda c: c.makespan)
         out = evaluate_routes(inst, [list(r) for r in best.routes], "cpsat", seed)
         out.compute_seconds = time.perf_counter() - t0
-        note = ("interrupted in the heuristic phase: its best solution so far" if interrupted else
+        note = ("interrupted before the CP-SAT search: the heuristic's best solution so far" if interrupted else
                 f"model not built: {n_arcs} arcs > MAX_ARCS={MAX_ARCS}; heuristic solution")
         if interrupted:
             out.extra["interrupted"] = True
@@ -584,9 +587,6 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
                           "warm_start_makespan": None if warm_eval is None else float(warm_eval.makespan),
                           "hint_makespan": float(best.makespan), "source": "heuristic"})
         return out
-    lb_C = max(0, int(math.floor(cheap * SCALE * (1 - 1e-12))))
-    lb_C = min(lb_C, hint_C)
-    md, Cv, start, f = _build(D, hint_C, lb_C, hint_routes)
     solver = cp_model.CpSolver()
     remaining = max(0.05, time_limit - (time.perf_counter() - t0))
     solver.parameters.max_time_in_seconds = remaining

@@ -366,8 +366,7 @@ class AgentNode(Node):
         keystore = self.declare_parameter("keystore", "").value
         key_file = self.declare_parameter("key_file", "").value
         self.clock_topic = self.declare_parameter("clock_topic", "/hmrta/clock").value
-        if not self.clock_topic.startswith("/") or self.clock_topic.rstrip("/") == "/clock":
-            raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {self.clock_topic!r}")
+        topics.check_clock_topic(self.clock_topic)
         self.board_silence_warning = self.declare_parameter("board_silence_warning", 10.0).value
         if not (self.board_silence_warning >= 0 and math.isfinite(self.board_silence_warning)):
             raise ValueError(f"board_silence_warning: expected a number of seconds >= 0 (0: never), "

@@ -107,8 +107,7 @@ class SimRobot(Node):
                                ("board_silence_warning", silence, silence >= 0, "a number of seconds >= 0 (0: never)")):
             if not ok or not math.isfinite(v):
                 raise ValueError(f"{k}: expected {want}, got {v!r}")
-        if not clock_topic.startswith("/") or clock_topic.rstrip("/") == "/clock":
-            raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {clock_topic!r}")
+        topics.check_clock_topic(clock_topic)
         self.mission: Mission | None = None
         self.robots: dict[str, SimulatedRobot] = {}
         self.now = 0.0

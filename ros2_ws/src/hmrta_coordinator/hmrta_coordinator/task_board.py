@@ -169,8 +169,7 @@ class TaskBoard(Node):
                                            + (f" (did you mean {close[r]!r}?)" if close[r] else "")
                                            for r in strangers)
                 + f"; its robots are {_names(names)}. The entry applies only if a robot of that name joins")
-        if not clock_topic.startswith("/") or clock_topic.rstrip("/") == "/clock":
-            raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {clock_topic!r}")
+        topics.check_clock_topic(clock_topic)
         # KeystoreError (a ValueError, one line naming the file and field) is a user error
         if keystore:  # a key for every robot of the mission; those of robots a scenario adds are taken too
             load_keystore(keystore, names)

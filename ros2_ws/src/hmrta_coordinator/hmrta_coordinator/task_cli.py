@@ -69,6 +69,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if args.timeout <= 0:
         p.error("--timeout: expected a positive number")
+    if getattr(args, "clock_topic", None) is not None:
+        from hmrta_msgs_py.topics import check_clock_topic
+
+        try:
+            check_clock_topic(args.clock_topic)
+        except ValueError as e:
+            p.error(f"--{e}".replace("--clock_topic", "--clock-topic", 1))
     if args.domain_id is not None and not 0 <= args.domain_id <= 232:
         p.error(f"--domain-id: expected a ROS domain id in 0..232, got {args.domain_id}")
     if args.cmd == "add":  # a mission file's bounds (hmrta.instance): what the board accepts too

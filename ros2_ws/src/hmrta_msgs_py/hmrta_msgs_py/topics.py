@@ -22,7 +22,7 @@ TASK_REQUESTS = "/hmrta/task_requests"  # std_msgs/String hmrta-task-request/1  
 TASK_EVENTS = "/hmrta/task_events"  # std_msgs/String hmrta-task-event/1  board -> operators
 # the mission clock (sim_robot -> all; ``clock_topic`` parameter): inside the /hmrta namespace, so
 # another node's /clock (a simulator such as Gazebo) never moves a mission
-CLOCK = "/hmrta/clock"  # rosgraph_msgs/Clock
+CLOCK = "/hmrta/clock"  # rosgraph_msgs/Clock (check_clock_topic: what may name it)
 
 # ---- per-robot topics (relative: resolved in the robot's namespace) -----------------------------
 GOAL = "goal_pose"  # geometry_msgs/PoseStamped  agent -> robot driver (Nav2's goal topic)
@@ -73,3 +73,17 @@ POSE_SUB_QOS = _qos(10, reliable=False)
 AMCL_POSE_SUB_QOS = _qos(1, latched=True)
 POSE_SUB_QOS_BY_TYPE = {"PoseStamped": POSE_SUB_QOS, "PoseWithCovarianceStamped": AMCL_POSE_SUB_QOS,
                         "Odometry": POSE_SUB_QOS}
+
+
+def check_clock_topic(name: str) -> str:
+    """``name`` if it can name the mission clock (an absolute, valid topic other than /clock, a
+    simulator's); else a ValueError saying why (the nodes' ``clock_topic``, ``hmrta-task``)."""
+    if not isinstance(name, str) or not name.startswith("/") or name.rstrip("/") == "/clock":
+        raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {name!r}")
+    from rclpy.validate_topic_name import validate_topic_name
+
+    try:
+        validate_topic_name(name)
+    except Exception as e:  # noqa: BLE001 - rclpy's InvalidTopicNameException: its first line says why
+        raise ValueError(f"clock_topic: {name!r} is not a topic name ({str(e).splitlines()[0]})") from None
+    return name
