@@ -342,11 +342,11 @@ def file_sha256(path: Path) -> str:
 
 
 def provenance(methods: list[str], solve_opts: dict[str, Any], command: str | None = None,
-               not_run: Iterable[str] = ()) -> dict:
+               ran: Iterable[str] | None = None) -> dict:
     """What produced a results file: code version, checkpoint (for rl methods: file name and
     sha256), library versions, CPU model and cores, torch threads, command line, UTC date.
-    ``not_run``: a portfolio's candidates left out on every mission (no checkpoint of theirs
-    is listed; nor the default one when nothing that reads it ran)."""
+    ``ran``: the method specs that solved something (default: every spec of the runs, see
+    :func:`run_specs`); a checkpoint is listed only when one of them read it."""
     from . import __version__
     from .methods import parse
 
@@ -357,13 +357,12 @@ def provenance(methods: list[str], solve_opts: dict[str, Any], command: str | No
         return {"name": path.name, "sha256": file_sha256(path) if path.is_file() else None,
                 "shipped": path.resolve().parent == SHIPPED_DIR.resolve()}
 
-    not_run = set(not_run)
-    ran = [s for m in methods for s in run_specs(m, solve_opts) if s not in not_run]  # specs that solved
+    ran = {s for m in methods for s in run_specs(m, solve_opts)} if ran is None else set(ran)
     # the default checkpoint: read by a spec that ran without one of its own (rl, not rl@broad)
     reads_default = any(uses_checkpoint(s) and "checkpoint" not in parse(s)[1] for s in ran)
     checkpoint = describe(solve_opts.get("checkpoint")) if reads_default else None
     own = {spec: describe(ck) for m in methods for spec, ck in own_checkpoints(m, solve_opts).items()
-           if spec not in not_run}
+           if spec in ran}
     torch_threads = sys.modules["torch"].get_num_threads() if "torch" in sys.modules else None
     return {
         "code_version": code_version(),
@@ -616,12 +615,9 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
         for (n, of, why), cs in _grouped(lo).items():
             log(f"{m}: left out {', '.join(cs)} on {n} of {of} mission(s) ({why})")
 
-    def ran_nowhere(spec: str) -> bool:  # every run that holds it left it out of all its missions
-        holders = [m for m in methods if spec in run_specs(m, solve_opts)]
-        return all(spec in left.get(m, {}) and left[m][spec][0] == left[m][spec][1] for m in holders)
-
-    specs = {s for m in methods for s in run_specs(m, solve_opts)}
-    summary["provenance"] = provenance(methods, solve_opts, command, not_run=sorted(filter(ran_nowhere, specs)))
+    ran = [s for m in methods for s in run_specs(m, solve_opts)  # unless left out of all the run's missions
+           if s not in left.get(m, {}) or left[m][s][0] < left[m][s][1]]
+    summary["provenance"] = provenance(methods, solve_opts, command, ran=ran)
     if fan.distributed:  # solves ran side by side: their compute seconds shared the machine(s)
         summary["provenance"]["fanout"] = {"workers": workers, "ray_address": ray_address}
     return summary

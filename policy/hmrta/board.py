@@ -1038,11 +1038,28 @@ class MissionBoard(BoardCore):
         if op == "add":
             return ("the mission is over (every task is done; the robots are going home, and a robot was lost on "
                     "the way)" if lost_on_the_way else None)
-        if rid not in self.requests and _task_index(rid, st.M) is None:
+        if not self._names_a_task(rid):
             return None  # no such task: said as such
         return ("the mission is over (every task is done or cancelled; the robots are going home)" if lost_on_the_way
                 else "nothing to cancel: every task is done or cancelled (the robots are going home; a task added "
                      "now reopens the mission)")
+
+    def _id_problem(self, op: str, rid: str) -> str | None:
+        """Why task id ``rid`` cannot be added (taken, or decimal digits) or cancelled (no such
+        task), or None."""
+        if op == "add" and rid in self.requests:
+            return f"task {rid!r}: a task with this id exists already"
+        if op == "add" and rid.isascii() and rid.isdigit():
+            return (f"task {rid!r}: an id of decimal digits names a task of the mission by its index (hmrta-task "
+                    f"cancel {rid}): choose an id with a letter")
+        if op == "cancel" and not self._names_a_task(rid):
+            return (f"task {rid!r}: no task with this id (an operator's task by its id, a task of the mission "
+                    f"by its index 0..{self.state.M - 1})")
+        return None
+
+    def _names_a_task(self, rid: str) -> bool:
+        """Whether ``rid`` is an operator's task id or the index of a task of the mission."""
+        return rid in self.requests or _task_index(rid, self.state.M) is not None
 
     def task_request(self, op: str, rid: str, task: dict[str, Any] | None = None,
                      request_id: str = "") -> dict[str, Any]:
@@ -1054,15 +1071,7 @@ class MissionBoard(BoardCore):
         ans: dict[str, Any] = {"id": rid, "op": op}
         if request_id:
             ans["request_id"] = request_id
-        why = self._not_taking(op, rid)
-        if why is None and op == "add" and rid in self.requests:
-            why = f"task {rid!r}: a task with this id exists already"
-        elif why is None and op == "add" and rid.isascii() and rid.isdigit():
-            why = (f"task {rid!r}: an id of decimal digits names a task of the mission by its index (hmrta-task "
-                   f"cancel {rid}): choose an id with a letter")
-        elif why is None and op == "cancel" and rid not in self.requests and _task_index(rid, st.M) is None:
-            why = (f"task {rid!r}: no task with this id (an operator's task by its id, a task of the mission "
-                   f"by its index 0..{st.M - 1})")
+        why = self._not_taking(op, rid) or self._id_problem(op, rid)
         if why is None:
             rec: dict[str, Any] = {"type": "add_task" if op == "add" else "cancel_task", "t": self._event_time(),
                                    "until": float(st.until), "name": rid}

@@ -349,7 +349,7 @@ def _solve_opts(args) -> dict:
 
 # ---------------------------------------------------------------------------------------------
 def cmd_solve(args) -> int:
-    from .methods import solve
+    from .methods import keep_best_on_interrupt, solve
     from tqdm import tqdm
 
     _seed(args.seed)
@@ -376,20 +376,12 @@ def cmd_solve(args) -> int:
             by_stem[f.stem] = f
     insts = [_load(str(f)) for f in files]  # every input is read before anything is solved or written
     _plannable([method], [(str(f), inst) for f, inst in zip(files, insts)])  # ... and can be planned
-    import contextlib
-
-    from .methods import parse
-
-    # an anytime solver stopped by Ctrl-C keeps the best it found (written, then exit 130)
-    anytime = parse(method)[0] == "cpsat"
     sols = []
     for f, inst in tqdm(list(zip(files, insts)), desc="solve", disable=not many or not _progress_on(args),
                         unit="instance", file=sys.stderr, delay=SolveProgress.DELAY):
-        with SolveProgress(f"{method} {inst.name}", _progress_on(args)) as prog:
-            if anytime:
-                from .solvers.cpsat import keep_best_on_interrupt
-            with keep_best_on_interrupt() if anytime else contextlib.nullcontext():
-                sol = solve(inst, method, seed=args.seed, progress=prog, **_solve_opts(args))
+        # an anytime method stopped by a Ctrl-C keeps the best it found (written, then exit 130)
+        with SolveProgress(f"{method} {inst.name}", _progress_on(args)) as prog, keep_best_on_interrupt():
+            sol = solve(inst, method, seed=args.seed, progress=prog, **_solve_opts(args))
         sols.append(sol)
         if out:
             sol.save(out / f"{f.stem}.json" if to_folder else out)
@@ -449,8 +441,19 @@ def schedule_text(inst, sol) -> str:
     return "\n".join(lines)
 
 
+def _evaluated(inst, routes, path):
+    """The routes read from ``path`` re-simulated on ``inst``; a RouteError (e.g. a deadlock)
+    names the file."""
+    from .solution import RouteError, evaluate_routes
+
+    try:
+        return evaluate_routes(inst, routes)
+    except RouteError as e:
+        raise RouteError(f"{path}: {e}") from None
+
+
 def cmd_evaluate(args) -> int:
-    from .solution import RouteError, evaluate_routes, read_routes
+    from .solution import read_routes
 
     files = _resolve_instances([args.instance])
     routes_arg = Path(args.routes)
@@ -461,10 +464,7 @@ def cmd_evaluate(args) -> int:
         inst = _load(str(f), "evaluate re-simulates routes on a mission without events or release times")
         path = _matching(routes_arg, f, "routes") if routes_arg.is_dir() else routes_arg
         routes = read_routes(inst, path)  # RouteError naming the file (unreadable, not UTF-8, bad JSON, bad ids)
-        try:
-            sol = evaluate_routes(inst, routes)
-        except RouteError as e:
-            raise RouteError(f"{path}: {e}") from None
+        sol = _evaluated(inst, routes, path)
         sols.append(sol)
         if not args.json:
             print(f"{inst.name}: makespan {sol.makespan:.6f}  AWT {sol.awt:.6f}  redundancy {sol.redundancy:.6f}")
@@ -922,7 +922,7 @@ def _read_solution(path: str):
 def _solution_or_routes(inst, path: str):
     """An ``hmrta-solution/1`` file, or a routes file as ``hmrta evaluate`` takes it (then
     re-simulated on ``inst``); the error is the solution reader's when it is neither."""
-    from .solution import RouteError, SolutionError, evaluate_routes, read_routes
+    from .solution import RouteError, SolutionError, read_routes
 
     try:
         return _read_solution(path)
@@ -934,10 +934,7 @@ def _solution_or_routes(inst, path: str):
     if inst.dynamic or bool((inst.releases > 0).any()):
         raise UserError(f"{path}: routes are re-simulated without release times or events (as hmrta evaluate "
                         f"does), which this mission has: give its solution file (hmrta solve --out)")
-    try:
-        return evaluate_routes(inst, routes)
-    except RouteError as e:  # e.g. a deadlock: named by the file, as hmrta evaluate does
-        raise RouteError(f"{path}: {e}") from None
+    return _evaluated(inst, routes, path)
 
 
 def cmd_render_recording(args) -> int:

@@ -15,12 +15,14 @@ writes it.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import importlib
 import inspect
 import math
 import re
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from .deps import require
 from .errors import MethodError
@@ -270,6 +272,27 @@ def check_runnable(method: str, inst) -> None:
 def _progress_for(fn: Callable, progress: Callable | None) -> dict[str, Any]:
     """``{"progress": progress}`` for a solver or chooser that reports progress, else nothing."""
     return {"progress": progress} if progress is not None and "progress" in inspect.signature(fn).parameters else {}
+
+
+_KEEP_BEST = contextvars.ContextVar("hmrta_keep_best_on_interrupt", default=False)
+
+
+@contextlib.contextmanager
+def keep_best_on_interrupt() -> Iterator[None]:
+    """Within it, an anytime method (``cpsat``) stopped by a Ctrl-C (KeyboardInterrupt) ends its
+    solve with the best solution found so far, marked ``extra["interrupted"]``, instead of raising
+    (once it has a first solution); every other method raises as usual. ``hmrta solve`` solves
+    inside it; ``hmrta bench`` does not (nothing cut short is cached)."""
+    token = _KEEP_BEST.set(True)
+    try:
+        yield
+    finally:
+        _KEEP_BEST.reset(token)
+
+
+def keeping_best() -> bool:
+    """Whether the solve runs inside :func:`keep_best_on_interrupt`."""
+    return _KEEP_BEST.get()
 
 
 def solve(inst, method: str, seed: int = 0, progress: Callable | None = None, **options: Any):

@@ -306,7 +306,8 @@ def test_a_portfolio_names_the_candidates_it_left_out(tmp_path):
     assert s["provenance"]["checkpoint"] is None and "own_checkpoints" not in s["provenance"]
     assert "checkpoint" not in md.split("###")[0]
     # where the learned candidates do run, they are listed as before
-    assert provenance(["portfolio"], {}, not_run=["rl@broad"])["own_checkpoints"].keys() == {"rl@coalition-team"}
+    assert provenance(["portfolio"], {}, ran=["rl", "rl@coalition-team"])["own_checkpoints"].keys() == {
+        "rl@coalition-team"}
     # beside a mission they run on, and with a method of their own: counted per method, listed
     three = tmp_path / "three.yaml"
     ScenarioGenerator("MA-AT", 6, 3, 8, 3).instance(3, 0).save(three)

@@ -288,7 +288,8 @@ def _interrupt_after(seconds: float):
 
 def test_a_ctrl_c_while_the_model_is_built_keeps_the_heuristics_best(monkeypatch):
     from hmrta.solvers import cpsat
-    from hmrta.solvers.cpsat import keep_best_on_interrupt, solve_cpsat
+    from hmrta.methods import keep_best_on_interrupt
+    from hmrta.solvers.cpsat import solve_cpsat
 
     def interrupted(*a, **kw):
         raise KeyboardInterrupt
@@ -309,7 +310,8 @@ def test_a_ctrl_c_keeps_the_best_solution_only_where_asked():
     library call) it is raised."""
     import time
 
-    from hmrta.solvers.cpsat import keep_best_on_interrupt, solve_cpsat
+    from hmrta.methods import keep_best_on_interrupt
+    from hmrta.solvers.cpsat import solve_cpsat
 
     inst = ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(3, 0)
     greedy = solve(inst, "greedy", 0).makespan

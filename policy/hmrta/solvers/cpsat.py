@@ -38,7 +38,7 @@ Phases (all within ``time_limit`` seconds of wall time):
 2. CP-SAT (``workers`` threads) on the model above, hinted with the best solution so far, for the
    rest of the time.
 The result is the best of all of them, re-evaluated, so never worse than the warm start. Inside
-:func:`keep_best_on_interrupt` (``hmrta solve`` of one mission), a Ctrl-C in either phase ends
+:func:`hmrta.methods.keep_best_on_interrupt` (``hmrta solve``), a Ctrl-C in either phase ends
 the solve with the best so far (``extra["interrupted"]``; the bound is what was proven by then);
 elsewhere (``hmrta bench``, a library call) it is raised as usual. Models
 with more than ``MAX_ARCS`` species arcs (about 110 tasks with 5 species) are not built: the whole
@@ -53,11 +53,9 @@ optimum is then within ``slack / 1000`` of the returned makespan (0.04 for 20 ta
 """
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import math
 import time
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 
@@ -67,19 +65,6 @@ from ..solution import Solution, evaluate_routes
 from .listsched import SerialDecoder, best_list_schedule, order_of, parallel_anneal, prune_routes
 
 SCALE = 1000
-_KEEP_BEST = contextvars.ContextVar("hmrta_cpsat_keep_best", default=False)
-
-
-@contextlib.contextmanager
-def keep_best_on_interrupt() -> Iterator[None]:
-    """Within it, a Ctrl-C (KeyboardInterrupt) during a solve ends it with the best solution found
-    so far, marked ``extra["interrupted"]``, instead of raising (once a first solution exists:
-    greedy's; before, it is raised)."""
-    token = _KEEP_BEST.set(True)
-    try:
-        yield
-    finally:
-        _KEEP_BEST.reset(token)
 
 
 def _ceil_scaled(x: float) -> int:
@@ -510,7 +495,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     from ortools.sat.python import cp_model
 
     from ..bounds import lower_bounds
-    from ..methods import solve
+    from ..methods import keeping_best, solve
 
     t0 = time.perf_counter()
     time_limit = 60.0 if time_limit is None else time_limit
@@ -569,7 +554,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
             lb_C = min(max(0, int(math.floor(cheap * SCALE * (1 - 1e-12)))), hint_C)
             md, Cv, start, f = _build(D, hint_C, lb_C, hint_routes)
     except KeyboardInterrupt:
-        if not (_KEEP_BEST.get() and cands):
+        if not (keeping_best() and cands):
             raise
         interrupted = True  # no search: the best so far, as for a model too large to build
     if too_big or interrupted:  # too large to build, or stopped: the heuristic's solution, cheap bounds only
@@ -596,7 +581,7 @@ def solve_cpsat(inst: Instance, seed: int = 0, time_limit: float = 60.0, warm_st
     report(f"CP-SAT, best {min(c.makespan for c in cands):.3f}" if cands else "CP-SAT")
     t1 = time.perf_counter()
     code, interrupted = _interruptible_solve(solver, md, _ProgressCallback(report) if progress is not None else None,
-                                             keep=_KEEP_BEST.get())
+                                             keep=keeping_best())
     solve_wall = time.perf_counter() - t1
     status = {cp_model.OPTIMAL: "optimal", cp_model.FEASIBLE: "feasible"}.get(code, "none")
     slack = D.slack()

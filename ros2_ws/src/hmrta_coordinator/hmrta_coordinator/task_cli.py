@@ -73,9 +73,9 @@ def main(argv: list[str] | None = None) -> int:
         from hmrta_msgs_py.topics import check_clock_topic
 
         try:
-            check_clock_topic(args.clock_topic)
+            check_clock_topic(args.clock_topic, "--clock-topic")
         except ValueError as e:
-            p.error(f"--{e}".replace("--clock_topic", "--clock-topic", 1))
+            p.error(str(e))
     if args.domain_id is not None and not 0 <= args.domain_id <= 232:
         p.error(f"--domain-id: expected a ROS domain id in 0..232, got {args.domain_id}")
     if args.cmd == "add":  # a mission file's bounds (hmrta.instance): what the board accepts too
@@ -108,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
             got: list = []
             now: list = []  # the mission clock (latched): the state's clock stays at the last completion while closing
             node.create_subscription(String, topics.KEYFRAME, got.append, topics.KEYFRAME_QOS)
-            node.create_subscription(Clock, args.clock_topic or topics.CLOCK, lambda m: now.append(clock_from_msg(m)), topics.CLOCK_QOS)
+            node.create_subscription(Clock, args.clock_topic or topics.CLOCK, lambda m: now.append(clock_from_msg(m)),
+                                     topics.CLOCK_QOS)
             ask = node.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
             while not got and time.monotonic() < deadline:
                 rclpy.spin_once(node, timeout_sec=0.1)

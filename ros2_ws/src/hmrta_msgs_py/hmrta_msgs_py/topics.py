@@ -75,15 +75,15 @@ POSE_SUB_QOS_BY_TYPE = {"PoseStamped": POSE_SUB_QOS, "PoseWithCovarianceStamped"
                         "Odometry": POSE_SUB_QOS}
 
 
-def check_clock_topic(name: str) -> str:
+def check_clock_topic(name: str, what: str = "clock_topic") -> str:
     """``name`` if it can name the mission clock (an absolute, valid topic other than /clock, a
-    simulator's); else a ValueError saying why (the nodes' ``clock_topic``, ``hmrta-task``)."""
+    simulator's); else a ValueError naming ``what`` (the nodes' parameter, ``hmrta-task``'s option)."""
     if not isinstance(name, str) or not name.startswith("/") or name.rstrip("/") == "/clock":
-        raise ValueError(f"clock_topic: expected an absolute topic other than /clock, got {name!r}")
+        raise ValueError(f"{what}: expected an absolute topic other than /clock, got {name!r}")
     from rclpy.validate_topic_name import validate_topic_name
 
     try:
         validate_topic_name(name)
     except Exception as e:  # noqa: BLE001 - rclpy's InvalidTopicNameException: its first line says why
-        raise ValueError(f"clock_topic: {name!r} is not a topic name ({str(e).splitlines()[0]})") from None
+        raise ValueError(f"{what}: {name!r} is not a topic name ({str(e).splitlines()[0]})") from None
     return name
