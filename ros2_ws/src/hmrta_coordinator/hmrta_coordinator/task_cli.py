@@ -138,8 +138,7 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             t = b.state["tasks"]
             names = t.get("names") or [None] * len(t["status"])
-            heard = min(deadline, time.monotonic() + 2.0)  # the latched clock, if not heard yet (discovery)
-            while not now and time.monotonic() < heard:
+            while not now and time.monotonic() < deadline:  # the latched clock, if not heard yet (discovery)
                 rclpy.spin_once(node, timeout_sec=0.05)
             clock = f"mission clock {now[-1]:.3f}" if now else "mission clock not heard"
             print(f"board {b.version}, phase {b.phase}, state at t={b.clock:.3f}, {clock}: "
