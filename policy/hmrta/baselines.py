@@ -1,4 +1,4 @@
-"""Baseline decision functions: the paper's greedy and a seeded random policy.
+"""Baseline decision functions: the paper's greedy, greedy-coalition and a seeded random policy.
 
 Greedy (exact rule): the current decider takes the admissible task nearest to its current
 position (travel time; ties broken by the lowest task id). Admissible means the state machine's

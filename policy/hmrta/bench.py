@@ -36,6 +36,7 @@ DISPLAY_NAME = {"greedy": "Greedy", "greedy-coalition": "Greedy-coalition", "rl"
                 "cpsat": "CP-SAT"}
 TABLE_TITLES = {"SA-BT": "Table I: SA-BT", "SA-AT": "Table II: SA-AT", "MA-AT": "Table III: MA-AT",
                 "MA-AT-large": "Table IV: MA-AT, large"}
+BENCH_FORMAT = "hmrta-bench/1"  # results.json (docs/schemas/hmrta-bench-1.schema.json)
 DEFAULT_BENCH_SEED = 1000  # never used by training (stream seed 0) or validation (990001)
 # paired comparisons made when none are asked for, each when both methods are in the table: the
 # learned policy and the default method against the two rules
@@ -528,7 +529,8 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
     fh = open(cache_path, "a") if cache_path else None
     # the test-set seed and size say what a generated row is; a user's missions are given, not drawn
     drawn = any(getattr(row, "kind", "generated") != "missions" for row in rows)
-    summary: dict[str, Any] = {**({"seed": seed, "count": count} if drawn else {}), "methods": methods, "rows": []}
+    summary: dict[str, Any] = {"format": BENCH_FORMAT, **({"seed": seed, "count": count} if drawn else {}),
+                               "methods": methods, "rows": []}
     opts = {m: _options_for(m, solve_opts) for m in methods}
     variants = {m: method_variant(m, opts[m]) for m in methods}
 

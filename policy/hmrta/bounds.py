@@ -48,6 +48,7 @@ import numpy as np
 
 from .instance import Instance
 
+BOUND_FORMAT = "hmrta-bound/1"  # hmrta bound --json (docs/schemas/hmrta-bound-1.schema.json)
 BOUND_DOCS = {
     "task_round_trip": "per task: farthest needed depot round trip + duration (max over tasks)",
     "team_workload": "total minimum busy time (in-travel + work) of all coalitions / agents",
@@ -187,7 +188,7 @@ def bound_report(inst: Instance, solutions: list | None = None) -> dict:
     """Cheap bounds plus, for given solutions, their makespans, the solver bounds they carry
     (``extra['lower_bound']``, e.g. from cpsat) and each one's gap to the best bound.
 
-    Returns ``{"instance", "bounds": {name: value}, "best", "best_name", "solutions": [{"method",
+    Returns ``{"format": "hmrta-bound/1", "instance", "bounds": {name: value}, "best", "best_name", "solutions": [{"method",
     "makespan", "lower_bound", "status", "gap"}]}``; ``gap = (makespan - best) / makespan``."""
     lb = lower_bounds(inst)
     best, best_name = lb["best"], lb["best_name"]
@@ -201,7 +202,7 @@ def bound_report(inst: Instance, solutions: list | None = None) -> dict:
         sols.append({"method": s.method, "makespan": s.makespan if s.success else None,
                      "lower_bound": s.extra.get("lower_bound"), "status": s.extra.get("status"),
                      "gap": (s.makespan - best) / s.makespan if ok else None})
-    return {"instance": inst.name, "bounds": {k: lb[k] for k in BOUND_DOCS}, "best": best,
+    return {"format": BOUND_FORMAT, "instance": inst.name, "bounds": {k: lb[k] for k in BOUND_DOCS}, "best": best,
             "best_name": best_name, "solutions": sols}
 
 

@@ -535,6 +535,9 @@ def robot_mapping(inst, config: dict) -> dict:
     return robot_to_agent
 
 
+MAPPING_FORMAT = "hmrta-robot-mapping/1"  # convert's OUT.mapping.json (docs/schemas)
+
+
 def mapping_path(out: str | Path) -> Path:
     """Where ``convert --out OUT.yaml`` writes the robot id mapping: ``OUT.mapping.json``."""
     out = Path(out)
@@ -553,7 +556,7 @@ def cmd_convert(args) -> int:
     mapping = None
     if cfg.suffix.lower() == ".json":  # CTAS-D: robots are renumbered species-major
         r2a = robot_mapping(inst, json.loads(cfg.read_text()))
-        mapping = {"source": str(cfg), "instance": str(args.out), "robot_to_agent": r2a,
+        mapping = {"format": MAPPING_FORMAT, "source": str(cfg), "instance": str(args.out), "robot_to_agent": r2a,
                    "agent_to_robot": sorted(r2a, key=r2a.get)}
     inst.save(args.out)
     print(f"wrote {args.out} ({inst.n_agents} agents in {inst.n_species} species, {inst.n_tasks} tasks)")
@@ -708,6 +711,9 @@ def cmd_train(args) -> int:
 
     if not Path(args.config).exists() and (CONFIGS / f"{args.config}.yaml").is_file():
         args.config = str(CONFIGS / f"{args.config}.yaml")  # a shipped config by its name
+    elif not Path(args.config).exists():
+        raise UserError(f"--config {args.config}: no such file, and no shipped config of that name (shipped: "
+                        f"{', '.join(sorted(p.stem for p in CONFIGS.glob('*.yaml')))})")
     over = {k: v for k, v in (("max_minutes", args.max_minutes), ("iterations", args.iterations)) if v is not None}
     try:  # the command line's values replace the file's and are checked with them (also by --check)
         cfg = load_config(args.config, {"train": over},
@@ -1183,13 +1189,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help=THREADS_HELP + "; recorded in the results' provenance")
     b.set_defaults(fn=cmd_bench)
 
-    t = sub.add_parser("train", help="train the policy (REINFORCE + constrained flashforward)", formatter_class=F,
+    t = sub.add_parser("train", help="train the policy (cloning a teacher or solver schedules, then REINFORCE; docs/training.md)", formatter_class=F,
                        description="Train the policy. Idle OpenMP threads wait passively (OMP_WAIT_POLICY=PASSIVE "
                                    "is set before torch loads, unless the environment already sets it), so a run "
                                    "does not spin on cores that other processes need.")
     t.add_argument("--config", default="default",
                    help="training config: a YAML file, or the name of a shipped one (" +
-                        ", ".join(sorted(p.stem for p in CONFIGS.glob("*.yaml"))) + ")")
+                        ", ".join(sorted(p.stem for p in CONFIGS.glob("*.yaml"))) + "; when left out: the shipped config named default)")
     t.add_argument("--resume", action="store_true", help="continue the run in --run-dir (model, optimiser, RNG) from "
                                                          "its last.pt, which must exist")
     t.add_argument("--init", default=None, help="with --resume: start from this checkpoint file instead of last.pt")

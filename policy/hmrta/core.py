@@ -66,8 +66,8 @@ def team_cap(inst: Instance) -> int:
     """The ``max_open="team"`` cap of a mission: max(1, round(A / 2c)), where c, the mean coalition
     size, is the mean over tasks of (requirement sum) / (mean over agents of trait sum). A / c is
     about how many coalitions the team can field at once. Measured with greedy-coalition
-    (docs/semantics.md): the best fixed cap grows with A / c, from 1 on SA-AT (A / c ~ 3) to 6 on
-    MA-AT (50,5,50,5) (A / c ~ 26), and this rule is within 2.5% of the best fixed cap on every
+    (docs/semantics.md): the best fixed cap grows with A / c, from 1 on SA-AT (A / c ~ 3) to 3
+    or none on MA-AT (25,5,50,5) and (50,5,50,5) (A / c ~ 13-26), and this rule is within 2.5% of the best fixed cap on every
     row tried."""
     req = np.asarray(inst.requirements, dtype=np.float64)[inst.releases <= 0]  # [M0, K] tasks known at start
     traits = np.asarray(inst.traits, dtype=np.float64)  # [A, K]

@@ -256,7 +256,7 @@ def check_instance(method: str, inst) -> None:
     m = get(name)
     if m.decide is None and m.choose is None and getattr(inst, "dynamic", False):
         raise MethodError(f"method {name} is an offline solver: it cannot plan a scenario whose tasks or robots "
-                          f"change over time (use greedy, greedy-coalition or an rl method)")
+                          f"change over time (use portfolio, greedy, greedy-coalition or an rl method)")
     if m.rules == _RL["rules"] and inst.skills > MAX_SKILLS:
         raise MethodError(f"method {name}: the learned policy handles at most {MAX_SKILLS} skills, the mission "
                           f"has {inst.skills} (greedy, greedy-coalition, cpsat and portfolio take any number)")

@@ -396,3 +396,39 @@ def test_keystore_files_validate(tmp_path):
     assert errors("hmrta-keystore/1", {**store, "robots": {"robot_0": "00"}})
     for robot in ("robot_0", "robot_1"):
         assert_valid("hmrta-robot-key/1", json.loads(keys.robot_key_path(tmp_path / "ks", robot).read_text()))
+
+
+def test_bench_bound_and_mapping_outputs_validate(tmp_path, capsys):
+    """hmrta bench's results.json (also with a dynamic row and a paired comparison), hmrta bound
+    --json and convert's robot mapping validate; so do the committed results files."""
+    from hmrta.cli import main
+
+    ctas = ROOT / "tests" / "policy" / "data" / "ctas_small"
+    out = tmp_path / "res"
+    assert main(["bench", str(EXAMPLE), "--methods", "greedy,greedy-coalition", "--compare", "greedy-coalition,greedy",
+                 "--bounds", "--out", str(out), "--no-progress"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["format"] == "hmrta-bench/1" and results["rows"][0]["comparisons"]
+    assert_valid("hmrta-bench/1", results)
+    assert errors("hmrta-bench/1", {**results, "format": "hmrta-bench/2"})
+    scenario = tmp_path / "scenario.yaml"
+    scenario.write_text(f"format: hmrta-scenario/1\ninstance: {EXAMPLE}\nevents:\n"
+                        "  - {t: 4.0, type: add_task, id: extra, location: [0.3, 0.6], requirements: [1, 0, 1, 0, 0], "
+                        "duration: 2}\n  - {t: 6.0, type: lose_robot, robot: 3}\n")
+    assert main(["bench", str(scenario), "--methods", "greedy", "--out", str(tmp_path / "dyn"), "--no-progress"]) == 0
+    dyn = json.loads((tmp_path / "dyn" / "results.json").read_text())
+    assert dyn["rows"][0]["results"]["greedy"].get("dynamic")
+    assert_valid("hmrta-bench/1", dyn)
+    sol = tmp_path / "sol.json"
+    assert main(["solve", str(EXAMPLE), "--method", "greedy", "--out", str(sol), "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["bound", str(EXAMPLE), str(sol), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["format"] == "hmrta-bound/1" and report["solutions"]
+    assert_valid("hmrta-bound/1", report)
+    assert main(["convert", str(ctas), "--out", str(tmp_path / "ctas.yaml")]) == 0
+    assert_valid("hmrta-robot-mapping/1", json.loads((tmp_path / "ctas.mapping.json").read_text()))
+    committed = sorted((ROOT / "docs" / "results").glob("*/results.json"))
+    assert len(committed) >= 10
+    for p in committed:
+        assert not errors("hmrta-bench/1", json.loads(p.read_text())), p

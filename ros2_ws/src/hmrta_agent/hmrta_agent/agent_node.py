@@ -651,10 +651,10 @@ def main(args: list[str] | None = None) -> int:
                    help="host several robots in this process (node /<robot>/agent each); default: one "
                         "robot named by -p robot:=NAME or by the namespace")
     p.add_argument("--heartbeat-period", type=float, default=0.5, metavar="S",
-                   help="seconds between status messages")
+                   help="seconds between status messages (default 0.5)")
     p.add_argument("--torch-threads", type=int, default=1, metavar="N",
                    help="intra-op threads of the learned policy (decisions are small batches: one thread is "
-                        "fastest, and several agent processes on one machine must not oversubscribe its cores)")
+                        "fastest, and several agent processes on one machine must not oversubscribe its cores; default 1)")
     p.add_argument("--ignore-board-version", type=int, action="append", default=[], metavar="V",
                    help="testing: drop the board messages of version V once, as if they were lost (the process's "
                         "replica recovers from a keyframe); repeatable")
