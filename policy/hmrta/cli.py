@@ -1120,7 +1120,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="episode seed (decision order, sampling)")
     s.add_argument("--out", default=None, help="solution file (one instance, a name with a suffix: sol.json) or "
                                                "folder (DIR/<stem>.json; a name without a suffix, an existing "
-                                               "folder, or several instances)")
+                                               "folder, or several instances); missing folders are created")
     shown = s.add_mutually_exclusive_group()
     shown.add_argument("--json", action="store_true", help="print the solution JSON instead of a summary")
     shown.add_argument("--schedule", action="store_true",
