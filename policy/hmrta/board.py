@@ -509,6 +509,12 @@ class MissionBoard(BoardCore):
         self.rev = 0  # state revision
         self.phase = "starting"
         self.clock = 0.0  # latest mission clock (/clock)
+        # the clock may not pass the horizons the board published (sim_robot never takes it past
+        # them): the largest published (journaled: a board restarted on its journal knows its
+        # predecessor's; inf for a journal written without it), and the latest clock heard beyond
+        # it, followed as far as each new horizon allows (see set_clock)
+        self.allowed = 0.0
+        self._beyond = 0.0
         self.t_created = now()
         self.t_start: float | None = None
         self.started = False  # the mission has started (journaled: a replayed board does not wait again)
@@ -643,6 +649,7 @@ class MissionBoard(BoardCore):
                 self.live_events[kind] += 1
         self.version = int(rec["v"])
         self.clock = max(self.clock, float(rec.get("clock", 0.0)))
+        self.allowed = max(self.allowed, float(rec.get("horizon", math.inf)), self.clock)
         self.finished = self.finished or rec.get("phase") == "done"
         if rec.get("phase") == "done" and isinstance(rec.get("wall_seconds"), (int, float)):
             self._final_wall = float(rec["wall_seconds"])  # resumed after the end: the mission's own time
@@ -811,7 +818,21 @@ class MissionBoard(BoardCore):
     def set_clock(self, t: float) -> bool:
         """The mission clock; returns whether it advanced. The state runs up to it (completions,
         scheduled events and the decisions they bring; journaled as an ``advance`` event when
-        anything happened) and holds there."""
+        anything happened) and holds there.
+
+        A clock past the horizons the board has published (``allowed``; the simulated robots
+        never take it there) comes from another publisher on the clock's topic: a second
+        sim_robot of another mission, a recording played back, a stray node. The board then
+        follows it only up to ``allowed``, and further as each new horizon allows, and warns once
+        per such publisher's jump: a stray clock cannot run the mission past what the board
+        released (tasks completing with nobody there)."""
+        if t > self.allowed + EPS:
+            if t > self._beyond + 1.0:
+                self.log("warning", f"mission clock {t:.3f} s is past the board's horizon {self.allowed:.3f} s: "
+                                    f"followed only up to the horizon (is another sim_robot, a recording being "
+                                    f"played back, or another node publishing on the mission clock's topic?)")
+            self._beyond = max(self._beyond, t)
+            t = self.allowed
         if t > self.clock:
             self.clock = t
             if self.started and not self.finished:
@@ -1321,6 +1342,8 @@ class MissionBoard(BoardCore):
         replica asked, and periodically: every ``keyframe_period`` versions, or (0) once the
         stream has carried as many bytes as the latest keyframe, so that keyframes cost at most
         as much as the stream."""
+        if self._beyond > self.clock < self.allowed:  # a clock heard past an earlier horizon: up to this one
+            self.set_clock(min(self._beyond, self.allowed))
         phase, decider, horizon = self._target()
         self._track()
         key = (self.rev, phase, decider, horizon)
@@ -1329,12 +1352,13 @@ class MissionBoard(BoardCore):
         self._key = key
         self.phase = phase
         self.version += 1
+        self.allowed = max(self.allowed, float(horizon))
         st = self.state
         events, self._events = self._events, []
         self.live_events.update(ev["type"] for ev in events if ev["type"] in LIVE_EVENTS)
         if self.journal is not None:
             rec: dict[str, Any] = {"v": self.version, "rev": self.rev, "n_done": int(st.n_done), "phase": phase,
-                                   "clock": float(self.clock)}
+                                   "clock": float(self.clock), "horizon": float(horizon)}
             if events:
                 rec["ev"] = events
             if phase == "done":

@@ -723,6 +723,50 @@ def test_the_board_state_never_runs_ahead_of_the_mission_clock():
     assert b.finished and b.state.status[m] == 4 and b.result().makespan < 500.0
 
 
+def test_a_stray_clock_past_the_horizon_is_followed_only_up_to_the_horizons_the_board_publishes(tmp_path):
+    """Another publisher on the clock's topic (a second sim_robot, a recording played back) jumps
+    the clock far ahead: the board follows it only up to the horizon it published, warns once,
+    and the mission still equals the offline rollout (no task completes before its time)."""
+    said: list[str] = []
+    b = started_board(journal=tmp_path / "j.jsonl", log=lambda level, text: said.append(text))
+    drive(b, steps=3)
+    b.poll()
+    allowed = b.allowed
+    assert allowed == b._key[3] and allowed < 1000.0
+    b.set_clock(100000.0)  # the stray clock
+    assert b.clock == allowed and b.state.clock <= allowed + 1e-9
+    b.set_clock(100000.5)  # it keeps publishing: one warning for it
+    assert sum("past the board's horizon" in t for t in said) == 1
+    drive(b)
+    same(b.result(), solve(INST, "greedy", SEED))
+    # a board restarted on the journal knows the horizons its predecessor published
+    b2 = started_board(journal=tmp_path / "j.jsonl")
+    assert b2.allowed == pytest.approx(b.allowed)
+
+
+def test_a_clock_heard_past_the_horizon_is_followed_as_new_horizons_allow():
+    """A clock that ran ahead of what this board process has published (it lost the line of its
+    latest horizon) is not lost: the board catches up as its horizons grow, and finishes."""
+    b = started_board()
+    drive(b, steps=2)
+    b.poll()
+    target = b.allowed + 3.0
+    b.set_clock(target)  # then silent: the simulated robots wait for a horizon past it
+    assert b.clock == b.allowed < target
+    for _ in range(200):  # decisions and arrivals only: nobody publishes the clock again
+        pump(b)
+        if b.clock >= target:
+            break
+        if b.phase == "decide":
+            assert b.choice(Choice(b.names[b.state.agent], b.session, b.version, Greedy()(b.state))) is None
+        for a in range(b.state.A):
+            base = [(0, *map(float, b.state.inst.depots[a]), 0.0)]
+            b.pose(a, *position(b.inst, base + b.state.leg_log[a], b.clock))
+    assert b.clock == target  # reached by the board's own horizons
+    drive(b)
+    assert b.finished and b.result().success
+
+
 def test_a_held_state_ends_exactly_like_one_never_held():
     ref = MissionState(INST, seed=SEED, rules=RULES)
     held = MissionState(INST, seed=SEED, rules=RULES)

@@ -182,3 +182,33 @@ def test_foreign_clock_moves_nothing(tmp_path, graph, mission_procs):
     assert_same_as_offline(result, inst, seed)  # a clock taken from /clock would end it past t=1004
     assert result["lost_robots"] == [] and result["makespan"] < 1004.0
     assert all(b.clock < 1004.0 for b in boards)
+
+
+def test_a_stray_clock_on_the_mission_clock_topic_cannot_run_the_mission_ahead(tmp_path, graph, mission_procs):
+    """Another node publishes t = 100000 on /hmrta/clock itself (a recording played back, another
+    mission's sim_robot) through a paced mission: the board follows it only up to the horizons it
+    published, warns, and the mission equals the offline rollout."""
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    seed = 3
+    node = graph.node("stray_clock")
+    clock = node.create_publisher(Clock, topics.CLOCK, topics.CLOCK_QOS)
+    sent = [0]
+
+    def tick() -> None:
+        if clock.get_subscription_count() > 0:
+            clock.publish(C.clock_to_msg(100000.0 + sent[0]))
+            sent[0] += 1
+
+    node.create_timer(0.2, tick)
+    boards: list[C.Board] = []
+    node.create_subscription(String, topics.BOARD, lambda m: boards.append(C.board_from_msg(m, state=False)),
+                             topics.BOARD_QOS)
+    procs = mission_procs(save_instance(inst, tmp_path / "inst.yaml"), robots_of(inst), seed=seed,
+                          agents_per_process=6, time_scale=8.0, board_params={"progress_period": 0.0})
+    wait_board_exit(graph, procs, 150)
+    assert sent[0] > 5  # the stray clock ran through the mission
+    assert boards and all(b.clock < 1000.0 for b in boards)  # the board's clock never followed it
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert_same_as_offline(result, inst, seed)
+    assert result["lost_robots"] == [] and result["makespan"] < 1000.0
+    assert "past the board's horizon" in procs.board.log.read_text()
