@@ -240,6 +240,22 @@ def test_no_board_heard_and_a_board_gone_silent_are_warned(tmp_path, start):
         assert p.stop() == 0 and "Traceback" not in p.text()
 
 
+def test_an_agent_whose_robot_driver_never_listens_says_why_and_ends_with_the_mission(tmp_path, start):
+    """robot_1 is external and its driver never subscribes to the agent's goal topic: the agent
+    says what it waits for, and ends when the board drops the robot and the mission is over."""
+    inst = save_instance(ScenarioGenerator("SA-AT", 4, 2, 4, 2).instance(0, 0), tmp_path / "small.yaml")
+    board = start("task_board", "--ros-args", "-p", f"instance:={inst}", "-p", "startup_timeout:=8.0")
+    sim = start("sim_robot", "--ros-args", "-p", "external:=[robot_1]")
+    agents = start("agent_node", "--robots", "robot_0,robot_2,robot_3", name="agents")
+    agent = start("agent_node", "--ros-args", "-r", "__ns:=/robot_1", "-r", "goal_pose:=/tb3_1/goal_pose",
+                  name="agent1")
+    agent.wait_for("robot_1: not taking part yet after 5 s: waiting for a subscriber to its goal topic "
+                   "/tb3_1/goal_pose", 60)
+    for p in (board, sim, agents, agent):
+        assert p.proc.wait(timeout=90) in (0, 3), (p.exe, p.text())
+    assert "Traceback" not in agent.text()
+
+
 def test_hmrta_mission_takes_a_failed_mission_from_the_board_without_restarting_it(tmp_path, domain):
     """A scenario loses every robot: the board finishes, fails and exits 3; the launcher reports
     the failed mission (exit 3) and restarts nothing (the journal is on)."""

@@ -153,6 +153,8 @@ class Host:
             self.silence.heard()
 
     def _check_silence(self) -> None:
+        for a in self.agents:
+            a.check_waiting()
         head = self.replica.head
         if self.silence is None or self.all_done.done() or (head is not None and head.phase == "done"):
             return
@@ -381,6 +383,8 @@ class AgentNode(Node):
         self.leg_seq: int | None = None  # number of this robot's legs already taken from the board
         self.pending: list = []  # legs whose departure time has not come yet
         self.ready = False
+        self._unready_since: float | None = None  # monotonic time it has had a mission without being ready
+        self._unready_said = -math.inf  # when it last said why
         self.seq = 0
         self._sent: tuple[int, int, float, float] | None = None  # (board version, node, compute ms, monotonic time)
         self._warned: set[str] = set()
@@ -446,6 +450,36 @@ class AgentNode(Node):
                           and self.goal_pub.get_subscription_count() > 0)
         return self.ready
 
+    # seconds an agent with a mission may wait for its listeners before it says why, then between repeats
+    UNREADY_WARNING = 5.0
+    UNREADY_REPEAT = 30.0
+
+    def why_not_ready(self) -> str | None:
+        """What this agent, which has a mission, still waits for before it takes part; None once ready."""
+        if self.is_ready() or self.mission is None:
+            return None
+        if not self.host.replica.synced:
+            return "the board's state (no keyframe of /hmrta/board_keyframe yet)"
+        if self.choice_pub.get_subscription_count() == 0:
+            return f"the board's subscription to {topics.CHOICE} (is the task board running on this ROS domain?)"
+        return (f"a subscriber to its goal topic {self.goal_pub.topic_name} (is the robot's driver running, and "
+                f"is the agent's goal_pose remapped to the driver's goal topic?)")
+
+    def check_waiting(self) -> None:
+        """Say (warning) why an agent with a mission is not taking part after UNREADY_WARNING s, and
+        again every UNREADY_REPEAT s while that lasts."""
+        why = None if self.finished else self.why_not_ready()
+        now = time.monotonic()
+        if why is None:
+            self._unready_since = None
+            return
+        if self._unready_since is None:
+            self._unready_since = now
+        elif now - self._unready_since >= self.UNREADY_WARNING and now - self._unready_said >= self.UNREADY_REPEAT:
+            self._unready_said = now
+            self.get_logger().warning(f"{self.robot}: not taking part yet after {now - self._unready_since:.0f} s: "
+                                      f"waiting for {why}")
+
     def _warn_once(self, key: str, text: str) -> None:
         if key not in self._warned:
             self._warned.add(key)
@@ -500,11 +534,17 @@ class AgentNode(Node):
         decide when it is its turn."""
         if self.mission is None and board.phase == "done":  # never added: the mission is over
             return self._finish()
-        if self.mission is None or self.finished or not self.is_ready() or board.session != self.mission.session:
+        if self.mission is None or self.finished or board.session != self.mission.session:
             return
         a = self.index
-        if a in board.lost:
+        if a in board.lost:  # also while it waits for its listeners: the board has given up on it
             return self._stop_robot()
+        if not self.is_ready():
+            if board.phase == "done":  # the mission ended while it waited: it ends too
+                self.get_logger().warning(f"{self.robot}: the mission ended before this agent took part "
+                                          f"(it waited for {self.why_not_ready()})")
+                return self._finish()
+            return
         entry = self.host.replica.legs(a, self.leg_seq)
         if entry is not None:
             self._take_legs(*entry)
