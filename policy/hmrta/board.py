@@ -580,6 +580,8 @@ class MissionBoard(BoardCore):
         self._join_names: list[str] = []  # names of robots joining, given to the next added agents
         self._scenario_added = 0  # robots a scenario's add_robot events added (named robot_<A0 + k>)
         self.join_refused: dict[str, str] = {}  # robot asking to join -> why it was refused (warned once)
+        self._join_bucket = (2 * self.JOIN_RATE, now())  # (tokens, when) of the JOIN_RATE bucket
+        self._join_slowed = False  # warned that joins come faster than JOIN_RATE
         self.robots_changed = False  # robots were added since the node last published the mission
         self.task_events: list[dict[str, Any]] = []  # hmrta-task-event/1 bodies not yet published
         self.journal: Journal | None = None
@@ -726,9 +728,11 @@ class MissionBoard(BoardCore):
                 self.auth_rejected["status"][rejection_code(why)] += 1
                 return f"ignoring heartbeat of {', '.join(robots[:4])[:200]}: {why}"
         warn = None
-        for j in joining:
-            warn = self.join(j.robot, j.species, j.traits, j.position) or warn
         now = self.now()
+        for j in joining:
+            if j.robot in self.index or not self._join_token(now):  # over JOIN_RATE: asked again next heartbeat
+                continue
+            warn = self.join(j.robot, j.species, j.traits, j.position) or warn
         unknown = []
         for r in robots:
             a = self.index.get(r)
@@ -745,6 +749,23 @@ class MissionBoard(BoardCore):
     # a robot's heartbeats going back to the process they came from before, within this many seconds
     # of the switch: both processes are alive (a restarted agent's old process has stopped)
     TWO_HOSTS_WINDOW = 10.0
+    # robots that ask to join are taken at most this many a second (a burst of twice as many): the
+    # agents repeat the request every heartbeat, so the others join moments later, and one
+    # unauthenticated heartbeat naming a hundred robots cannot grow the mission by a hundred at once
+    JOIN_RATE = 10.0
+
+    def _join_token(self, now: float) -> bool:
+        tokens, then = self._join_bucket
+        tokens = min(2 * self.JOIN_RATE, tokens + (now - then) * self.JOIN_RATE)
+        if tokens < 1.0:
+            self._join_bucket = (tokens, now)
+            if not self._join_slowed:
+                self._join_slowed = True
+                self.log("warning", f"robots ask to join faster than {self.JOIN_RATE:g} a second: the others are "
+                                    f"taken as their agents ask again")
+            return False
+        self._join_bucket = (tokens - 1.0, now)
+        return True
 
     def _host_of(self, a: int, host: str, now: float) -> str | None:
         """Follow which agent process sends robot a's heartbeats; the warning (once per robot) when

@@ -832,6 +832,25 @@ def test_a_robot_that_asks_to_join_is_added_journaled_and_works(tmp_path):
     same(b2.result(), sol)
 
 
+def test_robots_asking_to_join_are_taken_at_most_join_rate_a_second():
+    """One heartbeat naming a hundred robots adds a burst of 2 x JOIN_RATE; the others join as
+    their agents ask again, JOIN_RATE a second, with one warning."""
+    said: list[str] = []
+    b = started_board(log=lambda level, text: said.append(text))
+    drive(b, steps=2)
+    A, burst = b.state.A, int(2 * MissionBoard.JOIN_RATE)
+    crowd = [Join(f"robot_j{i}", 0) for i in range(100)]
+    b.heartbeat(b.session, [], joining=crowd)
+    assert b.state.A == A + burst
+    b.heartbeat(b.session, [], joining=crowd)  # asked again at once: nobody more
+    assert b.state.A == A + burst
+    b.now.t += 1.0
+    b.heartbeat(b.session, [], joining=crowd)
+    assert b.state.A == A + burst + int(MissionBoard.JOIN_RATE)
+    assert b.names[A:A + 3] == ["robot_j0", "robot_j1", "robot_j2"]
+    assert sum("faster than" in t for t in said) == 1
+
+
 def test_a_grown_mission_instance_round_trips_and_never_counts_added_robots_twice():
     st = MissionState(INST, seed=SEED, rules=RULES)
     decide = decider("greedy", SEED)[0]

@@ -462,3 +462,14 @@ def test_task_requests_and_events_carry_the_request_id():
         C.task_request_from_msg(_msg(json.dumps({**json.loads(C.task_request_to_msg(r).data), "request_id": 5})))
     assert C.request_id_of('{"format": "hmrta-task-request/1", "op": "move", "request_id": "n-2"}') == "n-2"
     assert C.request_id_of("not json") == "" and C.request_id_of('{"request_id": 3}') == ""
+
+
+def test_a_huge_received_value_is_quoted_on_one_short_line():
+    """A hostile value (a 100,000-character robot name, host or phase) is refused with a reason
+    of one short line: the board logs and publishes reasons."""
+    huge = "x" * 100_000
+    for d in ({"robots": [huge]}, {"robots": ["robot_0"], "host": huge}, {"robots": [["a" * 5000]]}):
+        msg = String(data=json.dumps({"format": "hmrta-status/1", "session": "s", "seq": 1, **d}))
+        with pytest.raises(C.DecodeError) as e:
+            C.status_from_msg(msg)
+        assert len(str(e.value)) < 300 and "\n" not in str(e.value), str(e.value)[:400]

@@ -708,8 +708,14 @@ def main(args: list[str] | None = None) -> int:
     with starting("agent_node", (MethodError, ValueError), args=argv):  # bad policy / checkpoint: a user error
         if cli.robots:
             lean = LEAN_NODE if len(cli.robots) > 1 else {}
-            nodes = [AgentNode(host, namespace="/" + r, parameter_overrides=[Parameter("robot", value=r)], **lean)
-                     for r in cli.robots]
+            nodes = []
+            for r in cli.robots:
+                nodes.append(AgentNode(host, namespace="/" + r, parameter_overrides=[Parameter("robot", value=r)],
+                                       **lean))
+                if nodes[-1].get_namespace() != "/" + r:  # a global -r __ns:= puts every robot's node there
+                    raise ValueError(f"--robots: each robot's agent runs in its own namespace (/{r}/agent), but "
+                                     f"-r __ns:= moved it to {nodes[-1].get_namespace()}; leave __ns out with --robots "
+                                     f"(one agent per process takes -r __ns:=/ROBOT)")
         else:
             nodes = [AgentNode(host)]
         _set_torch_threads(cli.torch_threads)  # the deciders are built: torch is loaded if they use it

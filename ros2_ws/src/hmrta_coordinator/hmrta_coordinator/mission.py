@@ -18,7 +18,7 @@ stops the rest at once and writes a partial result (``success`` false, ``partial
 0 mission completed, 3 completed without success (e.g. lost robots left tasks undone), 4 completed
 but differs from the offline rollout (``--check-offline``; when operators, joining or dropped
 robots changed the mission: a decision in the journal differs from the method's on the same
-state), 1 did not complete (partial result), 130 interrupted (partial result), 2 user error.
+state), 1 did not complete (partial result), 130 interrupted (Ctrl-C or SIGTERM; partial result), 2 user error.
 
 DDS discovery stays on this machine unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is already set
 (e.g. SUBNET for a real multi-machine fleet); without ``ROS_DOMAIN_ID`` a random domain in

@@ -91,9 +91,14 @@ class SimulatedRobot:
 class SimRobot(Node):
     def __init__(self, **node_kw: Any):
         super().__init__("sim_robot", **node_kw)
+        topics.check_root_namespace(self, "sim_robot")
         P = self.declare_parameter
         self.only = list(P("robots", Parameter.Type.STRING_ARRAY).value or [])
         self.external = set(P("external", Parameter.Type.STRING_ARRAY).value or [])
+        both = [r for r in self.only if r in self.external]
+        if both:
+            raise ValueError(f"robots and external both name {', '.join(both[:5])}: a robot is either simulated here "
+                             f"(robots) or driven elsewhere (external)")
         self.time_scale = P("time_scale", 0.0).value
         rate = P("rate", 20.0).value
         heartbeat = P("heartbeat_period", 1.0).value

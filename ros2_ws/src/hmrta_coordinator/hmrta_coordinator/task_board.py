@@ -82,6 +82,7 @@ from hmrta.instance import InstanceError
 from hmrta.keys import Verifier, load_keystore
 from hmrta.methods import MethodError
 from hmrta.methods import rules as method_rules
+from hmrta.reading import short
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mission, Rejection, TaskEvent,
                                  board_to_msg, pose_type,
@@ -96,6 +97,7 @@ class TaskBoard(Node):
 
     def __init__(self, **node_kw: Any):
         super().__init__("task_board", **node_kw)
+        topics.check_root_namespace(self, "the task board")
         P = self.declare_parameter
         path = P("instance", "").value
         self.seed = P("seed", 0).value
@@ -191,6 +193,7 @@ class TaskBoard(Node):
         self._rej_tokens = self.rejection_rate  # token bucket of logged/published rejections
         self._rej_time = time.monotonic()
         self._rej_quiet = 0  # rejections counted but neither logged nor published since the last summary
+        self._said: dict[Any, float] = {}  # (reason, robot) or warning text -> when it was last logged
         self._rej_summary_at = 0.0
         self.done = Future()
         self._marker_key = None
@@ -325,10 +328,27 @@ class TaskBoard(Node):
                                + (f" ({ans['reason']})" if ans.get("reason") else ""))
         self._flush()
 
-    def _reject(self, reason: str, detail: str, robot: str = "", version: int = -1) -> None:
+    def _reject(self, reason: str, detail: str, robot: str = "", version: int = -1, every: float = 0.0) -> None:
+        """Log and publish a rejection (within ``rejection_rate``); ``every``: at most once every that
+        many seconds per reason and robot (a driver streaming poses in the wrong frame), the rest
+        counted in the periodic summary."""
+        if every > 0 and not self._due((reason, robot), every):
+            self._rej_quiet += 1
+            return
         if self._rate_ok():
             self.get_logger().warning(f"rejected: {detail}")
             self.pub_rej.publish(rejection_to_msg(Rejection(reason, detail, robot, version)))
+
+    def _due(self, key: Any, every: float = 5.0) -> bool:
+        """Whether what ``key`` names was not logged in the last ``every`` seconds (and it is now)."""
+        now = time.monotonic()
+        if now - self._said.get(key, -math.inf) < every:
+            return False
+        if len(self._said) > 4096:  # bounded: a flood of distinct texts forgets the oldest first
+            for k in list(self._said)[:2048]:
+                del self._said[k]
+        self._said[key] = now
+        return True
 
     def _rate_ok(self) -> bool:
         """Token bucket (``rejection_rate`` per second, as many in a burst): whether this
@@ -366,8 +386,8 @@ class TaskBoard(Node):
             self.board.malformed()
             return self._reject("malformed", f"malformed status: {e}")
         warn = self.board.heartbeat(s.session, s.robots, s.payload, s.joining, s.host)
-        if warn is not None:
-            self.get_logger().warning(warn, throttle_duration_sec=5.0)
+        if warn is not None and self._due(warn) and self._rate_ok():  # each text at most every 5 s: a warning
+            self.get_logger().warning(warn)  # the board gives once (two agent processes, a join refused) is kept
         for j in s.joining:  # tell a robot the board refuses to add, so that its agent stops asking
             why = self.board.join_refused.get(j.robot)
             if why is not None and self._rate_ok():
@@ -378,13 +398,13 @@ class TaskBoard(Node):
         frame = msg.header.frame_id
         if frame != self.mission.frame_id:
             self.board.rejected["wrong_frame"] += 1
-            return self._reject("wrong_frame", f"pose of {self.names[a]} in frame {frame!r}, expected "
-                                               f"{self.mission.frame_id!r} (frame_id)", self.names[a])
+            return self._reject("wrong_frame", f"pose of {self.names[a]} in frame {short(frame)}, expected "
+                                               f"{self.mission.frame_id!r} (frame_id)", self.names[a], every=5.0)
         try:
             x, y, _ = pose_from_msg(msg, self.mission.scale)
         except DecodeError as e:
             self.board.malformed()
-            return self._reject("malformed", f"malformed pose of {self.names[a]}: {e}", self.names[a])
+            return self._reject("malformed", f"malformed pose of {self.names[a]}: {e}", self.names[a], every=5.0)
         if self.board.pose(a, x, y):  # a pose repeated (heartbeat) changes nothing to publish
             self._flush()
 
@@ -410,7 +430,8 @@ class TaskBoard(Node):
         if self._rej_quiet and now - self._rej_summary_at >= 5.0:
             self._rej_summary_at = now
             self.get_logger().warning(f"{self._rej_quiet} more message(s) rejected (not logged one by one: more than "
-                                      f"{self.rejection_rate:g}/s); by reason so far: {dict(b.rejected)}")
+                                      f"{self.rejection_rate:g}/s, or a robot's pose rejected again within 5 s); "
+                                      f"by reason so far: {dict(b.rejected)}")
             self._rej_quiet = 0
         if b.phase in ("wait", "closing") and now - max(self._published_at, self._clock_at) > 5.0:
             silent = now - self._clock_heard

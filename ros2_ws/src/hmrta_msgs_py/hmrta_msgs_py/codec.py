@@ -40,6 +40,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from hmrta.board import BOARD_FORMAT, board_header
 from hmrta.core import STATE_FORMAT, Rules, parse_rules
 from hmrta.instance import Instance, InstanceError, instance_from_dict
+from hmrta.reading import short
 from hmrta.solution import FORMAT as RESULT_FORMAT
 
 MISSION_FORMAT = "hmrta-mission/1"
@@ -92,7 +93,8 @@ def check_format(d: dict[str, Any], fmt: str) -> None:
 
 
 def _short(v: Any, n: int = 60) -> str:
-    r = repr(v)
+    """A received value in a message's reason: one line, bounded (a hostile value may be megabytes)."""
+    r = short(v)
     return r if len(r) <= n else r[: n - 3] + "..."
 
 
@@ -115,11 +117,11 @@ def _get(d: dict[str, Any], key: str, kind: type | tuple[type, ...], what: str, 
         return default
     kinds = kind if isinstance(kind, tuple) else (kind,)
     if isinstance(v, bool) and bool not in kinds:  # bool is an int subclass: never accept it as a number
-        raise DecodeError(f"{what}.{key}: expected {'/'.join(k.__name__ for k in kinds)}, got {v!r}")
+        raise DecodeError(f"{what}.{key}: expected {'/'.join(k.__name__ for k in kinds)}, got {_short(v)}")
     if not isinstance(v, kinds):
-        raise DecodeError(f"{what}.{key}: expected {'/'.join(k.__name__ for k in kinds)}, got {v!r}")
+        raise DecodeError(f"{what}.{key}: expected {'/'.join(k.__name__ for k in kinds)}, got {_short(v)}")
     if isinstance(v, float) and not math.isfinite(v):
-        raise DecodeError(f"{what}.{key}: expected a finite number, got {v!r}")
+        raise DecodeError(f"{what}.{key}: expected a finite number, got {_short(v)}")
     return v
 
 
@@ -136,7 +138,7 @@ def _str(text: str) -> String:
 
 def _name(v: Any, what: str) -> str:
     if not isinstance(v, str) or not v or len(v) > 256:
-        raise DecodeError(f"{what}: expected a non-empty robot name, got {v!r}")
+        raise DecodeError(f"{what}: expected a non-empty robot name, got {_short(v)}")
     return v
 
 
@@ -188,7 +190,7 @@ def pose_type(text: str) -> str:
     for name in POSE_TYPES:
         if name.lower() == leaf:
             return name
-    raise ValueError(f"expected a pose type ({', '.join(POSE_TYPES)}), got {text!r}")
+    raise ValueError(f"expected a pose type ({', '.join(POSE_TYPES)}), got {_short(text)}")
 
 
 def pose_from_msg(msg: PoseStamped | PoseWithCovarianceStamped | Odometry,
@@ -330,7 +332,7 @@ def _board_header(text: str, keyframe: bool) -> Board:
     d = _obj(text, w)
     phase = _get(d, "phase", str, w)
     if phase not in PHASES:
-        raise DecodeError(f"{w}.phase: expected one of {PHASES}, got {phase!r}")
+        raise DecodeError(f"{w}.phase: expected one of {PHASES}, got {_short(phase)}")
     lost = _get(d, "lost", list, w)
     if not all(isinstance(a, int) and not isinstance(a, bool) for a in lost):
         raise DecodeError(f"{w}.lost: expected a list of agent indices")
@@ -346,7 +348,7 @@ def _board_header(text: str, keyframe: bool) -> Board:
 def _leg(g: Any, where: str) -> Leg:
     if (not isinstance(g, list) or len(g) != 4 or not isinstance(g[0], int) or isinstance(g[0], bool)
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in g[1:])):
-        raise DecodeError(f"{where}: expected [node, x, y, depart], got {g!r}")
+        raise DecodeError(f"{where}: expected [node, x, y, depart], got {_short(g)}")
     return g[0], float(g[1]), float(g[2]), float(g[3])
 
 
@@ -362,7 +364,7 @@ def _legs(text: str) -> tuple[RobotLegs | None, ...]:
             continue
         if (not isinstance(e, list) or len(e) != 2 or not isinstance(e[0], int) or isinstance(e[0], bool)
                 or not isinstance(e[1], list) or len(e[1]) > e[0]):
-            raise DecodeError(f"{w}[{i}]: expected [seq, [legs...]], got {e!r}")
+            raise DecodeError(f"{w}[{i}]: expected [seq, [legs...]], got {_short(e)}")
         out.append((e[0], tuple(_leg(g, f"{w}[{i}][1][{j}]") for j, g in enumerate(e[1]))))
     return tuple(out)
 
@@ -574,9 +576,11 @@ def status_from_msg(msg: String) -> Status:
     _check_signature_fields(d, w)
     robots = _get(d, "robots", list, w)
     joining = _get(d, "joining", list, w, optional=True, default=[])
+    host = _get(d, "host", str, w, optional=True, default="")
+    if len(host) > 256:
+        raise DecodeError(f"{w}.host: expected a process name of at most 256 characters, got {_short(host)}")
     return Status(tuple(_name(r, f"{w}.robots[{i}]") for i, r in enumerate(robots)), _get(d, "session", str, w),
-                  _get(d, "seq", int, w),
-                  _get(d, "host", str, w, optional=True, default=""), d,
+                  _get(d, "seq", int, w), host, d,
                   tuple(_join_from(j, f"{w}.joining[{i}]") for i, j in enumerate(joining)))
 
 

@@ -29,5 +29,5 @@ def run(prog: str, module: str, func: str = "main") -> None:
 
 
 def _interrupted(prog: str):
-    print(f"{prog}: interrupted", file=sys.stderr)
+    print(f"{prog}: interrupted during start-up", file=sys.stderr)
     raise SystemExit(130) from None

@@ -75,6 +75,17 @@ POSE_SUB_QOS_BY_TYPE = {"PoseStamped": POSE_SUB_QOS, "PoseWithCovarianceStamped"
                         "Odometry": POSE_SUB_QOS}
 
 
+def check_root_namespace(node, what: str) -> None:
+    """A ValueError unless ``node`` (the task board, sim_robot) runs in the root namespace: the
+    mission's topics are absolute, so a namespace (``-r __ns:=/fleet1``) would not separate its
+    mission from another on the same ROS domain; each mission needs its own ROS_DOMAIN_ID."""
+    ns = node.get_namespace()
+    if ns != "/":
+        raise ValueError(f"namespace {ns}: {what} takes no namespace (the mission's topics are absolute: /hmrta/..., "
+                         f"/<robot>/pose; a namespace would not keep this mission apart from another on the same "
+                         f"ROS domain): run each mission on its own ROS_DOMAIN_ID (docs/ros.md, Several machines)")
+
+
 def check_clock_topic(name: str, what: str = "clock_topic") -> str:
     """``name`` if it can name the mission clock (an absolute, valid topic other than /clock, a
     simulator's); else a ValueError naming ``what`` (the nodes' parameter, ``hmrta-task``'s option)."""
