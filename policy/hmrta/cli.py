@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import traceback
 from pathlib import Path
@@ -746,13 +747,22 @@ def cmd_train(args) -> int:
         torch.set_num_threads(args.threads)
     import signal
 
-    def _stop(signum, frame):  # SIGTERM / SIGINT: stop at once, the trainer saves last.pt on the way out
-        raise KeyboardInterrupt
+    held: list = []  # the trainer, once built
+
+    def _stop(signum, frame):  # SIGTERM / SIGINT: the first ends the run after the iteration under way
+        tr_ = held[0] if held else None  # (last.pt then holds a state between iterations: an exact resume);
+        if tr_ is None or tr_.stopping:  # before training, or a second signal: at once
+            raise KeyboardInterrupt
+        tr_.stopping = True
+        print(f"\n{signal.Signals(signum).name}: stopping after the iteration under way, then saving {last} "
+              f"(send it again to stop at once: --resume then continues from the latest checkpoint)",
+              file=sys.stderr, flush=True)
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)  # also when started in the background (SIGINT ignored there)
     tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: print(s, file=sys.stderr), jobs=args.jobs,
                  ray_address=args.ray_address)
+    held.append(tr)
     if args.resume:
         src = Path(args.init) if args.init else last
         tr.load(src, reseed=args.reseed)
@@ -762,9 +772,15 @@ def cmd_train(args) -> int:
     try:
         res = tr.run(progress=_progress_on(args))
     except KeyboardInterrupt:
-        print(f"stopped: checkpoint saved to {last} (continue with --resume)", file=sys.stderr)
+        saved = (f"checkpoint saved to {last}" if tr.saved_last else
+                 f"stopped within an iteration: {last} is the latest checkpoint" if last.exists() else "no checkpoint")
+        print(f"stopped at once: {saved}" + (" (continue with --resume)" if last.exists() else ""), file=sys.stderr)
         return 130
-    print(json.dumps(res))
+    if tr.stopping:
+        print(f"stopped: checkpoint saved to {last} (continue with --resume)" if tr.saved_last
+              else "stopped before the first iteration: no checkpoint", file=sys.stderr)
+        return 130
+    print(json.dumps({k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in res.items()}))
     if args.export:
         best = run_dir / "best.pt"
         if best.exists():

@@ -17,6 +17,7 @@ from __future__ import annotations
 import copy
 import csv
 import functools
+import io
 import math
 import random
 import time
@@ -112,6 +113,11 @@ class Trainer:
         self._schedules: dict = {}  # {path: (file size, ScheduleSet)} of pretrain.schedules, reloaded as they grow
         self.train_rules = self.eval_rules = self.cfg.rule_set()
         self.fanout = Fanout(jobs, ray_address)
+        # a stop asked for (SIGINT / SIGTERM in hmrta train): the run ends after the iteration under
+        # way, so that last.pt holds the state between two iterations and --resume continues exactly
+        self.stopping = False
+        self._mid_step = False  # an iteration (its step, validation and checkpoint) is under way
+        self.saved_last = False  # the latest run() wrote last.pt on its way out
         self.imitation = Imitation(self)
         self.distill = Distill(self)
         self.reinforce = Reinforce(self)
@@ -348,7 +354,8 @@ class Trainer:
         from tqdm import tqdm
 
         bar = tqdm(total=total, initial=counter(), desc=desc, disable=not progress or counter() >= total)
-        while counter() < total and time.time() < deadline:
+        while counter() < total and time.time() < deadline and not self.stopping:
+            self._mid_step = True
             row = step()
             row.update(phase=phase, wall=time.time() - start)
             w.writerow(row)
@@ -356,6 +363,7 @@ class Trainer:
             bar.update(1)
             bar.set_postfix(**postfix(row))
             self._periodic(counter(), phase, w, f, start)
+            self._mid_step = False
         bar.close()
 
     def _periodic(self, it: int, phase: str, w, f, start: float) -> None:
@@ -389,6 +397,7 @@ class Trainer:
         if not new:  # a resumed run keeps its log's columns (one written by an older version has fewer)
             with open(log_path, newline="") as old:
                 fields = next(csv.reader(old), None) or fields
+            self._trim_log(log_path)
         f = open(log_path, "a", newline="")
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         if new:
@@ -396,11 +405,12 @@ class Trainer:
         start = time.time()
         deadline = start + 60 * t.max_minutes if t.max_minutes else math.inf
         last, best = self.run_dir / "last.pt", self.run_dir / "best.pt"
+        counters = self._counters()
         try:
             phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
             phase(f"pretrain (BC of {'schedules' if p.schedules else p.teacher})", "bc", p.iterations, lambda: self.pretrain_done,
                   self.pretrain_step, lambda r: {"loss": f"{r['bc_loss']:.3f}", "best": f"{self.best_val:.2f}"})
-            if self.iteration == 0 and self.best_val == math.inf:
+            if self.iteration == 0 and self.best_val == math.inf and not self.stopping:
                 v = self.validate()
                 self.best_val = v["val_makespan"]
                 w.writerow({**v, "phase": "val", "iteration": 0, "wall": time.time() - start})
@@ -412,11 +422,47 @@ class Trainer:
                   lambda r: {"mk": f"{r['makespan']:.1f}", "ent": f"{r['entropy']:.2f}",
                              "dps": f"{r['decisions_per_s']:.0f}", "best": f"{self.best_val:.2f}"})
         finally:
-            self.save(last)
+            # last.pt only between two iterations (cut short in one, the weights may have moved while
+            # the counters and random streams have not: the previous last.pt stays), and only once
+            # this run did something (a run that failed at once leaves no last.pt to block a new one)
+            self.saved_last = not self._mid_step and (self._counters() != counters or last.exists())
+            if self.saved_last:
+                self.save(last)
             f.close()
             self.close()
         return {"iteration": self.iteration, "episodes": self.episodes, "best_val": self.best_val,
                 "greedy_val": self.greedy_val}
+
+    def _counters(self) -> tuple[int, int, int]:
+        return self.pretrain_done, self.distill_done, self.iteration
+
+    def _trim_log(self, path: Path) -> None:
+        """Drop the rows of ``log.csv`` past this trainer's counters: the iterations a run did after
+        its last checkpoint (killed, then resumed from the checkpoint) are done again and logged again.
+        A validation row belongs to the phase of the row before it."""
+        limit = {"bc": self.pretrain_done, "distill": self.distill_done, "rl": self.iteration}
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh))
+        if len(rows) < 2 or "phase" not in rows[0] or "iteration" not in rows[0]:
+            return
+        ph, it = rows[0].index("phase"), rows[0].index("iteration")
+        keep, current = [rows[0]], None
+        for r in rows[1:]:
+            if len(r) <= max(ph, it):
+                continue
+            if r[ph] != "val":
+                current = r[ph]
+            try:
+                n = int(float(r[it]))
+            except ValueError:
+                continue
+            if current in limit and n > limit[current]:
+                continue
+            keep.append(r)
+        if len(keep) < len(rows):
+            buf = io.StringIO()
+            csv.writer(buf).writerows(keep)
+            atomic_write_text(path, buf.getvalue())
 
 
     def fan_out(self, fn: Callable, jobs: list) -> list:

@@ -1385,3 +1385,113 @@ def test_an_unreadable_checkpoint_is_named_in_the_files_terms(tmp_path):
         msg = str(e.value)
         assert msg == f"{tmp_path / name}.pt: not a readable hmrta checkpoint ({want}" + (
             ", or a damaged one)" if "zip" in want else ")"), msg
+
+
+def _same_state(a: Trainer, b: Trainer) -> None:
+    for (k, v), (_, v2) in zip(a.model.state_dict().items(), b.model.state_dict().items()):
+        torch.testing.assert_close(v, v2, msg=k, rtol=0, atol=0)
+    assert a.np_rng.bit_generator.state == b.np_rng.bit_generator.state
+    assert torch.equal(a.torch_gen.get_state(), b.torch_gen.get_state())
+    assert (a.pretrain_done, a.iteration, a.episodes) == (b.pretrain_done, b.iteration, b.episodes)
+
+
+def test_a_stop_ends_the_run_between_iterations_and_the_resume_is_exact(tmp_path):
+    """hmrta train's first SIGINT / SIGTERM sets ``stopping``: the run ends after the iteration
+    under way and last.pt holds the state between two iterations, so that --resume ends where an
+    uninterrupted run ends (weights, random streams, counters); the log holds each row once."""
+    import csv
+
+    def cfg(n):
+        return _tiny_cfg(train={"iterations": n}, pretrain={"iterations": 2, "instances_per_iter": 1, "epochs": 1})
+
+    ref = Trainer(cfg(4), tmp_path / "ref", device="cpu", log=lambda s: None)
+    ref.run(progress=False)
+
+    class StopsAfterTwo(Trainer):
+        def train_step(self):
+            row = super().train_step()
+            self.stopping = self.stopping or self.iteration == 2  # the signal arrives in iteration 2
+            return row
+
+    run = tmp_path / "run"
+    t1 = StopsAfterTwo(cfg(4), run, device="cpu", log=lambda s: None)
+    t1.run(progress=False)
+    assert t1.iteration == 2 and t1.saved_last
+    t2 = Trainer(cfg(4), run, device="cpu", log=lambda s: None)
+    t2.load(run / "last.pt")
+    t2.run(progress=False)
+    _same_state(t2, ref)
+    rows = [(r["phase"], r["iteration"]) for r in csv.DictReader(open(run / "log.csv"))]
+    assert rows == [(r["phase"], r["iteration"]) for r in csv.DictReader(open(tmp_path / "ref" / "log.csv"))]
+
+
+def test_a_run_cut_short_within_an_iteration_keeps_the_previous_checkpoint_and_its_log_is_trimmed(tmp_path):
+    """An iteration that fails (a second signal, a lost Ray cluster) writes no last.pt: the latest
+    checkpoint stays, and a fresh run that failed before its first iteration leaves none (a run
+    folder it would lock). Resumed, the rows of the iterations done again are not logged twice."""
+    import csv
+
+    def cfg(n):
+        return _tiny_cfg(train={"iterations": n}, pretrain={"iterations": 0}, checkpoint={"every": 2})
+
+    class FailsAt(Trainer):
+        fail_at = 1
+
+        def train_step(self):
+            if self.iteration + 1 == self.fail_at:
+                raise RuntimeError("cut short")
+            return super().train_step()
+
+    fresh = tmp_path / "fresh"
+    with pytest.raises(RuntimeError):
+        FailsAt(cfg(5), fresh, device="cpu", log=lambda s: None).run(progress=False)
+    assert not (fresh / "last.pt").exists()
+    run = tmp_path / "run"
+    FailsAt.fail_at = 4
+    t1 = FailsAt(cfg(5), run, device="cpu", log=lambda s: None)
+    with pytest.raises(RuntimeError):
+        t1.run(progress=False)
+    assert t1.iteration == 3 and not t1.saved_last
+    t2 = Trainer(cfg(5), run, device="cpu", log=lambda s: None)
+    t2.load(run / "last.pt")
+    assert t2.iteration == 2  # the checkpoint of iteration 2, not a state within iteration 4
+    t2.run(progress=False)
+    rl = [int(r["iteration"]) for r in csv.DictReader(open(run / "log.csv")) if r["phase"] == "rl"]
+    assert rl == [1, 2, 3, 4, 5]
+
+
+def test_hmrta_train_stops_on_sigint_after_the_iteration_under_way(tmp_path):
+    """A real SIGINT to ``hmrta train``: it says it stops after the iteration under way, saves
+    last.pt at that iteration (the log's last row), exits 130; --resume continues from there."""
+    import csv
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from hmrta.rl.checkpoint import load
+    from hmrta.rl.train import write_config
+
+    cfg = _tiny_cfg(train={"iterations": 10000}, pretrain={"iterations": 0})
+    write_config(cfg, tmp_path / "tiny.yaml")
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "hmrta.cli", "train", "--config", str(tmp_path / "tiny.yaml"), "--run-dir", str(run),
+           "--threads", "1", "--no-progress"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            log = run / "log.csv"
+            if log.exists() and sum(r["phase"] == "rl" for r in csv.DictReader(open(log))) >= 2:
+                break
+            time.sleep(0.2)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, err
+    assert "SIGINT: stopping after the iteration under way" in err and "stopped: checkpoint saved to" in err, err
+    assert "Traceback" not in err
+    rl = [int(r["iteration"]) for r in csv.DictReader(open(run / "log.csv")) if r["phase"] == "rl"]
+    assert load(run / "last.pt")["iteration"] == rl[-1] >= 2
