@@ -765,8 +765,13 @@ def cmd_train(args) -> int:
     held.append(tr)
     if args.resume:
         src = Path(args.init) if args.init else last
-        tr.load(src, reseed=args.reseed)
+        tr.load(src, reseed=args.reseed, same_run=not args.init)
         print(f"resumed from {src}: iteration {tr.iteration}, {tr.episodes} episodes", file=sys.stderr)
+        changed = tr.changed_keys()
+        if changed:
+            print(f"this config differs from the checkpoint's ({len(changed)} setting(s); the run goes on under "
+                  f"this config's and records it): " + "; ".join(changed[:8]) + ("; ..." if len(changed) > 8 else ""),
+                  file=sys.stderr)
     write_config(cfg, run_dir / "config.yaml")
     print(f"training on {tr.device}; log {run_dir / 'log.csv'}", file=sys.stderr)
     try:
@@ -808,8 +813,19 @@ def _train_device(torch, device: str | None) -> None:
 
 
 def cmd_checkpoint_info(args) -> int:
-    from .rl.checkpoint_info import describe, lineage_lines
+    import importlib.util
 
+    from .rl.checkpoint_info import checkpoint_path, describe, lineage_lines
+
+    if importlib.util.find_spec("torch") is not None:  # what solve, bench, the agents and --resume would refuse, info refuses too
+        from .rl.checkpoint import counter, load
+        from .rl.inference import load_policy
+
+        path = checkpoint_path(args.checkpoint)
+        load_policy(args.checkpoint)  # format, config, rules, weights (names, shapes, finite values)
+        ck = load(path)
+        for k in ("iteration", "pretrain_done", "distill_done", "episodes", "decisions"):
+            counter(ck, k, path)
     d = describe(args.checkpoint)
     if args.json:
         print(json.dumps(d, indent=1, default=str))
@@ -1105,9 +1121,18 @@ def _fanout_args(p: argparse.ArgumentParser, what: str, note: str = "") -> None:
                    help=f"{what} as Ray tasks on a local Ray with N CPUs (one torch thread each; needs pip "
                         f"install 'hmrta[ray]'), N at most this machine's cores unless --ray-address; 1: in this "
                         f"process{note}")
-    p.add_argument("--ray-address", default=None, metavar="HOST:PORT",
-                   help=f"{what} on an existing Ray cluster instead (started with ray start --head / "
-                        "ray start --address HOST:PORT; docs/training.md)")
+    p.add_argument("--ray-address", default=None, metavar="HOST:PORT", type=_ray_address,
+                   help=f"{what} on an existing Ray cluster instead: its head's GCS address (ray start --head "
+                        "prints it; port 6379 by default); with token authentication, Ray's default, also "
+                        "RAY_AUTH_MODE=token and the cluster's token (docs/training.md)")
+
+
+def _ray_address(text: str) -> str:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT (the Ray head's GCS address, e.g. 10.0.0.2:6379), "
+                                         f"got {text!r}")
+    return text
 
 
 class Parser(argparse.ArgumentParser):

@@ -45,20 +45,57 @@ def _call(fn: Callable, item: Any, threads: int) -> Any:
         _set_threads(threads)
 
 
+# the HTTP/2 client connection preface and an empty SETTINGS frame: a gRPC server (Ray's GCS)
+# answers with a frame of its own, its SETTINGS (frame type 4, the fourth byte of the header)
+_H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+
+
 def _reachable(address: str, timeout: float = 10.0) -> None:
-    """A one-line user error, within ``timeout`` seconds, when nothing listens at HOST:PORT (Ray
-    itself would wait for the cluster without a limit)."""
+    """A one-line user error, within about ``timeout`` seconds, when nothing listens at HOST:PORT
+    or what listens there does not speak gRPC as Ray's GCS does (Ray itself would wait for the
+    cluster without a limit: at the client port 10001's sibling, a dashboard, any other server)."""
     import socket
 
     from .errors import MethodError
 
     host, _, port = address.rpartition(":")
     try:
-        socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout).close()
+        sock = socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout)
     except ValueError:
         raise MethodError(f"--ray-address: expected HOST:PORT, got {address!r}") from None
     except OSError as e:
         raise MethodError(f"--ray-address {address}: no Ray cluster reachable within {timeout:g} s ({e})") from None
+    with sock:
+        try:
+            sock.sendall(_H2_PREFACE)
+            head = b""
+            while len(head) < 9:
+                chunk = sock.recv(9 - len(head))
+                if not chunk:
+                    break
+                head += chunk
+        except OSError:
+            head = b""
+    if len(head) < 9 or head[3] != 4:
+        raise MethodError(f"--ray-address {address}: something listens there, but not a Ray cluster's GCS (no gRPC "
+                          f"answer within {timeout:g} s): give the head node's address as `ray start --head` "
+                          f"printed it (HOST:6379 by default; not the client server's 10001 nor the dashboard's "
+                          f"8265)")
+
+
+def _join_error(address: str, e: BaseException):
+    """A one-line user error for a Ray cluster that answers but does not let this process join."""
+    from .errors import MethodError
+
+    chain, c = [], e
+    while c is not None and len(chain) < 5:
+        chain.append(c)
+        c = c.__cause__ or c.__context__
+    if any("Authentication" in type(x).__name__ or "InvalidAuthToken" in str(x) for x in chain):
+        return MethodError(f"--ray-address {address}: the cluster uses token authentication (`ray start --head` turns "
+                           f"it on): run with RAY_AUTH_MODE=token and the cluster's token in ~/.ray/auth_token (copy it "
+                           f"from the head node) or in RAY_AUTH_TOKEN")
+    return MethodError(f"--ray-address {address}: cannot join the Ray cluster ({' '.join(str(e).split())[:300]})")
 
 
 class Fanout:
@@ -96,7 +133,10 @@ class Fanout:
                                        logging_level=logging.WARNING)
             if self.address:
                 _reachable(self.address)
-                ray.init(address=self.address, **kw)
+                try:
+                    ray.init(address=self.address, **kw)
+                except (ConnectionError, RuntimeError) as e:  # Ray's cause chained (e.g. AuthenticationError)
+                    raise _join_error(self.address, e) from None
             else:
                 ray.init(num_cpus=self.workers, **kw)
             self._started = True

@@ -50,6 +50,49 @@ def test_bad_workers_is_a_user_error(tmp_path):
     assert r.stderr.strip().splitlines()[-1].endswith("--jobs: expected a positive integer, got 0")
 
 
+def test_a_ray_address_that_is_not_a_ray_cluster_is_a_user_error_within_the_timeout():
+    """Nothing listening, a server that never answers (a plain TCP port) and one that answers in
+    HTTP/1 (a dashboard): one line each within the timeout, where Ray would wait without limit.
+    An authentication failure of a real cluster names RAY_AUTH_MODE."""
+    import http.server
+    import socket
+    import threading
+    import time
+
+    from hmrta.errors import MethodError
+    from hmrta.fanout import _join_error, _reachable
+
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen()
+    web = http.server.HTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    web.RequestHandlerClass.log_message = lambda *a: None
+    threading.Thread(target=web.serve_forever, daemon=True).start()
+    try:
+        for port, says in ((silent.getsockname()[1], "not a Ray cluster's GCS"),
+                           (web.server_address[1], "not a Ray cluster's GCS")):
+            t0 = time.monotonic()
+            with pytest.raises(MethodError, match=says):
+                _reachable(f"127.0.0.1:{port}", timeout=1.0)
+            assert time.monotonic() - t0 < 5.0
+        with pytest.raises(MethodError, match="expected HOST:PORT"):
+            _reachable("nohost", timeout=1.0)
+    finally:
+        web.shutdown()
+        silent.close()
+
+    class AuthenticationError(Exception):
+        pass
+
+    try:
+        try:
+            raise AuthenticationError("RPC error: InvalidAuthToken")
+        except AuthenticationError as cause:
+            raise ConnectionError("Failed to connect to Ray cluster") from cause
+    except ConnectionError as e:
+        assert "RAY_AUTH_MODE=token" in str(_join_error("h:6379", e))
+
+
 def test_bench_on_two_ray_workers_matches_serial(tmp_path):
     pytest.importorskip("ray", reason="Ray is not installed (pip install 'hmrta[ray]')")
     import ray

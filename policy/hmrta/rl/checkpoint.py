@@ -11,7 +11,8 @@ A checkpoint is a torch archive holding one dict of tensors and plain data:
   ``distill_done``, ``episodes``, ``decisions``), ``best_val``, ``greedy_val`` and the random
   streams (``np_rng``, ``torch_gen``, ``torch_rng``, ``py_rng``), so a resumed run continues exactly.
 - inference checkpoints (``export``): weights, config, counters and an optional ``summary``.
-- ``lineage`` (``average``): how the file was made: its source files with their sha256.
+- ``lineage`` (``average``; a training run started from another run's checkpoint, ``--init``): how
+  the file was made: its source files with their sha256 (and their own lineage).
 
 A checkpoint is read with ``torch.load(..., weights_only=True)``: its pickle may build tensors,
 dicts, lists and plain values only, never call a function, so a crafted file cannot run code.

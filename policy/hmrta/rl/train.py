@@ -118,6 +118,7 @@ class Trainer:
         self.stopping = False
         self._mid_step = False  # an iteration (its step, validation and checkpoint) is under way
         self.saved_last = False  # the latest run() wrote last.pt on its way out
+        self.lineage: list = []  # how the weights began: a checkpoint of another run (--init), with its own
         self.imitation = Imitation(self)
         self.distill = Distill(self)
         self.reinforce = Reinforce(self)
@@ -178,12 +179,13 @@ class Trainer:
             "torch_gen": self.torch_gen.get_state(),
             "torch_rng": torch.get_rng_state(),
             "py_rng": random.getstate(),
+            "lineage": self.lineage,
         }
 
     def save(self, path: Path) -> None:
         checkpoint.save(path, self.state_dict())
 
-    def load(self, path: Path, reseed: bool = False) -> None:
+    def load(self, path: Path, reseed: bool = False, same_run: bool = False) -> None:
         """Restore a checkpoint (model, optimiser, averaged weights, counters, RNG streams, best
         validation). ``reseed``: keep this trainer's fresh RNG streams (from the config's seed) and
         its unset validation scores instead, for a second, independent continuation of the same
@@ -192,10 +194,20 @@ class Trainer:
 
         The file is unpickled weights-only (it cannot run code); anything missing, mistyped or not
         fitting this network is a CheckpointError naming the file and the field, raised before the
-        trainer is changed."""
+        trainer is changed. ``same_run``: the checkpoint is this run's own (``--resume`` without
+        ``--init``), so its seed must be this config's too (the random streams continue)."""
         ck = checkpoint.load(path, map_location=self.device)
         if not reseed:
-            self._check_same_yardstick(ck, path)
+            self._check_same_yardstick(ck, path, same_run)
+        loaded_config = ck.get("config") if isinstance(ck.get("config"), dict) else {}
+        before = ck.get("lineage") if isinstance(ck.get("lineage"), list) else []
+        # a run's own checkpoint carries its lineage on; another run's (--init) becomes its source
+        lineage = before if same_run else [
+            {"op": "init", "sources": [{"path": str(path), "sha256": checkpoint.sha256(path), "weights": "model",
+                                        "code_version": ck.get("code_version") if isinstance(ck.get("code_version"),
+                                                                                             str) else None,
+                                        "lineage": before}],
+             **({"reseed": True} if reseed else {})}]
         sd = weights(ck, "model", path)
         widened = widen_task_inputs(self.model, sd)  # e.g. a "mission" checkpoint into "mission+coalition"
         check_shapes(self.model, sd, path, "model", optional=ZERO_INIT_PARAMS)
@@ -232,6 +244,7 @@ class Trainer:
             first = (str(e).strip().splitlines() or [""])[0][:200]
             raise CheckpointError(f"{path}: not a resumable training checkpoint ({type(e).__name__}: {first})") from None
         self.ema = ema if self.cfg.train.ema > 0 and not added else None
+        self.loaded_config, self.lineage = loaded_config, lineage
         for k, v in counters.items():
             setattr(self, k, v)
         if not reseed:  # validation scores and random streams continue the checkpoint's run
@@ -246,7 +259,7 @@ class Trainer:
     # what a validation score depends on, besides the weights (validation.every only says when)
     YARDSTICK = (("validation", ("every",)), ("rules", ()))
 
-    def _check_same_yardstick(self, ck: dict, path: Path) -> None:
+    def _check_same_yardstick(self, ck: dict, path: Path, same_run: bool = False) -> None:
         """A continuation keeps the checkpoint's best validation score, so it must be scored as
         the checkpoint was: same validation set and rules. Otherwise a CheckpointError naming
         the first key that differs (keys only one side has are not compared)."""
@@ -258,16 +271,42 @@ class Trainer:
                 continue
             for k in sorted(set(a) & set(b)):
                 if k not in skip and a[k] != b[k]:
+                    where, x, y = _first_difference(f"{section}.{k}", a[k], b[k])
                     raise CheckpointError(
-                        f"{path}: was trained with {section}.{k} = {short(a[k])}, this config has {short(b[k])}: "
+                        f"{path}: was trained with {where} = {short(x)}, this config has {short(y)}: "
                         f"its best validation score does not compare; pass --reseed to continue its weights with "
                         f"fresh validation scores and random streams")
+        if same_run and "seed" in theirs and theirs["seed"] != mine["seed"]:
+            raise CheckpointError(f"{path}: was trained with seed {short(theirs['seed'])}, this config has "
+                                  f"{short(mine['seed'])}: a resumed run continues the checkpoint's random streams, "
+                                  f"so the new seed would be recorded but not used; keep the seed, or pass --reseed "
+                                  f"to draw fresh streams from the new one")
+
+    # keys a continuation is expected to change: how long it runs
+    RUN_LENGTH = {"train.iterations", "train.max_minutes", "pretrain.iterations", "distill.iterations"}
+
+    def changed_keys(self) -> list[str]:
+        """``key: old -> new`` for each setting of this config that differs from the config of the
+        checkpoint last loaded (a resumed run trains on under the new ones from here on), run
+        lengths left out."""
+        theirs = getattr(self, "loaded_config", None) or {}
+        out: list[str] = []
+
+        def walk(prefix: str, a, b) -> None:
+            if isinstance(a, dict) and isinstance(b, dict):
+                for k in sorted(set(a) | set(b)):
+                    walk(f"{prefix}.{k}" if prefix else str(k), a.get(k), b.get(k))
+            elif a != b and a is not None and prefix not in self.RUN_LENGTH:
+                out.append(f"{prefix}: {short(a)} -> {short(b)}")
+
+        walk("", theirs, self.cfg.to_dict())
+        return out
 
     def export(self, path: Path, summary: dict | None = None) -> None:
         """Small inference checkpoint: weights + resolved config + code version + summary."""
         meta = {"iteration": self.iteration, "pretrain_done": self.pretrain_done, "distill_done": self.distill_done,
                 "decisions": self.decisions, "episodes": self.episodes, "best_val": self.best_val,
-                "greedy_val": self.greedy_val}
+                "greedy_val": self.greedy_val, "lineage": self.lineage}
         checkpoint.export(path, self.cfg.to_dict(), self.policy_weights(), meta, summary)
 
     # ---- data --------------------------------------------------------------------------------
@@ -410,10 +449,10 @@ class Trainer:
             phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
             phase(f"pretrain (BC of {'schedules' if p.schedules else p.teacher})", "bc", p.iterations, lambda: self.pretrain_done,
                   self.pretrain_step, lambda r: {"loss": f"{r['bc_loss']:.3f}", "best": f"{self.best_val:.2f}"})
-            if self.iteration == 0 and self.best_val == math.inf and not self.stopping:
+            if self.best_val == math.inf and not self.stopping:  # no score yet (a new run, or --reseed --init)
                 v = self.validate()
                 self.best_val = v["val_makespan"]
-                w.writerow({**v, "phase": "val", "iteration": 0, "wall": time.time() - start})
+                w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
                 self.save(best)
             phase("lookahead distillation", "distill", cfg.distill.iterations, lambda: self.distill_done,
                   self.distill_step, lambda r: {"mk": f"{r['makespan']:.1f}", "gain": f"{r['lookahead_gain']:.3f}",
@@ -473,6 +512,24 @@ class Trainer:
     def close(self) -> None:
         """Shut down the local Ray this run started, if any (a later step starts it again)."""
         self.fanout.close()
+
+
+def _first_difference(where: str, a, b) -> tuple[str, object, object]:
+    """(path, a's part, b's part) of the first place where two config values differ: inside lists
+    and mappings, so that a message shows what differs rather than two long values cut alike."""
+    while True:
+        if isinstance(a, list) and isinstance(b, list):
+            i = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), None)
+            if i is None:
+                return f"{where} (length)", len(a), len(b)
+            where, a, b = f"{where}[{i}]", a[i], b[i]
+        elif isinstance(a, dict) and isinstance(b, dict):
+            k = next((k for k in sorted(set(a) | set(b), key=str) if a.get(k) != b.get(k)), None)
+            if k is None:
+                return where, a, b
+            where, a, b = f"{where}.{k}", a.get(k), b.get(k)
+        else:
+            return where, a, b
 
 
 def write_config(cfg: TrainConfig | dict, path: Path) -> None:

@@ -1495,3 +1495,83 @@ def test_hmrta_train_stops_on_sigint_after_the_iteration_under_way(tmp_path):
     assert "Traceback" not in err
     rl = [int(r["iteration"]) for r in csv.DictReader(open(run / "log.csv")) if r["phase"] == "rl"]
     assert load(run / "last.pt")["iteration"] == rl[-1] >= 2
+
+
+def test_a_resume_says_which_settings_changed_refuses_a_new_seed_and_shows_where_validation_differs(tmp_path):
+    from hmrta.rl.checkpoint_info import CheckpointError
+
+    cfg = _tiny_cfg(train={"iterations": 1}, pretrain={"iterations": 0})
+    Trainer(cfg, tmp_path, device="cpu", log=lambda s: None).run(progress=False)
+    last = tmp_path / "last.pt"
+    tr = Trainer(deep_update(cfg, {"train": {"iterations": 3, "lr": 1e-3}}), tmp_path / "b", device="cpu")
+    tr.load(last)
+    assert tr.changed_keys() == ["train.lr: 0.003 -> 0.001"]  # the run length is expected to change
+    with pytest.raises(CheckpointError, match="seed 0, this config has 8: .* pass --reseed"):
+        Trainer(deep_update(cfg, {"seed": 8}), tmp_path / "c", device="cpu").load(last, same_run=True)
+    Trainer(deep_update(cfg, {"seed": 8}), tmp_path / "c", device="cpu").load(last)  # --init: another run's
+    Trainer(deep_update(cfg, {"seed": 8}), tmp_path / "c", device="cpu").load(last, reseed=True)
+    rows = cfg["validation"]["rows"]
+    with pytest.raises(CheckpointError, match=r"validation.rows \(length\) = 1, this config has 2"):
+        Trainer(deep_update(cfg, {"validation": {"rows": rows + [[6, 2, 8, 2, 2]]}}), tmp_path / "d",
+                device="cpu").load(last)
+    with pytest.raises(CheckpointError, match=r"validation.rows\[0\]\[4\] = 2, this config has 3"):
+        Trainer(deep_update(cfg, {"validation": {"rows": [rows[0][:4] + [3]]}}), tmp_path / "e",
+                device="cpu").load(last)
+
+
+def test_a_reseeded_continuation_scores_its_starting_weights_into_best_pt(tmp_path):
+    """--resume --reseed --init: the continuation starts at the checkpoint's iteration with no
+    score of its own; it validates its starting weights first, so best.pt exists (and --export
+    ships the best weights, not the last)."""
+    cfg = _tiny_cfg(train={"iterations": 1}, pretrain={"iterations": 0})
+    Trainer(cfg, tmp_path / "a", device="cpu", log=lambda s: None).run(progress=False)
+    tr = Trainer(deep_update(cfg, {"train": {"iterations": 2}}), tmp_path / "b", device="cpu", log=lambda s: None)
+    tr.load(tmp_path / "a" / "last.pt", reseed=True)
+    assert tr.iteration == 1 and tr.best_val == math.inf
+    res = tr.run(progress=False)
+    assert (tmp_path / "b" / "best.pt").exists() and math.isfinite(res["best_val"])
+
+
+def test_checkpoint_info_refuses_what_the_loaders_refuse(tmp_path, capsys):
+    """hmrta checkpoint info is as strict as solve and --resume: a newer format, bad rules, a
+    negative counter and a file that is not a checkpoint are one line each, exit 2."""
+    import copy
+
+    from hmrta.cli import main
+    from hmrta.rl.checkpoint import load, save
+
+    ck = load(DEFAULT_CHECKPOINT)
+    rules = copy.deepcopy(ck["config"])
+    rules["rules"]["max_open"] = "lots"
+    cases = {"format": ({**ck, "checkpoint_format": 99}, "is newer than this hmrta reads"),
+             "counter": ({**ck, "iteration": -5}, "iteration: expected an integer >= 0, got -5"),
+             "rules": ({**ck, "config": rules}, "config.rules.max_open")}
+    for name, (data, says) in cases.items():
+        save(tmp_path / f"{name}.pt", data)
+        assert main(["checkpoint", "info", str(tmp_path / f"{name}.pt")]) == 2, name
+        assert says in capsys.readouterr().err, name
+    (tmp_path / "text.pt").write_text("hello")
+    assert main(["checkpoint", "info", str(tmp_path / "text.pt")]) == 2
+    assert "not a torch checkpoint file" in capsys.readouterr().err
+
+
+def test_a_run_started_from_another_runs_checkpoint_records_it_in_its_lineage(tmp_path, capsys):
+    from hmrta.cli import main
+    from hmrta.rl.checkpoint import load
+    from hmrta.rl.checkpoint_info import sha256
+
+    cfg = _tiny_cfg(train={"iterations": 1}, pretrain={"iterations": 0})
+    Trainer(cfg, tmp_path / "a", device="cpu", log=lambda s: None).run(progress=False)
+    src = tmp_path / "a" / "last.pt"
+    tr = Trainer(deep_update(cfg, {"train": {"iterations": 2}}), tmp_path / "b", device="cpu", log=lambda s: None)
+    tr.load(src, reseed=True)
+    tr.run(progress=False)
+    tr.export(tmp_path / "b.pt")
+    for f in (tmp_path / "b" / "last.pt", tmp_path / "b.pt"):
+        (entry,) = load(f)["lineage"]
+        assert entry["op"] == "init" and entry["reseed"] and entry["sources"][0]["sha256"] == sha256(src)
+    again = Trainer(deep_update(cfg, {"train": {"iterations": 3}}), tmp_path / "b", device="cpu", log=lambda s: None)
+    again.load(tmp_path / "b" / "last.pt", same_run=True)  # --resume of the same run: carried on
+    assert again.lineage == load(tmp_path / "b" / "last.pt")["lineage"]
+    assert main(["checkpoint", "info", str(tmp_path / "b.pt")]) == 0
+    assert f"init of\n      {src}" in capsys.readouterr().out
