@@ -760,7 +760,10 @@ def cmd_train(args) -> int:
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)  # also when started in the background (SIGINT ignored there)
-    tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: print(s, file=sys.stderr), jobs=args.jobs,
+    from tqdm import tqdm
+
+    # log lines above the progress bar, not into it
+    tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: tqdm.write(s, file=sys.stderr), jobs=args.jobs,
                  ray_address=args.ray_address)
     held.append(tr)
     if args.resume:
@@ -898,8 +901,18 @@ def cmd_schedules(args) -> int:
         except ScheduleError as e:
             raise UserError(f"--team-scale {args.team_scale[0]:g} {args.team_scale[1]:g} with --generator "
                             f"{args.generator}: {e}") from None
-    n = generate(out, spec, args.seed, args.count, args.time_limit, args.workers, args.jobs, args.ray_address,
-                 progress=_progress_on(args))
+    import signal
+
+    def _term(signum, frame):  # SIGTERM as Ctrl-C: every finished schedule is in the file already
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _term)
+    try:
+        n = generate(out, spec, args.seed, args.count, args.time_limit, args.workers, args.jobs, args.ray_address,
+                     progress=_progress_on(args))
+    except KeyboardInterrupt:
+        print(f"stopped: {out} holds the schedules solved so far; the same command resumes it", file=sys.stderr)
+        return 130
     ss = ScheduleSet(out)
     mk = [r["makespan"] for r in ss.rows.values()]
     print(json.dumps({"out": str(out), "solved_now": n, "schedules": len(ss),
