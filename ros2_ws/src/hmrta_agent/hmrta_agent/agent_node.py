@@ -455,15 +455,19 @@ class AgentNode(Node):
     UNREADY_REPEAT = 30.0
 
     def why_not_ready(self) -> str | None:
-        """What this agent, which has a mission, still waits for before it takes part; None once ready."""
-        if self.is_ready() or self.mission is None:
+        """What this agent, which has a mission, still waits for before it takes part; None when
+        nothing (it only reads: ``ready`` is set by :meth:`is_ready`, whose caller then hands the agent
+        the board it held back)."""
+        if self.ready or self.mission is None:
             return None
         if not self.host.replica.synced:
             return "the board's state (no keyframe of /hmrta/board_keyframe yet)"
         if self.choice_pub.get_subscription_count() == 0:
             return f"the board's subscription to {topics.CHOICE} (is the task board running on this ROS domain?)"
-        return (f"a subscriber to its goal topic {self.goal_pub.topic_name} (is the robot's driver running, and "
-                f"is the agent's goal_pose remapped to the driver's goal topic?)")
+        if self.goal_pub.get_subscription_count() == 0:
+            return (f"a subscriber to its goal topic {self.goal_pub.topic_name} (is the robot's driver running, and "
+                    f"is the agent's goal_pose remapped to the driver's goal topic?)")
+        return None
 
     def check_waiting(self) -> None:
         """Say (warning) why an agent with a mission is not taking part after UNREADY_WARNING s, and
