@@ -145,3 +145,31 @@ def test_a_goal_waits_for_its_departure_and_the_clock_sends_only_the_goals_due(g
     while time.monotonic() < quiet:
         graph.executor.spin_once(timeout_sec=0.05)
     assert got["robot_1"] == [pytest.approx((0.5, 0.6, 0.0))] and got["robot_2"] == []
+
+
+def test_the_waiting_check_names_what_is_missing_and_never_marks_an_agent_ready(graph):
+    """check_waiting (a 1 Hz timer) only reads: were it to set ``ready``, the heartbeat would not see
+    the agent become ready and would not hand it the board it held back (a decider would miss its
+    turn)."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import String
+
+    from hmrta_agent.agent_node import AgentNode
+    from hmrta_msgs_py import topics
+
+    host = Host()
+    a = AgentNode(host, context=graph.context, namespace="/robot_0", start_parameter_services=False,
+                  parameter_overrides=[Parameter("robot", value="robot_0")])
+    graph.nodes.append(a)
+    a.mission = SimpleNamespace(frame_id="map", scale=1.0, session="s")
+    host.replica = SimpleNamespace(synced=True)
+    listener = graph.node("listener")
+    listener.create_subscription(String, topics.CHOICE, lambda m: None, topics.CHOICE_QOS)
+    graph.spin_until(lambda: a.choice_pub.get_subscription_count() >= 1, 10, "the choice listener")
+    assert "a subscriber to its goal topic /robot_0/goal_pose" in a.why_not_ready()
+    listener.create_subscription(PoseStamped, "/robot_0/goal_pose", lambda m: None, topics.GOAL_QOS)
+    graph.spin_until(lambda: a.goal_pub.get_subscription_count() >= 1, 10, "the goal listener")
+    a.check_waiting()
+    assert a.why_not_ready() is None and not a.ready  # left to is_ready(), the heartbeat's
+    assert a.is_ready() and a.ready
