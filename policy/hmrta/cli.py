@@ -1258,7 +1258,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "checkpoint's best validation score (an independent continuation, e.g. under other rules)")
     t.add_argument("--run-dir", default=None, help="run folder (default runs/<config name>)")
     t.add_argument("--max-minutes", type=float, default=None, help="stop after this many minutes (checkpointed)")
-    t.add_argument("--iterations", type=int, default=None, help="override train.iterations")
+    t.add_argument("--iterations", type=int, default=None,
+                   help="override train.iterations (REINFORCE's; the cloning and distillation phases run "
+                        "pretrain.iterations and distill.iterations: cap them in the config, or the run with "
+                        "--max-minutes)")
     t.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: cuda when available)")
     t.add_argument("--threads", type=int, default=None, metavar="N",
                    help="torch CPU threads (default: torch's, one per core; fewer beside other busy processes)")
