@@ -515,6 +515,7 @@ class MissionBoard(BoardCore):
         # it, followed as far as each new horizon allows (see set_clock)
         self.allowed = 0.0
         self._beyond = 0.0
+        self._beyond_warned = -math.inf  # when the board last warned of a clock beyond the horizons
         self.t_created = now()
         self.t_start: float | None = None
         self.started = False  # the mission has started (journaled: a replayed board does not wait again)
@@ -730,8 +731,6 @@ class MissionBoard(BoardCore):
         warn = None
         now = self.now()
         for j in joining:
-            if j.robot in self.index or not self._join_token(now):  # over JOIN_RATE: asked again next heartbeat
-                continue
             warn = self.join(j.robot, j.species, j.traits, j.position) or warn
         unknown = []
         for r in robots:
@@ -797,6 +796,8 @@ class MissionBoard(BoardCore):
             why = ("robots cannot join an authenticated mission at run time (its keystore names every robot; "
                    "start the mission with it)")
         else:
+            if not self._join_token(self.now()):  # over JOIN_RATE: its agent asks again at its next heartbeat
+                return None
             st = self.state
             rec: dict[str, Any] = {"type": "add_agent", "t": self._event_time(), "until": float(st.until),
                                    "name": name}
@@ -846,14 +847,24 @@ class MissionBoard(BoardCore):
         sim_robot of another mission, a recording played back, a stray node. The board then
         follows it only up to ``allowed``, and further as each new horizon allows, and warns once
         per such publisher's jump: a stray clock cannot run the mission past what the board
-        released (tasks completing with nobody there)."""
-        if t > self.allowed + EPS:
-            if t > self._beyond + 1.0:
+        released (tasks completing with nobody there). A clock heard within the horizons (the
+        simulated robots' own) is followed as it comes, and forgets the one beyond them, so a
+        single stray message does not hurry the rest of the mission."""
+        if t <= self.allowed + EPS:
+            self._beyond = 0.0
+        else:
+            now = self.now()
+            if now - self._beyond_warned >= 10.0:  # at most every 10 s, however often it comes
+                self._beyond_warned = now
                 self.log("warning", f"mission clock {t:.3f} s is past the board's horizon {self.allowed:.3f} s: "
                                     f"followed only up to the horizon (is another sim_robot, a recording being "
                                     f"played back, or another node publishing on the mission clock's topic?)")
             self._beyond = max(self._beyond, t)
             t = self.allowed
+        return self._to_clock(t)
+
+    def _to_clock(self, t: float) -> bool:
+        """Move the clock (and the state, held there) to ``t`` if it is later; whether it moved."""
         if t > self.clock:
             self.clock = t
             if self.started and not self.finished:
@@ -1364,7 +1375,7 @@ class MissionBoard(BoardCore):
         stream has carried as many bytes as the latest keyframe, so that keyframes cost at most
         as much as the stream."""
         if self._beyond > self.clock < self.allowed:  # a clock heard past an earlier horizon: up to this one
-            self.set_clock(min(self._beyond, self.allowed))
+            self._to_clock(min(self._beyond, self.allowed))
         phase, decider, horizon = self._target()
         self._track()
         key = (self.rev, phase, decider, horizon)

@@ -747,16 +747,8 @@ def cmd_train(args) -> int:
         torch.set_num_threads(args.threads)
     import signal
 
-    held: list = []  # the trainer, once built
-
-    def _stop(signum, frame):  # SIGTERM / SIGINT: the first ends the run after the iteration under way
-        tr_ = held[0] if held else None  # (last.pt then holds a state between iterations: an exact resume);
-        if tr_ is None or tr_.stopping:  # before training, or a second signal: at once
-            raise KeyboardInterrupt
-        tr_.stopping = True
-        print(f"\n{signal.Signals(signum).name}: stopping after the iteration under way, then saving {last} "
-              f"(send it again to stop at once: --resume then continues from the latest checkpoint)",
-              file=sys.stderr, flush=True)
+    def _stop(signum, frame):  # SIGTERM / SIGINT: stop at once; the trainer writes last.pt on the way out
+        raise KeyboardInterrupt  # (the state after the latest finished iteration: an exact resume)
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)  # also when started in the background (SIGINT ignored there)
@@ -765,7 +757,6 @@ def cmd_train(args) -> int:
     # log lines above the progress bar, not into it
     tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: tqdm.write(s, file=sys.stderr), jobs=args.jobs,
                  ray_address=args.ray_address)
-    held.append(tr)
     if args.resume:
         src = Path(args.init) if args.init else last
         tr.load(src, reseed=args.reseed, same_run=not args.init)
@@ -780,13 +771,12 @@ def cmd_train(args) -> int:
     try:
         res = tr.run(progress=_progress_on(args))
     except KeyboardInterrupt:
-        saved = (f"checkpoint saved to {last}" if tr.saved_last else
-                 f"stopped within an iteration: {last} is the latest checkpoint" if last.exists() else "no checkpoint")
-        print(f"stopped at once: {saved}" + (" (continue with --resume)" if last.exists() else ""), file=sys.stderr)
-        return 130
-    if tr.stopping:
-        print(f"stopped: checkpoint saved to {last} (continue with --resume)" if tr.saved_last
-              else "stopped before the first iteration: no checkpoint", file=sys.stderr)
+        if tr.saved_last:
+            print(f"stopped: checkpoint saved to {last}: the state after the latest finished iteration "
+                  f"(iteration {tr._boundary['iteration']}, cloning {tr._boundary['pretrain_done']}; --resume "
+                  f"continues from there, the iteration under way is done again)", file=sys.stderr)
+        else:
+            print("stopped before the first iteration finished: no checkpoint written", file=sys.stderr)
         return 130
     print(json.dumps({k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in res.items()}))
     if args.export:
@@ -818,21 +808,40 @@ def _train_device(torch, device: str | None) -> None:
 def cmd_checkpoint_info(args) -> int:
     import importlib.util
 
-    from .rl.checkpoint_info import checkpoint_path, describe, lineage_lines
+    from .rl.checkpoint_info import checkpoint_path, describe
 
+    refused = None
     if importlib.util.find_spec("torch") is not None:  # what solve, bench, the agents and --resume would refuse, info refuses too
         from .rl.checkpoint import counter, load
+        from .rl.checkpoint_info import CheckpointError
         from .rl.inference import load_policy
 
         path = checkpoint_path(args.checkpoint)
-        load_policy(args.checkpoint)  # format, config, rules, weights (names, shapes, finite values)
-        ck = load(path)
-        for k in ("iteration", "pretrain_done", "distill_done", "episodes", "decisions"):
-            counter(ck, k, path)
-    d = describe(args.checkpoint)
+        try:
+            load_policy(args.checkpoint)  # format, config, rules, weights (names, shapes, finite values)
+            ck = load(path)
+            for k in ("iteration", "pretrain_done", "distill_done", "episodes", "decisions"):
+                counter(ck, k, path)
+        except CheckpointError as e:
+            refused = e  # shown after what can be read of the file (to diagnose it), then the exit status 2
+    try:
+        d = describe(args.checkpoint)
+    except CheckpointError:
+        if refused is not None:
+            raise refused from None
+        raise
     if args.json:
         print(json.dumps(d, indent=1, default=str))
-        return 0
+    else:
+        _print_checkpoint(d)
+    if refused is not None:
+        raise refused
+    return 0
+
+
+def _print_checkpoint(d: dict) -> None:
+    from .rl.checkpoint_info import lineage_lines
+
     cfg = d["config"]
     model = cfg.get("model") if isinstance(cfg.get("model"), dict) else {}
     rules = cfg.get("rules") if isinstance(cfg.get("rules"), dict) else {}
@@ -850,7 +859,6 @@ def cmd_checkpoint_info(args) -> int:
         print("  lineage")
         for line in lineage_lines(d["lineage"]):
             print("    " + line)
-    return 0
 
 
 def cmd_checkpoint(args) -> int:

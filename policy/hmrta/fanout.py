@@ -17,6 +17,7 @@ raised again here as itself (a user error stays a user error).
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from typing import Any, Callable, Iterable, Sequence
 
@@ -65,6 +66,9 @@ def _reachable(address: str, timeout: float = 10.0) -> None:
         raise MethodError(f"--ray-address: expected HOST:PORT, got {address!r}") from None
     except OSError as e:
         raise MethodError(f"--ray-address {address}: no Ray cluster reachable within {timeout:g} s ({e})") from None
+    if os.environ.get("RAY_USE_TLS", "").strip().lower() in ("1", "true", "yes"):
+        sock.close()  # a TLS cluster: its GCS answers a TLS handshake, not a plain preface; Ray checks it
+        return
     with sock:
         try:
             sock.sendall(_H2_PREFACE)

@@ -53,7 +53,7 @@ def test_ctrl_c_while_the_node_module_loads_is_one_line_and_130(tmp_path):
     out = run_python("from hmrta_msgs_py.console import run; run('some_node', 'interrupted_node')",
                      PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
     assert out.returncode == 130
-    assert out.stderr == "some_node: interrupted\n" and "Traceback" not in out.stdout
+    assert out.stderr == "some_node: interrupted during start-up\n" and "Traceback" not in out.stdout
 
 
 def test_an_extension_interrupted_while_it_initialises_is_one_line_and_130(tmp_path):
@@ -64,7 +64,7 @@ def test_an_extension_interrupted_while_it_initialises_is_one_line_and_130(tmp_p
     (tmp_path / "broken_node.py").write_text("raise ImportError('no module named nothing')\n")
     env = {"PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
     out = run_python("from hmrta_msgs_py.console import run; run('some_node', 'ext_node')", **env)
-    assert out.returncode == 130 and out.stderr == "some_node: interrupted\n"
+    assert out.returncode == 130 and out.stderr == "some_node: interrupted during start-up\n"
     # an ImportError of its own is not hidden
     out = run_python("from hmrta_msgs_py.console import run; run('some_node', 'broken_node')", **env)
     assert out.returncode == 1 and "ImportError: no module named nothing" in out.stderr

@@ -113,10 +113,13 @@ class Trainer:
         self._schedules: dict = {}  # {path: (file size, ScheduleSet)} of pretrain.schedules, reloaded as they grow
         self.train_rules = self.eval_rules = self.cfg.rule_set()
         self.fanout = Fanout(jobs, ray_address)
-        # a stop asked for (SIGINT / SIGTERM in hmrta train): the run ends after the iteration under
-        # way, so that last.pt holds the state between two iterations and --resume continues exactly
+        # a stop asked for from Python: the run ends after the iteration under way
         self.stopping = False
         self._mid_step = False  # an iteration (its step, validation and checkpoint) is under way
+        # the whole trainer state after the latest finished iteration (a copy): what last.pt gets when
+        # a run is cut short within an iteration (Ctrl-C, SIGTERM, an error), so that --resume
+        # continues exactly, the iteration under way done again
+        self._boundary: dict | None = None
         self.saved_last = False  # the latest run() wrote last.pt on its way out
         self.lineage: list = []  # how the weights began: a checkpoint of another run (--init), with its own
         self.imitation = Imitation(self)
@@ -294,9 +297,9 @@ class Trainer:
 
         def walk(prefix: str, a, b) -> None:
             if isinstance(a, dict) and isinstance(b, dict):
-                for k in sorted(set(a) | set(b)):
-                    walk(f"{prefix}.{k}" if prefix else str(k), a.get(k), b.get(k))
-            elif a != b and a is not None and prefix not in self.RUN_LENGTH:
+                for k in sorted(set(a), key=str):  # keys the checkpoint lacks: written by an older version
+                    walk(f"{prefix}.{k}" if prefix else str(k), a[k], b.get(k))
+            elif a != b and prefix not in self.RUN_LENGTH:
                 out.append(f"{prefix}: {short(a)} -> {short(b)}")
 
         walk("", theirs, self.cfg.to_dict())
@@ -403,6 +406,7 @@ class Trainer:
             bar.set_postfix(**postfix(row))
             self._periodic(counter(), phase, w, f, start)
             self._mid_step = False
+            self._mark_boundary()
         bar.close()
 
     def _periodic(self, it: int, phase: str, w, f, start: float) -> None:
@@ -432,12 +436,14 @@ class Trainer:
                   "teacher_wins",
                   "val_makespan", "val_success", "greedy_makespan", "wall", "route_share", "val_mean_makespan",
                   "dagger_plan_ratio"]
-        new = not log_path.exists()
+        # a new run (nothing trained, no last.pt) starts a new log: one left by a run that never
+        # finished an iteration is not continued
+        new = not log_path.exists() or (self._counters() == (0, 0, 0) and not (self.run_dir / "last.pt").exists())
         if not new:  # a resumed run keeps its log's columns (one written by an older version has fewer)
             with open(log_path, newline="") as old:
                 fields = next(csv.reader(old), None) or fields
             self._trim_log(log_path)
-        f = open(log_path, "a", newline="")
+        f = open(log_path, "w" if new else "a", newline="")
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         if new:
             w.writeheader()
@@ -445,6 +451,7 @@ class Trainer:
         deadline = start + 60 * t.max_minutes if t.max_minutes else math.inf
         last, best = self.run_dir / "last.pt", self.run_dir / "best.pt"
         counters = self._counters()
+        self._mark_boundary()
         try:
             phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
             phase(f"pretrain (BC of {'schedules' if p.schedules else p.teacher})", "bc", p.iterations, lambda: self.pretrain_done,
@@ -454,6 +461,7 @@ class Trainer:
                 self.best_val = v["val_makespan"]
                 w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
                 self.save(best)
+                self._mark_boundary()
             phase("lookahead distillation", "distill", cfg.distill.iterations, lambda: self.distill_done,
                   self.distill_step, lambda r: {"mk": f"{r['makespan']:.1f}", "gain": f"{r['lookahead_gain']:.3f}",
                                                 "loss": f"{r['loss']:.3f}", "best": f"{self.best_val:.2f}"})
@@ -461,16 +469,22 @@ class Trainer:
                   lambda r: {"mk": f"{r['makespan']:.1f}", "ent": f"{r['entropy']:.2f}",
                              "dps": f"{r['decisions_per_s']:.0f}", "best": f"{self.best_val:.2f}"})
         finally:
-            # last.pt only between two iterations (cut short in one, the weights may have moved while
-            # the counters and random streams have not: the previous last.pt stays), and only once
+            # last.pt: the state after the latest finished iteration (cut short within one, the
+            # weights may have moved while the counters and random streams have not), and only once
             # this run did something (a run that failed at once leaves no last.pt to block a new one)
-            self.saved_last = not self._mid_step and (self._counters() != counters or last.exists())
+            b = self._boundary
+            self.saved_last = b is not None and (
+                (b["pretrain_done"], b["distill_done"], b["iteration"]) != counters or last.exists())
             if self.saved_last:
-                self.save(last)
+                checkpoint.save(last, b)
             f.close()
             self.close()
         return {"iteration": self.iteration, "episodes": self.episodes, "best_val": self.best_val,
                 "greedy_val": self.greedy_val}
+
+    def _mark_boundary(self) -> None:
+        """Keep a copy of the trainer's whole state, between two iterations."""
+        self._boundary = copy.deepcopy(self.state_dict())
 
     def _counters(self) -> tuple[int, int, int]:
         return self.pretrain_done, self.distill_done, self.iteration
@@ -487,16 +501,14 @@ class Trainer:
         ph, it = rows[0].index("phase"), rows[0].index("iteration")
         keep, current = [rows[0]], None
         for r in rows[1:]:
-            if len(r) <= max(ph, it):
-                continue
-            if r[ph] != "val":
-                current = r[ph]
-            try:
-                n = int(float(r[it]))
-            except ValueError:
-                continue
-            if current in limit and n > limit[current]:
-                continue
+            if len(r) > max(ph, it):
+                if r[ph] != "val":
+                    current = r[ph]
+                try:
+                    if current in limit and int(float(r[it])) > limit[current]:
+                        continue
+                except ValueError:
+                    pass  # a row it cannot read is kept as it is
             keep.append(r)
         if len(keep) < len(rows):
             buf = io.StringIO()

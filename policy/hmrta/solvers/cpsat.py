@@ -477,8 +477,13 @@ def _interruptible_solve(solver, model, callback, keep: bool = False) -> tuple[A
         while not done.wait(0.1):  # an Event, not Thread.join: an interrupted join can lose the thread
             pass
     except KeyboardInterrupt:
-        solver.StopSearch()
-        if not done.wait(30.0) or not keep or "code" not in out:
+        # again and again: a stop asked before the worker's Solve has begun (a loaded machine) is lost
+        deadline = time.monotonic() + 30.0
+        while True:
+            solver.StopSearch()
+            if done.wait(0.1) or time.monotonic() > deadline:
+                break
+        if not done.is_set() or not keep or "code" not in out:
             raise
         return out["code"], True
     if "error" in out:

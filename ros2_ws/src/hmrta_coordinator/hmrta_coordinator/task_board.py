@@ -332,18 +332,23 @@ class TaskBoard(Node):
         """Log and publish a rejection (within ``rejection_rate``); ``every``: at most once every that
         many seconds per reason and robot (a driver streaming poses in the wrong frame), the rest
         counted in the periodic summary."""
-        if every > 0 and not self._due((reason, robot), every):
+        if every > 0 and not self._due((reason, robot), every, mark=False):
             self._rej_quiet += 1
             return
         if self._rate_ok():
+            if every > 0:
+                self._due((reason, robot), every)
             self.get_logger().warning(f"rejected: {detail}")
             self.pub_rej.publish(rejection_to_msg(Rejection(reason, detail, robot, version)))
 
-    def _due(self, key: Any, every: float = 5.0) -> bool:
-        """Whether what ``key`` names was not logged in the last ``every`` seconds (and it is now)."""
+    def _due(self, key: Any, every: float = 5.0, mark: bool = True) -> bool:
+        """Whether what ``key`` names was not logged in the last ``every`` seconds (and, ``mark``,
+        it is now)."""
         now = time.monotonic()
         if now - self._said.get(key, -math.inf) < every:
             return False
+        if not mark:
+            return True
         if len(self._said) > 4096:  # bounded: a flood of distinct texts forgets the oldest first
             for k in list(self._said)[:2048]:
                 del self._said[k]
@@ -386,8 +391,9 @@ class TaskBoard(Node):
             self.board.malformed()
             return self._reject("malformed", f"malformed status: {e}")
         warn = self.board.heartbeat(s.session, s.robots, s.payload, s.joining, s.host)
-        if warn is not None and self._due(warn) and self._rate_ok():  # each text at most every 5 s: a warning
-            self.get_logger().warning(warn)  # the board gives once (two agent processes, a join refused) is kept
+        if warn is not None and self._due(warn, mark=False) and self._rate_ok():  # each text at most every 5 s:
+            self._due(warn)  # a warning the board gives once (two agent processes, a join refused) is kept
+            self.get_logger().warning(warn)
         for j in s.joining:  # tell a robot the board refuses to add, so that its agent stops asking
             why = self.board.join_refused.get(j.robot)
             if why is not None and self._rate_ok():

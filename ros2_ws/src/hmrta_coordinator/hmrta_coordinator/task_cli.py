@@ -11,7 +11,7 @@ a stored answer to an earlier request for the same task id); ``list`` asks the b
 keyframe of its current version (``/hmrta/keyframe_requests``) and prints its tasks (the latched
 keyframe when the board does not answer within a few seconds: a mission that is over). Exit
 status: 0 accepted (or listed), 3 rejected by the board (the reason is printed), 1 no answer
-within ``--timeout`` seconds (no board on this ROS domain?), 2 user error.
+within ``--timeout`` seconds (no board on this ROS domain?), 2 user error, 130 Ctrl-C while waiting.
 """
 from __future__ import annotations
 
@@ -90,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             p.error("--id: expected a task id (leave the option out for a random one), got an empty one")
 
     import rclpy
+    from rclpy.executors import ExternalShutdownException
     from std_msgs.msg import String
 
     from hmrta_msgs_py import topics
@@ -182,6 +183,9 @@ def main(argv: list[str] | None = None) -> int:
             return 3
         print(f"{rid}: {args.cmd} accepted at t={e.t:.3f}" + (f" (task {e.task})" if e.task is not None else ""))
         return 0
+    except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C while it waits (rclpy's handler shuts down)
+        print(f"hmrta-task: interrupted while waiting for the board ({args.cmd})", file=sys.stderr)
+        return 130
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

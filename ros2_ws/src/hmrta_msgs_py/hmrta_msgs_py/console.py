@@ -29,5 +29,7 @@ def run(prog: str, module: str, func: str = "main") -> None:
 
 
 def _interrupted(prog: str):
-    print(f"{prog}: interrupted during start-up", file=sys.stderr)
+    runtime = sys.modules.get("hmrta_msgs_py.runtime")  # (not imported here: it loads rclpy)
+    late = runtime is not None and getattr(runtime, "SPUN", False)  # a second Ctrl-C while the nodes stop
+    print(f"{prog}: interrupted" + ("" if late else " during start-up"), file=sys.stderr)
     raise SystemExit(130) from None

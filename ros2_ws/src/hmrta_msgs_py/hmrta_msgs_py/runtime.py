@@ -260,6 +260,9 @@ def make_executor():
     return SingleThreadedExecutor()
 
 
+SPUN = False  # spin_nodes was entered: an interrupt from now on is not one during start-up
+
+
 def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], None] | None = None,
                stopped: Callable[[str], str] | None = None) -> str | None:
     """Spin nodes on one executor until ``until`` completes, Ctrl-C / SIGTERM or external
@@ -270,6 +273,8 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
     is logged as one line (``stopped(signal)``, if given, says what was left undone).
     Spins in bounded slices (a signal is acted on within 0.5 s): the experimental events
     executor busy-waits and ignores signals when asked to spin without a timeout."""
+    global SPUN
+    SPUN = True
     warn_unknown_parameters(nodes)
     executor = make_executor()
     for n in nodes:
