@@ -2,12 +2,20 @@
 from __future__ import annotations
 
 import copy
+import signal
 from pathlib import Path
 
 import pytest
 import yaml
 
 DATA = Path(__file__).parent / "policy" / "data"
+
+# A test run started in the background (``cmd &`` in a script, as a CI runner may) inherits SIGINT
+# ignored, and so would every process it starts: the tests of what a Ctrl-C does would then test
+# nothing. The suite runs as from a terminal: Python's own SIGINT handler (children start with the
+# default disposition).
+if signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, signal.SIG_DFL, None):
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # A small valid `hmrta-instance/1` mapping: 3 skills, team traits [2, 1, 2].
 VALID = {

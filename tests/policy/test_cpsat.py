@@ -277,7 +277,8 @@ def test_ctrl_c_during_the_cp_sat_search_stops_the_command(tmp_path):
 
 
 def _interrupt_after(seconds: float):
-    """A Ctrl-C to the main thread after ``seconds`` (as SIGINT raises KeyboardInterrupt there)."""
+    """A Ctrl-C to the main thread after ``seconds`` (as SIGINT raises KeyboardInterrupt there;
+    tests/conftest.py makes sure Python handles SIGINT, also in a runner started in the background)."""
     import _thread
     import threading
 
