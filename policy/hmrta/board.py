@@ -845,8 +845,8 @@ class MissionBoard(BoardCore):
         A clock past the horizons the board has published (``allowed``; the simulated robots
         never take it there) comes from another publisher on the clock's topic: a second
         sim_robot of another mission, a recording played back, a stray node. The board then
-        follows it only up to ``allowed``, and further as each new horizon allows, and warns once
-        per such publisher's jump: a stray clock cannot run the mission past what the board
+        follows it only up to ``allowed``, and further as each new horizon allows, and warns (at
+        most every 10 s): a stray clock cannot run the mission past what the board
         released (tasks completing with nobody there). A clock heard within the horizons (the
         simulated robots' own) is followed as it comes, and forgets the one beyond them, so a
         single stray message does not hurry the rest of the mission."""
