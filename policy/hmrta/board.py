@@ -91,6 +91,25 @@ LIVE_EVENTS = frozenset(("add_task", "cancel_task", "add_agent", "drop_agent")) 
 HEADER_BYTES = 330  # about the bytes of a stream header without its events (for the automatic keyframe period)
 
 
+class TokenBucket:
+    """At most ``rate`` events a second on average, ``burst`` at once (``rate`` <= 0: no limit):
+    :meth:`take` says whether one more may happen at time ``now`` (seconds) and counts it."""
+
+    def __init__(self, rate: float, burst: float, now: float):
+        self.rate, self.burst = rate, burst
+        self.tokens, self.time = burst, now
+
+    def take(self, now: float) -> bool:
+        if self.rate <= 0:
+            return True
+        self.tokens = min(self.burst, self.tokens + (now - self.time) * self.rate)
+        self.time = now
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
+        return True
+
+
 class JournalError(ValueError):
     """A journal that cannot be replayed (written for another mission, or corrupt before its last
     line); one line naming the file and line."""
@@ -581,7 +600,7 @@ class MissionBoard(BoardCore):
         self._join_names: list[str] = []  # names of robots joining, given to the next added agents
         self._scenario_added = 0  # robots a scenario's add_robot events added (named robot_<A0 + k>)
         self.join_refused: dict[str, str] = {}  # robot asking to join -> why it was refused (warned once)
-        self._join_bucket = (2 * self.JOIN_RATE, now())  # (tokens, when) of the JOIN_RATE bucket
+        self._joins = TokenBucket(self.JOIN_RATE, 2 * self.JOIN_RATE, now())  # robots taken in
         self._join_slowed = False  # warned that joins come faster than JOIN_RATE
         self.robots_changed = False  # robots were added since the node last published the mission
         self.task_events: list[dict[str, Any]] = []  # hmrta-task-event/1 bodies not yet published
@@ -754,17 +773,13 @@ class MissionBoard(BoardCore):
     JOIN_RATE = 10.0
 
     def _join_token(self, now: float) -> bool:
-        tokens, then = self._join_bucket
-        tokens = min(2 * self.JOIN_RATE, tokens + (now - then) * self.JOIN_RATE)
-        if tokens < 1.0:
-            self._join_bucket = (tokens, now)
-            if not self._join_slowed:
-                self._join_slowed = True
-                self.log("warning", f"robots ask to join faster than {self.JOIN_RATE:g} a second: the others are "
-                                    f"taken as their agents ask again")
-            return False
-        self._join_bucket = (tokens - 1.0, now)
-        return True
+        if self._joins.take(now):
+            return True
+        if not self._join_slowed:
+            self._join_slowed = True
+            self.log("warning", f"robots ask to join faster than {self.JOIN_RATE:g} a second: the others are "
+                                f"taken as their agents ask again")
+        return False
 
     def _host_of(self, a: int, host: str, now: float) -> str | None:
         """Follow which agent process sends robot a's heartbeats; the warning (once per robot) when

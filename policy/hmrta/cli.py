@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import traceback
 from pathlib import Path
@@ -697,6 +696,17 @@ def _mission_sets(paths: list[str]) -> list:
     return rows
 
 
+def _interrupt_on(*signals: int) -> None:
+    """These signals raise KeyboardInterrupt in the main thread, as a Ctrl-C does."""
+    import signal
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    for s in signals:
+        signal.signal(s, interrupt)
+
+
 def cmd_train(args) -> int:
     import os
 
@@ -747,11 +757,9 @@ def cmd_train(args) -> int:
         torch.set_num_threads(args.threads)
     import signal
 
-    def _stop(signum, frame):  # SIGTERM / SIGINT: stop at once; the trainer writes last.pt on the way out
-        raise KeyboardInterrupt  # (the state after the latest finished iteration: an exact resume)
-
-    signal.signal(signal.SIGTERM, _stop)
-    signal.signal(signal.SIGINT, _stop)  # also when started in the background (SIGINT ignored there)
+    # stop at once; the trainer writes last.pt on the way out (the state after the latest finished
+    # iteration: an exact resume); SIGINT also when started in the background (ignored there)
+    _interrupt_on(signal.SIGTERM, signal.SIGINT)
     from tqdm import tqdm
 
     # log lines above the progress bar, not into it
@@ -773,12 +781,14 @@ def cmd_train(args) -> int:
     except KeyboardInterrupt:
         if tr.saved_last:
             print(f"stopped: checkpoint saved to {last}: the state after the latest finished iteration "
-                  f"(iteration {tr._boundary['iteration']}, cloning {tr._boundary['pretrain_done']}; --resume "
+                  f"(iteration {tr.saved_last['iteration']}, cloning {tr.saved_last['pretrain_done']}; --resume "
                   f"continues from there, the iteration under way is done again)", file=sys.stderr)
         else:
             print("stopped before the first iteration finished: no checkpoint written", file=sys.stderr)
         return 130
-    print(json.dumps({k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in res.items()}))
+    from .bench import clean
+
+    print(json.dumps(clean(res)))  # strict JSON: no score yet is null, not Infinity
     if args.export:
         best = run_dir / "best.pt"
         if best.exists():
@@ -808,28 +818,25 @@ def _train_device(torch, device: str | None) -> None:
 def cmd_checkpoint_info(args) -> int:
     import importlib.util
 
-    from .rl.checkpoint_info import checkpoint_path, describe
+    from .rl.checkpoint_info import CheckpointError, checkpoint_path, describe
 
     refused = None
     if importlib.util.find_spec("torch") is not None:  # what solve, bench, the agents and --resume would refuse, info refuses too
-        from .rl.checkpoint import counter, load
-        from .rl.checkpoint_info import CheckpointError
+        from .rl.checkpoint import COUNTERS, counter, load
         from .rl.inference import load_policy
 
         path = checkpoint_path(args.checkpoint)
         try:
             load_policy(args.checkpoint)  # format, config, rules, weights (names, shapes, finite values)
             ck = load(path)
-            for k in ("iteration", "pretrain_done", "distill_done", "episodes", "decisions"):
+            for k in COUNTERS:
                 counter(ck, k, path)
         except CheckpointError as e:
             refused = e  # shown after what can be read of the file (to diagnose it), then the exit status 2
     try:
         d = describe(args.checkpoint)
-    except CheckpointError:
-        if refused is not None:
-            raise refused from None
-        raise
+    except CheckpointError as e:  # unreadable: the loader's reason is the clearer one
+        raise (refused or e) from None
     if args.json:
         print(json.dumps(d, indent=1, default=str))
     else:
@@ -911,10 +918,7 @@ def cmd_schedules(args) -> int:
                             f"{args.generator}: {e}") from None
     import signal
 
-    def _term(signum, frame):  # SIGTERM as Ctrl-C: every finished schedule is in the file already
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, _term)
+    _interrupt_on(signal.SIGTERM)  # as Ctrl-C: every finished schedule is in the file already
     try:
         n = generate(out, spec, args.seed, args.count, args.time_limit, args.workers, args.jobs, args.ray_address,
                      progress=_progress_on(args))

@@ -38,6 +38,8 @@ from ..reading import short
 from .checkpoint_info import CheckpointError, checkpoint_path, missing, sha256
 
 FORMAT_VERSION = 1
+# the training counters a checkpoint holds (each an integer >= 0: :func:`counter`)
+COUNTERS = ("iteration", "pretrain_done", "distill_done", "episodes", "decisions")
 
 
 def _torch_reason(e: Exception) -> str:

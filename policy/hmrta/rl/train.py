@@ -113,14 +113,12 @@ class Trainer:
         self._schedules: dict = {}  # {path: (file size, ScheduleSet)} of pretrain.schedules, reloaded as they grow
         self.train_rules = self.eval_rules = self.cfg.rule_set()
         self.fanout = Fanout(jobs, ray_address)
-        # a stop asked for from Python: the run ends after the iteration under way
-        self.stopping = False
-        self._mid_step = False  # an iteration (its step, validation and checkpoint) is under way
         # the whole trainer state after the latest finished iteration (a copy): what last.pt gets when
         # a run is cut short within an iteration (Ctrl-C, SIGTERM, an error), so that --resume
         # continues exactly, the iteration under way done again
         self._boundary: dict | None = None
-        self.saved_last = False  # the latest run() wrote last.pt on its way out
+        self.saved_last: dict | None = None  # the counters of the state the latest run() wrote to last.pt, if any
+        self.loaded_config: dict = {}  # the config of the checkpoint last loaded
         self.lineage: list = []  # how the weights began: a checkpoint of another run (--init), with its own
         self.imitation = Imitation(self)
         self.distill = Distill(self)
@@ -218,8 +216,7 @@ class Trainer:
         ema = weights(ck, "ema", path, required=False)
         if ema is not None and not added:
             check_shapes(self.model, ema, path, "ema")
-        counters = {k: counter(ck, k, path) for k in
-                    ("iteration", "pretrain_done", "distill_done", "episodes", "decisions")}
+        counters = {k: counter(ck, k, path) for k in checkpoint.COUNTERS}
         best_val, greedy_val = ck.get("best_val", math.inf), ck.get("greedy_val")
         for k, v in (("best_val", best_val), ("greedy_val", greedy_val)):
             if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or v != v):  # v != v: NaN
@@ -292,7 +289,7 @@ class Trainer:
         """``key: old -> new`` for each setting of this config that differs from the config of the
         checkpoint last loaded (a resumed run trains on under the new ones from here on), run
         lengths left out."""
-        theirs = getattr(self, "loaded_config", None) or {}
+        theirs = self.loaded_config
         out: list[str] = []
 
         def walk(prefix: str, a, b) -> None:
@@ -396,8 +393,7 @@ class Trainer:
         from tqdm import tqdm
 
         bar = tqdm(total=total, initial=counter(), desc=desc, disable=not progress or counter() >= total)
-        while counter() < total and time.time() < deadline and not self.stopping:
-            self._mid_step = True
+        while counter() < total and time.time() < deadline:
             row = step()
             row.update(phase=phase, wall=time.time() - start)
             w.writerow(row)
@@ -405,7 +401,6 @@ class Trainer:
             bar.update(1)
             bar.set_postfix(**postfix(row))
             self._periodic(counter(), phase, w, f, start)
-            self._mid_step = False
             self._mark_boundary()
         bar.close()
 
@@ -456,7 +451,7 @@ class Trainer:
             phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
             phase(f"pretrain (BC of {'schedules' if p.schedules else p.teacher})", "bc", p.iterations, lambda: self.pretrain_done,
                   self.pretrain_step, lambda r: {"loss": f"{r['bc_loss']:.3f}", "best": f"{self.best_val:.2f}"})
-            if self.best_val == math.inf and not self.stopping:  # no score yet (a new run, or --reseed --init)
+            if self.best_val == math.inf:  # no score yet (a new run, or --reseed --init)
                 v = self.validate()
                 self.best_val = v["val_makespan"]
                 w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
@@ -473,10 +468,10 @@ class Trainer:
             # weights may have moved while the counters and random streams have not), and only once
             # this run did something (a run that failed at once leaves no last.pt to block a new one)
             b = self._boundary
-            self.saved_last = b is not None and (
-                (b["pretrain_done"], b["distill_done"], b["iteration"]) != counters or last.exists())
-            if self.saved_last:
+            self.saved_last = None
+            if b is not None and (self._counters(b) != counters or last.exists()):
                 checkpoint.save(last, b)
+                self.saved_last = {k: b[k] for k in checkpoint.COUNTERS}
             f.close()
             self.close()
         return {"iteration": self.iteration, "episodes": self.episodes, "best_val": self.best_val,
@@ -486,8 +481,10 @@ class Trainer:
         """Keep a copy of the trainer's whole state, between two iterations."""
         self._boundary = copy.deepcopy(self.state_dict())
 
-    def _counters(self) -> tuple[int, int, int]:
-        return self.pretrain_done, self.distill_done, self.iteration
+    def _counters(self, state: dict | None = None) -> tuple[int, int, int]:
+        """(cloning, distillation, REINFORCE) iterations done: this trainer's, or a state_dict's."""
+        d = vars(self) if state is None else state
+        return d["pretrain_done"], d["distill_done"], d["iteration"]
 
     def _trim_log(self, path: Path) -> None:
         """Drop the rows of ``log.csv`` past this trainer's counters: the iterations a run did after

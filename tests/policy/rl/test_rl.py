@@ -1395,10 +1395,11 @@ def _same_state(a: Trainer, b: Trainer) -> None:
     assert (a.pretrain_done, a.iteration, a.episodes) == (b.pretrain_done, b.iteration, b.episodes)
 
 
-def test_a_stop_ends_the_run_between_iterations_and_the_resume_is_exact(tmp_path):
-    """hmrta train's first SIGINT / SIGTERM sets ``stopping``: the run ends after the iteration
-    under way and last.pt holds the state between two iterations, so that --resume ends where an
-    uninterrupted run ends (weights, random streams, counters); the log holds each row once."""
+def test_a_ctrl_c_within_an_iteration_and_the_resume_is_exact(tmp_path):
+    """hmrta train's SIGINT / SIGTERM raises KeyboardInterrupt wherever the run is (here at the
+    end of iteration 2's step, before its row is logged): last.pt holds the state after the last
+    finished iteration, so that --resume ends where an uninterrupted run ends (weights, random
+    streams, counters); the log holds each row once."""
     import csv
 
     def cfg(n):
@@ -1407,15 +1408,17 @@ def test_a_stop_ends_the_run_between_iterations_and_the_resume_is_exact(tmp_path
     ref = Trainer(cfg(4), tmp_path / "ref", device="cpu", log=lambda s: None)
     ref.run(progress=False)
 
-    class StopsAfterTwo(Trainer):
+    class StopsInTwo(Trainer):
         def train_step(self):
             row = super().train_step()
-            self.stopping = self.stopping or self.iteration == 2  # the signal arrives in iteration 2
+            if self.iteration == 2:  # the signal arrives in iteration 2
+                raise KeyboardInterrupt
             return row
 
     run = tmp_path / "run"
-    t1 = StopsAfterTwo(cfg(4), run, device="cpu", log=lambda s: None)
-    t1.run(progress=False)
+    t1 = StopsInTwo(cfg(4), run, device="cpu", log=lambda s: None)
+    with pytest.raises(KeyboardInterrupt):
+        t1.run(progress=False)
     assert t1.iteration == 2 and t1.saved_last
     t2 = Trainer(cfg(4), run, device="cpu", log=lambda s: None)
     t2.load(run / "last.pt")

@@ -445,9 +445,7 @@ class AgentNode(Node):
         the mission and the board and both the board (choices) and the robot's driver (goals) are
         listening, so that nothing it sends is lost."""
         if not self.ready:
-            self.ready = (self.mission is not None and self.host.replica.synced
-                          and self.choice_pub.get_subscription_count() > 0
-                          and self.goal_pub.get_subscription_count() > 0)
+            self.ready = self.mission is not None and self.why_not_ready() is None
         return self.ready
 
     # seconds an agent with a mission may wait for its listeners before it says why, then between repeats

@@ -75,7 +75,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from hmrta.board import BoardState, JournalError, MissionBoard, View  # noqa: F401  (BoardState: re-exported)
+from hmrta.board import BoardState, JournalError, MissionBoard, TokenBucket, View  # noqa: F401  (BoardState: re-exported)
 from hmrta.core import STATUS_NAMES
 from hmrta.formats import load_instance
 from hmrta.instance import InstanceError
@@ -190,8 +190,7 @@ class TaskBoard(Node):
 
         self.t_created = time.monotonic()
         self.failure: str | None = None  # why the finished mission failed
-        self._rej_tokens = self.rejection_rate  # token bucket of logged/published rejections
-        self._rej_time = time.monotonic()
+        self._rejections = TokenBucket(self.rejection_rate, self.rejection_rate, time.monotonic())  # logged/published
         self._rej_quiet = 0  # rejections counted but neither logged nor published since the last summary
         self._said: dict[Any, float] = {}  # (reason, robot) or warning text -> when it was last logged
         self._rej_summary_at = 0.0
@@ -332,40 +331,31 @@ class TaskBoard(Node):
         """Log and publish a rejection (within ``rejection_rate``); ``every``: at most once every that
         many seconds per reason and robot (a driver streaming poses in the wrong frame), the rest
         counted in the periodic summary."""
-        if every > 0 and not self._due((reason, robot), every, mark=False):
+        if every > 0 and self._recent((reason, robot), every):
             self._rej_quiet += 1
             return
         if self._rate_ok():
             if every > 0:
-                self._due((reason, robot), every)
+                self._note((reason, robot))
             self.get_logger().warning(f"rejected: {detail}")
             self.pub_rej.publish(rejection_to_msg(Rejection(reason, detail, robot, version)))
 
-    def _due(self, key: Any, every: float = 5.0, mark: bool = True) -> bool:
-        """Whether what ``key`` names was not logged in the last ``every`` seconds (and, ``mark``,
-        it is now)."""
-        now = time.monotonic()
-        if now - self._said.get(key, -math.inf) < every:
-            return False
-        if not mark:
-            return True
+    def _recent(self, key: Any, every: float) -> bool:
+        """Whether what ``key`` names was logged in the last ``every`` seconds."""
+        return time.monotonic() - self._said.get(key, -math.inf) < every
+
+    def _note(self, key: Any) -> None:
+        """What ``key`` names is logged now."""
         if len(self._said) > 4096:  # bounded: a flood of distinct texts forgets the oldest first
             for k in list(self._said)[:2048]:
                 del self._said[k]
-        self._said[key] = now
-        return True
+        self._said[key] = time.monotonic()
 
     def _rate_ok(self) -> bool:
         """Token bucket (``rejection_rate`` per second, as many in a burst): whether this
         rejection is logged and published; the others are only counted, and summarised in one
         log line every few seconds."""
-        if self.rejection_rate <= 0:
-            return True
-        now = time.monotonic()
-        self._rej_tokens = min(self.rejection_rate, self._rej_tokens + (now - self._rej_time) * self.rejection_rate)
-        self._rej_time = now
-        if self._rej_tokens >= 1.0:
-            self._rej_tokens -= 1.0
+        if self._rejections.take(time.monotonic()):
             return True
         self._rej_quiet += 1
         return False
@@ -391,8 +381,8 @@ class TaskBoard(Node):
             self.board.malformed()
             return self._reject("malformed", f"malformed status: {e}")
         warn = self.board.heartbeat(s.session, s.robots, s.payload, s.joining, s.host)
-        if warn is not None and self._due(warn, mark=False) and self._rate_ok():  # each text at most every 5 s:
-            self._due(warn)  # a warning the board gives once (two agent processes, a join refused) is kept
+        if warn is not None and not self._recent(warn, 5.0) and self._rate_ok():  # each text at most every 5 s:
+            self._note(warn)  # a warning the board gives once (two agent processes, a join refused) is kept
             self.get_logger().warning(warn)
         for j in s.joining:  # tell a robot the board refuses to add, so that its agent stops asking
             why = self.board.join_refused.get(j.robot)
