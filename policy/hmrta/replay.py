@@ -10,6 +10,10 @@ mission time, and the message count of every topic. :meth:`Recording.visits` com
 robot and task, the planned arrival, start and finish with the actual arrival (the first pose
 within ``tolerance`` of the task). :func:`render_recording` draws both (``hmrta render --from``).
 
+A mission in a namespace (``mission_namespace``: its topics ``<ns>/hmrta/...`` and
+``<ns>/<robot>/pose``) is read from its own topics; a recording holding the topics of several
+missions is refused.
+
 Mission time of a pose: its header stamp when it lies on the mission clock (simulated
 missions stamp poses with the mission clock), else its receive time mapped through the
 mission clock messages recorded (``rosgraph_msgs/Clock`` topics, board headers).
@@ -28,6 +32,7 @@ from .deps import MissingDependency
 from .instance import Instance, InstanceError, instance_from_dict
 from .solution import Solution, SolutionError
 
+# the mission-wide topics, in the root namespace; a mission in namespace <ns> has <ns> before each
 MISSION_TOPIC = "/hmrta/mission"
 BOARD_TOPIC = "/hmrta/board"
 KEYFRAME_TOPIC = "/hmrta/board_keyframe"
@@ -166,6 +171,14 @@ def _json(text: Any, what: str, path: Path) -> Any:
         raise ReplayError(f"{path}: {what} is not valid JSON") from None
 
 
+def _namespace_of(topic: str, leaf: str) -> str | None:
+    """The mission namespace of ``topic`` if it is the mission-wide topic ``leaf``
+    ('/hmrta/board' in '/fleet1/hmrta/board' -> '/fleet1'; in the root namespace '/'), else None."""
+    if topic == leaf:
+        return "/"
+    return topic[:-len(leaf)] if topic.endswith(leaf) and topic.startswith("/") else None
+
+
 def read_recording(path: str | Path) -> Recording:
     """Read a recording; :class:`ReplayError` (one line naming the file) for a file that is not
     MCAP, holds no mission message or a malformed one."""
@@ -177,17 +190,27 @@ def read_recording(path: str | Path) -> Recording:
     types: dict[str, str] = {}
     mission_text = result_text = keyframe_text = None
     heads: list[str] = []  # board stream headers (the latest ones)
-    poses: dict[str, list[tuple[int, float, float, float]]] = {}  # robot -> (recv ns, stamp, x, y) in frame units
-    goals: dict[str, list[tuple[float, float, float]]] = {}
+    # (mission namespace, robot) -> (recv ns, stamp, x, y) in frame units; goals: (departure, x, y)
+    poses: dict[tuple[str, str], list[tuple[int, float, float, float]]] = {}
+    goals: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     clock: list[tuple[int, float]] = []
+    spaces: set[str] = set()  # the mission namespaces of the mission-wide topics recorded
     for topic, typ, t, msg in _messages(path):
         counts[topic] = counts.get(topic, 0) + 1
         types.setdefault(topic, typ)
-        if topic == MISSION_TOPIC and mission_text is None:
-            mission_text = getattr(msg, "data", None)
-        elif topic == RESULT_TOPIC:
+        ns = next((n for leaf in (MISSION_TOPIC, RESULT_TOPIC, BOARD_TOPIC, KEYFRAME_TOPIC)
+                   if (n := _namespace_of(topic, leaf)) is not None), None)
+        if ns is not None:
+            spaces.add(ns)
+            if len(spaces) > 1:
+                raise ReplayError(f"{path}: holds the topics of several missions (mission namespaces "
+                                  f"{', '.join(sorted(spaces))}); record one mission per file")
+        if ns is not None and topic.endswith(MISSION_TOPIC):
+            if mission_text is None:
+                mission_text = getattr(msg, "data", None)
+        elif ns is not None and topic.endswith(RESULT_TOPIC):
             result_text = getattr(msg, "data", None)
-        elif topic in (BOARD_TOPIC, KEYFRAME_TOPIC):
+        elif ns is not None:  # the board stream or a keyframe
             text = getattr(msg, "data", None)
             head = _board_header(text)
             if head is not None and isinstance(head.get("clock"), (int, float)):
@@ -199,20 +222,21 @@ def read_recording(path: str | Path) -> Recording:
                 del heads[:-50000]
         elif typ in CLOCK_TYPES:
             clock.append((t, _stamp(msg.clock)))
-        elif typ in POSE_TYPES and topic.count("/") == 2:
-            robot, leaf = topic.strip("/").split("/")
+        elif typ in POSE_TYPES and topic.count("/") >= 2:  # <ns>/<robot>/<leaf>
+            where, robot, leaf = topic.rsplit("/", 2)
             xy = _position(msg)
             if xy is None:
                 continue
             header = getattr(msg, "header", None)
             stamp = _stamp(header.stamp) if header is not None else math.nan
             if leaf == GOAL_LEAF:
-                goals.setdefault(robot, []).append((stamp, *xy))
+                goals.setdefault((where or "/", robot), []).append((stamp, *xy))
             else:
-                poses.setdefault(robot, []).append((t, stamp, *xy))
+                poses.setdefault((where or "/", robot), []).append((t, stamp, *xy))
     if mission_text is None:
         raise ReplayError(f"{path}: no mission message on {MISSION_TOPIC} (record from the mission's start, "
                           f"or with the board running: it is latched)")
+    space = spaces.pop()  # the one mission's namespace: its robots' topics are <space>/<robot>/...
     mission = _json(mission_text, f"the {MISSION_TOPIC} message", path)
     try:
         if not isinstance(mission, dict) or mission.get("format") != "hmrta-mission/1":
@@ -228,8 +252,8 @@ def read_recording(path: str | Path) -> Recording:
     plan, source = _plan(inst, mission, result_text, keyframe_text, heads, path)
     clock.sort()
     horizon = max((c for _, c in clock), default=math.nan)
-    tracks = {r: _track(p, clock, horizon, scale) for r, p in poses.items() if r in robots}
-    goals = {r: [(d, x / scale, y / scale) for d, x, y in g] for r, g in goals.items() if r in robots}
+    tracks = {r: _track(p, clock, horizon, scale) for (n, r), p in poses.items() if n == space and r in robots}
+    goals = {r: [(d, x / scale, y / scale) for d, x, y in g] for (n, r), g in goals.items() if n == space and r in robots}
     return Recording(path, mission, inst, list(robots), scale, plan, source, tracks, goals, counts, types, clock)
 
 

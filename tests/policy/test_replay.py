@@ -51,9 +51,11 @@ def mission_payload(inst, robots) -> str:
 
 
 def write_recording(path: Path, *, mission=True, result=True, board=False, poses=True, wall_stamps=False,
-                    late: float = 0.0) -> tuple:
+                    late: float = 0.0, namespace: str = "", extra: tuple = ()) -> tuple:
     """A recording of the greedy plan of the example, its robots arriving on time (+ ``late``):
-    poses stamped with the mission clock, or (``wall_stamps``) with wall time, clocks on /clock."""
+    poses stamped with the mission clock, or (``wall_stamps``) with wall time, clocks on /clock;
+    the mission's topics in the mission namespace ``namespace`` ('/fleet1'; '' the root), plus
+    the messages ``extra`` ((mission time, topic, schema, message))."""
     inst = load_instance(EXAMPLE)
     sol = solve(inst, "greedy", 0)
     robots = [f"robot_{a}" for a in range(inst.n_agents)]
@@ -77,10 +79,12 @@ def write_recording(path: Path, *, mission=True, result=True, board=False, poses
                 stamp = (T0 * 1e-9 + t) if wall_stamps else t
                 msgs.append((s["t0"], f"/{robots[a]}/goal_pose", "geometry_msgs/msg/PoseStamped", _pose(s["t0"], *s["p1"])))
                 msgs.append((t, f"/{robots[a]}/pose", "geometry_msgs/msg/PoseStamped", _pose(stamp, *s["p1"])))
+    msgs = [(t, namespace + topic, schema, m) for t, topic, schema, m in msgs] + list(extra)
     ticks = sorted({m[0] for m in msgs if m[0] >= 0} | {0.0})
     msgs += [(t, "/clock", "rosgraph_msgs/msg/Clock", {"clock": _stamp(t)}) for t in ticks]
     if result:
-        msgs.append((sol.makespan + 1, "/hmrta/result", "std_msgs/msg/String", {"data": json.dumps(sol.to_dict())}))
+        msgs.append((sol.makespan + 1, namespace + "/hmrta/result", "std_msgs/msg/String",
+                     {"data": json.dumps(sol.to_dict())}))
     msgs.sort(key=lambda m: (m[0], m[2] != "rosgraph_msgs/msg/Clock"))  # a clock tick before what happens at it
     defs = {"std_msgs/msg/String": STRING, "geometry_msgs/msg/PoseStamped": POSE, "rosgraph_msgs/msg/Clock": CLOCK}
     with open(path, "wb") as f, Writer(f) as w:
@@ -136,6 +140,24 @@ def test_reads_back_mission_plan_tracks_and_counts(tmp_path):
     for rows in visits:
         for v in rows:
             assert v["actual_arrival"] == pytest.approx(v["arrival"], abs=1e-6)
+
+
+def test_a_mission_in_a_namespace_reads_back_from_its_own_topics(tmp_path):
+    """A mission run with mission_namespace /fleet1: its topics are /fleet1/hmrta/... and
+    /fleet1/<robot>/...; another robot's topic outside it is not its robot's; a file holding the
+    mission topics of two namespaces is refused (one line naming them)."""
+    stray = ((0.5, "/robot_0/pose", "geometry_msgs/msg/PoseStamped", _pose(0.5, 0.9, 0.9)),)
+    inst, sol, robots = write_recording(tmp_path / "ns.mcap", namespace="/fleet1", extra=stray)
+    rec = read_recording(tmp_path / "ns.mcap")
+    assert rec.plan_source == "result" and rec.routes == sol.routes and rec.robots == robots
+    ref = read_recording(write_recording(tmp_path / "root.mcap")[0] and tmp_path / "root.mcap")
+    assert rec.tracks == ref.tracks and rec.goals == ref.goals  # the stray /robot_0/pose is not fleet1's robot_0
+    assert rec.counts["/fleet1/hmrta/mission"] == 1 and rec.counts["/robot_0/pose"] == 1
+    other = ((0.5, "/fleet2/hmrta/board", "std_msgs/msg/String", {"data": "{}"}),)
+    write_recording(tmp_path / "two.mcap", namespace="/fleet1", extra=other)
+    with pytest.raises(ReplayError, match=r"two\.mcap: holds the topics of several missions \(mission namespaces "
+                                          r"/fleet1, /fleet2\); record one mission per file"):
+        read_recording(tmp_path / "two.mcap")
 
 
 def test_no_arrival_is_read_from_a_robot_first_heard_at_its_task(tmp_path):

@@ -205,9 +205,27 @@ def test_fleet_launch_one_agent_per_robot(launch_file):
 def test_agent_launch(launch_file):
     _, nodes = launch_file(AGENT, robot="robot_3", goal_topic="/tb3_3/goal_pose", keystore="/k")
     (n,) = nodes
-    assert n.kw["namespace"] == "robot_3" and n.kw["remappings"] == [("goal_pose", "/tb3_3/goal_pose")]
+    assert n.kw["namespace"] == "/robot_3" and n.kw["remappings"] == [("goal_pose", "/tb3_3/goal_pose")]
     assert params_of(n)["robot"] == "robot_3" and params_of(n)["keystore"] == "/k"
     assert set(params_of(n)) <= set(DECLARED["agent_node"])
+    _, (n,) = launch_file(AGENT, robot="robot_3", mission_namespace="/fleet1/")
+    assert n.kw["namespace"] == "/fleet1/robot_3" and params_of(n)["mission_namespace"] == "/fleet1/"
+
+
+def test_launch_files_in_a_mission_namespace(launch_file, tmp_path):
+    """mission_namespace reaches every node; simulated robots' agents run in <ns>/<robot>; a fleet
+    robot's default topics and the board's pose remaps are in the mission namespace."""
+    _, nodes = launch_file(MISSION, mission_namespace="/fleet1")
+    assert all(params_of(n)["mission_namespace"] == "/fleet1" for n in nodes)
+    agents = [n for n in nodes if node_of(n) == "agent_node"]
+    assert [n.kw["namespace"] for n in agents] == [f"/fleet1/robot_{i}" for i in range(15)]
+    fleet = tmp_path / "fleet.yaml"
+    fleet.write_text("robots:\n  - {name: robot_4}\n  - {name: robot_5, namespace: /tb3_5, pose_topic: /tb3_5/pose}\n")
+    _, nodes = launch_file(FLEET, fleet=str(fleet), board="true", mission_namespace="/fleet1")
+    assert [n.kw["namespace"] for n in nodes[1:]] == ["/fleet1/robot_4", "/tb3_5"]
+    assert nodes[0].kw["remappings"] == [("/fleet1/robot_5/pose", "/tb3_5/pose")]
+    with pytest.raises(ValueError, match="mission_namespace: expected an absolute ROS namespace"):
+        launch_file(MISSION, mission_namespace="fleet1")
 
 
 @pytest.mark.parametrize("text,error", [
@@ -234,3 +252,4 @@ def test_fleet_file_defaults(tmp_path):
     f = tmp_path / "fleet.yaml"
     f.write_text("robots:\n  - {name: robot_2}\n")
     assert load_fleet(f) == [FleetRobot("robot_2", "/robot_2", "/robot_2/pose")]
+    assert load_fleet(f, "/fleet1") == [FleetRobot("robot_2", "/fleet1/robot_2", "/fleet1/robot_2/pose")]

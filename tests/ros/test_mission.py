@@ -164,6 +164,53 @@ def test_sim_time_mission_equals_offline_solve(tmp_path, domain, per_process):
     assert result["transport"] == "ros2" and result["decision_latency_ms"]["n"] > 0
 
 
+def test_two_missions_on_one_domain_in_two_mission_namespaces(tmp_path, domain):
+    """Two missions with the same robot names at once on one ROS domain, one in the root
+    namespace and one in /fleet_b (every node's mission_namespace): neither hears the other's
+    board, clock or robots, so each equals its own offline rollout; the namespaced one is
+    recorded, and its recording replays with its robots' tracks."""
+    from hmrta.replay import read_recording
+
+    runs = []
+    for ns, seed in (("/", 4), ("/fleet_b", 5)):
+        inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(seed, 0)
+        d = tmp_path / ns.strip("/") if ns != "/" else tmp_path / "root"
+        d.mkdir()
+        path = save_instance(inst, d / "inst.yaml")
+        # recorded and paced: an unpaced mission can be over before the recorder has discovered the
+        # robots' publishers on a loaded machine (tests/ros/test_record.py)
+        record = ["--record", str(d / "mission.mcap"), "--time-scale", "5"] if ns != "/" else []
+        proc = subprocess.Popen([str(BIN / "hmrta-mission"), str(path), "--method", "greedy", "--seed", "3",
+                                 "--out", str(d / "mission.json"), "--quiet", "--no-plot", "--check-offline",
+                                 "--domain-id", str(domain), "--agents-per-process", "3", "--timeout", "150",
+                                 "--mission-namespace", ns, *record],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        runs.append((ns, inst, d, proc))
+    for ns, inst, d, proc in runs:
+        try:
+            out, _ = proc.communicate(timeout=200)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert proc.returncode == 0, f"mission in {ns}:\n{out}"
+        assert "same routes and makespan: yes" in out
+        result = json.loads((d / "mission.json").read_text())
+        assert_same_as_offline(result, inst, 3)
+        assert result["lost_robots"] == [] and "incidents" not in result
+    rec = read_recording(tmp_path / "fleet_b" / "mission.mcap")
+    assert rec.plan_source == "result" and sorted(rec.tracks) == robots_of(runs[1][1])
+    assert all(t.startswith("/fleet_b/") or t == "/rosout" for t in rec.counts), sorted(rec.counts)
+
+
+def test_mission_namespace_errors():
+    """A bad namespace is a one-line user error of hmrta-mission and hmrta-task (exit 2), before
+    anything starts."""
+    for cmd in (["hmrta-mission", "--mission-namespace", "fleet 1"], ["hmrta-task", "--mission-namespace", "/1x", "list"]):
+        proc = subprocess.run([str(BIN / cmd[0]), *cmd[1:]], capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2 and "--mission-namespace: expected an absolute ROS namespace" in proc.stderr, \
+            proc.stderr
+
+
 @pytest.mark.parametrize("method", ["portfolio", "rl-s3"])
 def test_a_chosen_or_sampled_method_is_reported_as_asked(tmp_path, domain, method):
     """portfolio: the result names it and what it chose (as offline), and the chosen method's live

@@ -241,20 +241,24 @@ def test_no_board_heard_and_a_board_gone_silent_are_warned(tmp_path, start):
 
 
 def test_a_namespace_that_would_not_keep_missions_apart_is_refused(tmp_path, start):
-    """The mission's topics are absolute: a board or sim_robot in a namespace, or --robots moved
-    into one namespace, would mix with another mission on the domain; each is one line, exit 2."""
+    """The mission's topics are absolute names in its mission namespace: a board or sim_robot in a
+    node namespace, or --robots moved into one namespace, would mix with another mission on the
+    domain; a mission namespace that is not one is refused too; each is one line, exit 2."""
     procs = {"board": start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-r", "__ns:=/fleet1",
                             name="board"),
              "sim": start("sim_robot", "--ros-args", "-r", "__ns:=/fleet1", name="sim"),
              "agents": start("agent_node", "--robots", "robot_0,robot_1", "--ros-args", "-r", "__ns:=/fleet1",
                              name="agents"),
              "both": start("sim_robot", "--ros-args", "-p", "robots:=[robot_1]", "-p", "external:=[robot_1]",
-                           name="both")}
-    says = {"board": "namespace /fleet1: the task board takes no namespace",
-            "sim": "namespace /fleet1: sim_robot takes no namespace",
+                           name="both"),
+             "bad": start("agent_node", "--robots", "robot_0", "--ros-args", "-p", "mission_namespace:=fleet 1",
+                          name="bad")}
+    says = {"board": "namespace /fleet1: the task board takes no node namespace",
+            "sim": "namespace /fleet1: sim_robot takes no node namespace",
             "agents": "--robots: each robot's agent runs in its own namespace (/robot_0/agent), but -r __ns:= moved "
                       "it to /fleet1",
-            "both": "robots and external both name robot_1"}
+            "both": "robots and external both name robot_1",
+            "bad": "mission_namespace: expected an absolute ROS namespace such as / or /fleet1, got 'fleet 1'"}
     for k, p in procs.items():
         assert p.proc.wait(timeout=60) == 2, (k, p.text())
         assert says[k] in p.text() and "Traceback" not in p.text(), (k, p.text())

@@ -1,20 +1,21 @@
 """agent_node: one robot's decision maker.
 
-Builds its view only from received topics: the mission (``/hmrta/mission``), the board stream
-(``/hmrta/board``: every version's events) and keyframes (``/hmrta/board_keyframe``), and the
-mission clock (``clock_topic``, default ``/hmrta/clock``; never ``/clock``); the agents hosted in
-one process share one subscription to each, one choice publisher, one replica of the board's
-state machine (:class:`hmrta.replica.Replica`: it starts from a keyframe and applies every
-version's events; a version it misses, or a state whose digest differs from the board's, makes it
-ask for a keyframe on ``/hmrta/keyframe_requests``, again every second until one comes, with the
-reason in the log) and one copy of the policy. When the board names this robot as the current decider, its agent
-runs its own copy of the policy on the replica's state and publishes its choice
-(``/hmrta/choice``, tagged with the board session and version it answers). The board's state
+Builds its view only from received topics: the mission (``<ns>/hmrta/mission``; ``<ns>`` is the
+``mission_namespace`` parameter, default ``/``), the board stream (``<ns>/hmrta/board``: every
+version's events) and keyframes (``<ns>/hmrta/board_keyframe``), and the mission clock
+(``clock_topic``, default ``<ns>/hmrta/clock``; never ``/clock``); the agents hosted in one
+process share one subscription to each, one choice publisher, one replica of the board's state
+machine (:class:`hmrta.replica.Replica`: it starts from a keyframe and applies every version's
+events; a version it misses, or a state whose digest differs from the board's, makes it ask for a
+keyframe on ``<ns>/hmrta/keyframe_requests``, again every second until one comes, with the reason
+in the log) and one copy of the policy. When the board names this robot as the current decider,
+its agent runs its own copy of the policy on the replica's state and publishes its choice
+(``<ns>/hmrta/choice``, tagged with the board session and version it answers). The board's state
 lists every leg the robot must drive (its own choices and automatic ones such as going home);
 when the mission clock reaches a leg's departure time the agent publishes it as a
-``geometry_msgs/PoseStamped`` goal on ``goal_pose`` (stamp = departure time), which a Nav2
-navigator or ``sim_robot`` consumes unchanged. A heartbeat on
-``/hmrta/agent_status`` tells the board it is alive (sent only once the board and the robot's
+``geometry_msgs/PoseStamped`` goal on ``goal_pose`` (relative: in the node's namespace, stamp =
+departure time), which a Nav2 navigator or ``sim_robot`` consumes unchanged. A heartbeat on
+``<ns>/hmrta/agent_status`` tells the board it is alive (sent only once the board and the robot's
 driver listen, so that nothing the agent sends is lost).
 
 A robot joins a running mission by starting its agent under a name the mission does not have,
@@ -27,9 +28,14 @@ One robot per process::
 
     agent_node --ros-args -r __ns:=/robot_3 -p method:=greedy -p seed:=1
 
-or many robots in one process (lean nodes on one executor, one shared copy of the policy)::
+or many robots in one process (lean nodes on one executor, one shared copy of the policy; node
+``<ns>/<robot>/agent`` each)::
 
     agent_node --robots robot_0,robot_1,robot_2 --ros-args -p method:=rl
+
+A mission in a namespace (``-p mission_namespace:=/fleet1`` on every node of the mission): one
+robot per process runs in ``-r __ns:=/fleet1/robot_3`` (goals on ``/fleet1/robot_3/goal_pose``,
+where ``sim_robot`` of that mission listens), ``--robots`` puts its nodes there itself.
 
 Authenticated missions (``hmrta.keys``, docs/security.md): ``-p keystore:=DIR`` (the process
 loads the keys of the robots it hosts from the mission keystore) or ``-p key_file:=FILE`` (one
@@ -96,6 +102,7 @@ class Host:
         self._by_index: dict[int, "AgentNode"] = {}  # hosted agents by robot index (as of that walk)
         self._unsettled: list["AgentNode"] = []  # agents not yet following the board (acted on every version)
         self._choice_pub = None  # one choice publisher for every agent of the process
+        self.topics: topics.MissionTopics | None = None  # the mission's (its agents' mission_namespace)
         self._kf_sessions: set[str] = set()  # sessions a keyframe was received for (the first may be old)
         self._early: list[tuple[String, bool]] = []  # keyframes that came before the mission
         self.ignore: set[int] = set()  # testing (--ignore-board-version): versions dropped once, as if lost
@@ -135,13 +142,14 @@ class Host:
         heartbeat (one status message per period lists every robot this process hosts), on one
         node of the process."""
         self._node = node
-        node.create_subscription(String, topics.MISSION, self._on_mission, topics.MISSION_QOS)
-        node.create_subscription(String, topics.BOARD, self._on_board, topics.BOARD_QOS)
-        node.create_subscription(String, topics.KEYFRAME, self._on_keyframe, topics.KEYFRAME_QOS)
-        node.create_subscription(Clock, getattr(node, "clock_topic", topics.CLOCK), self._on_clock, topics.CLOCK_QOS)
-        node.create_subscription(String, topics.REJECTIONS, self._on_rejection, topics.REJECTION_QOS)
-        self._status_pub = node.create_publisher(String, topics.STATUS, topics.STATUS_QOS)
-        self._request_pub = node.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
+        T = self.topics
+        node.create_subscription(String, T.mission, self._on_mission, topics.MISSION_QOS)
+        node.create_subscription(String, T.board, self._on_board, topics.BOARD_QOS)
+        node.create_subscription(String, T.keyframe, self._on_keyframe, topics.KEYFRAME_QOS)
+        node.create_subscription(Clock, getattr(node, "clock_topic", T.clock), self._on_clock, topics.CLOCK_QOS)
+        node.create_subscription(String, T.rejections, self._on_rejection, topics.REJECTION_QOS)
+        self._status_pub = node.create_publisher(String, T.status, topics.STATUS_QOS)
+        self._request_pub = node.create_publisher(String, T.keyframe_requests, topics.KEYFRAME_REQUEST_QOS)
         self._host = f"{socket.gethostname()}:{os.getpid()}"
         self.silence = BoardSilence(getattr(node, "board_silence_warning", 10.0))
         node.create_timer(period, self._beat)
@@ -270,7 +278,7 @@ class Host:
         """The process's publisher of choices (created on the first agent's node): one writer
         however many robots the process hosts (each choice names and signs its robot)."""
         if self._choice_pub is None:
-            self._choice_pub = node.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
+            self._choice_pub = node.create_publisher(String, self.topics.choice, topics.CHOICE_QOS)
         return self._choice_pub
 
     def dispatch(self, t_recv: float | None = None) -> None:
@@ -367,8 +375,13 @@ class AgentNode(Node):
         self.decide, self.rules = host.decider(self.method, self.seed, options)
         keystore = self.declare_parameter("keystore", "").value
         key_file = self.declare_parameter("key_file", "").value
-        self.clock_topic = self.declare_parameter("clock_topic", "/hmrta/clock").value
-        topics.check_clock_topic(self.clock_topic)
+        self.topics = topics.mission_topics(self.declare_parameter("mission_namespace", "/").value)
+        if host.topics is None:
+            host.topics = self.topics
+        elif host.topics.namespace != self.topics.namespace:
+            raise ValueError(f"mission_namespace: the robots of one agent_node process take part in one mission, "
+                             f"but {self.robot} has {self.topics.namespace} and another {host.topics.namespace}")
+        self.clock_topic = self.topics.clock_topic(self.declare_parameter("clock_topic", "").value)
         self.board_silence_warning = self.declare_parameter("board_silence_warning", 10.0).value
         if not (self.board_silence_warning >= 0 and math.isfinite(self.board_silence_warning)):
             raise ValueError(f"board_silence_warning: expected a number of seconds >= 0 (0: never), "
@@ -459,9 +472,10 @@ class AgentNode(Node):
         if self.ready or self.mission is None:
             return None
         if not self.host.replica.synced:
-            return "the board's state (no keyframe of /hmrta/board_keyframe yet)"
+            return f"the board's state (no keyframe of {self.topics.keyframe} yet)"
         if self.choice_pub.get_subscription_count() == 0:
-            return f"the board's subscription to {topics.CHOICE} (is the task board running on this ROS domain?)"
+            return (f"the board's subscription to {self.topics.choice} (is the task board running on this ROS domain, "
+                    f"with this mission_namespace?)")
         if self.goal_pub.get_subscription_count() == 0:
             return (f"a subscriber to its goal topic {self.goal_pub.topic_name} (is the robot's driver running, and "
                     f"is the agent's goal_pose remapped to the driver's goal topic?)")
@@ -677,6 +691,16 @@ def _set_torch_threads(n: int) -> None:
         torch.set_num_threads(n)
 
 
+def _mission_namespace() -> str:
+    """The ``mission_namespace`` parameter given to this process (``-p``, a parameter file), read
+    on a short-lived node before the robots' nodes are made (their namespaces are under it)."""
+    probe = rclpy.create_node("agent", namespace="/_hmrta_probe", start_parameter_services=False, enable_rosout=False)
+    try:
+        return topics.mission_topics(probe.declare_parameter("mission_namespace", "/").value).namespace
+    finally:
+        probe.destroy_node()
+
+
 def main(args: list[str] | None = None) -> int:
     """Exit status: 0, 2 a user error or an agent that refused to take part, 130 Ctrl-C at start-up."""
     argv = sys.argv if args is None else args
@@ -711,11 +735,13 @@ def main(args: list[str] | None = None) -> int:
         if cli.robots:
             lean = LEAN_NODE if len(cli.robots) > 1 else {}
             nodes = []
+            ns = _mission_namespace()
             for r in cli.robots:
-                nodes.append(AgentNode(host, namespace="/" + r, parameter_overrides=[Parameter("robot", value=r)],
+                own = topics.robot_topic(r, "", ns).rstrip("/")  # the robot's namespace in the mission's: <ns>/<robot>
+                nodes.append(AgentNode(host, namespace=own, parameter_overrides=[Parameter("robot", value=r)],
                                        **lean))
-                if nodes[-1].get_namespace() != "/" + r:  # a global -r __ns:= puts every robot's node there
-                    raise ValueError(f"--robots: each robot's agent runs in its own namespace (/{r}/agent), but "
+                if nodes[-1].get_namespace() != own:  # a global -r __ns:= puts every robot's node there
+                    raise ValueError(f"--robots: each robot's agent runs in its own namespace ({own}/agent), but "
                                      f"-r __ns:= moved it to {nodes[-1].get_namespace()}; leave __ns out with --robots "
                                      f"(one agent per process takes -r __ns:=/ROBOT)")
         else:

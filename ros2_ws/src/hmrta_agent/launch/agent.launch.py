@@ -2,8 +2,8 @@
 
     ros2 launch hmrta_agent agent.launch.py robot:=robot_3 goal_topic:=/tb3_3/goal_pose method:=rl
 
-The agent joins the mission it hears on /hmrta/mission (its name must be one of the mission's
-robots), decides when the board gives it the turn, and sends its robot's goals as
+The agent joins the mission it hears on <mission_namespace>/hmrta/mission (its name must be one of
+the mission's robots; its node runs in <mission_namespace>/<robot>), decides when the board gives it the turn, and sends its robot's goals as
 geometry_msgs/PoseStamped on ``goal_topic`` (a Nav2 bt_navigator's ``goal_pose`` takes them as is).
 Every parameter of ``agent_node`` is a launch argument of the same name. For several robots, use
 ``hmrta_coordinator fleet.launch.py`` with a fleet file.
@@ -17,7 +17,7 @@ from hmrta_msgs_py import params as P
 
 PARAMS = P.node_parameters("agent_node")
 ARGS = {
-    "robot": ("robot_0", "robot name in the mission (also the node's namespace)"),
+    "robot": ("robot_0", "robot name in the mission (the node's namespace is <mission_namespace>/<robot>)"),
     "goal_topic": ("goal_pose", "where to send the robot's goals (relative: in the robot's namespace)"),
     **{p.name: (p.text(), p.help) for p in PARAMS if p.name != "robot"},
 }
@@ -27,7 +27,8 @@ OPTIONS = {p.name for p in P.method_parameters()} - {"method"}
 def _agent(context):
     arg = {k: LaunchConfiguration(k).perform(context) for k in ARGS}
     params = {p.name: p.parse(arg[p.name]) for p in PARAMS if not (p.name in OPTIONS and arg[p.name] == "")}
-    return [Node(package="hmrta_agent", executable="agent_node", name="agent", namespace=arg["robot"],
+    ns = params.get("mission_namespace", "/").rstrip("/")
+    return [Node(package="hmrta_agent", executable="agent_node", name="agent", namespace=f"{ns}/{arg['robot'].strip('/')}",
                  output="screen", parameters=[params], remappings=[("goal_pose", arg["goal_topic"])])]
 
 

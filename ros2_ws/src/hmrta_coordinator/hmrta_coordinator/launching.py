@@ -10,8 +10,8 @@ Fleet file (``fleet:=FILE.yaml``): the real robots and their topics::
     robots:
       - name: robot_1              # robot name in the mission (required)
         species: 0                 # checked against the mission (default: no check)
-        namespace: /tb3_1          # the agent's namespace (default: /<name>)
-        pose_topic: /tb3_1/pose    # where the robot's pose is published (default: /<name>/pose)
+        namespace: /tb3_1          # the agent's namespace (default: <mission_namespace>/<name>)
+        pose_topic: /tb3_1/pose    # where its pose is published (default: <mission_namespace>/<name>/pose)
         pose_type: PoseStamped     # its message type: PoseStamped, PoseWithCovarianceStamped, Odometry
         goal_topic: /tb3_1/goal_pose   # where its goals go (default: goal_pose in the namespace)
         key_file: keys/robots/robot_1.key.json   # sign with this key (default: none / keystore)
@@ -39,8 +39,9 @@ class FleetRobot:
     key_file: str = ""
 
 
-def load_fleet(path: str | Path) -> list[FleetRobot]:
-    """The robots of a fleet file; ValueError naming the file and the field for anything wrong."""
+def load_fleet(path: str | Path, mission_namespace: str = "/") -> list[FleetRobot]:
+    """The robots of a fleet file (defaults in ``mission_namespace``, the mission's topics
+    ``<ns>/<robot>/...``); ValueError naming the file and the field for anything wrong."""
     import yaml
 
     path = Path(path)
@@ -71,8 +72,9 @@ def load_fleet(path: str | Path) -> list[FleetRobot]:
         pose_type = r.get("pose_type", "PoseStamped")
         if pose_type not in POSE_TYPES:
             raise ValueError(f"{where}.pose_type: expected one of {', '.join(POSE_TYPES)}, got {pose_type!r}")
-        ns = "/" + r.get("namespace", name).strip("/")
-        out.append(FleetRobot(name, ns, r.get("pose_topic", f"/{name}/pose"), pose_type,
+        own = robot_namespace(name, mission_namespace)  # where the board and sim_robot expect its topics
+        ns = "/" + r["namespace"].strip("/") if "namespace" in r else own
+        out.append(FleetRobot(name, ns, r.get("pose_topic", f"{own}/pose"), pose_type,
                               r.get("goal_topic", "goal_pose"), species, r.get("key_file", "")))
     names = [r.name for r in out]
     if len(set(names)) != len(names):
@@ -137,9 +139,21 @@ def parse_remaps(text: str) -> list[tuple[str, str]]:
     return out
 
 
-def board_remaps(fleet: list[FleetRobot]) -> list[tuple[str, str]]:
-    """The board reads each robot's pose on /<robot>/pose: point it at the fleet's pose topics."""
-    return [(f"/{r.name}/pose", r.pose_topic) for r in fleet if r.pose_topic != f"/{r.name}/pose"]
+def robot_namespace(robot: str, mission_namespace: str = "/") -> str:
+    """A robot's namespace in the mission's: ``<mission_namespace>/<robot>`` (where its agent runs
+    and the board and sim_robot expect its topics)."""
+    return f"{mission_namespace.rstrip('/')}/{robot.strip('/')}"
+
+
+def board_remaps(fleet: list[FleetRobot], mission_namespace: str = "/") -> list[tuple[str, str]]:
+    """The board reads each robot's pose on <mission_namespace>/<robot>/pose: point it at the
+    fleet's pose topics."""
+    out = []
+    for r in fleet:
+        own = robot_namespace(r.name, mission_namespace) + "/pose"
+        if r.pose_topic != own:
+            out.append((own, r.pose_topic))
+    return out
 
 
 def board_pose_types(fleet: list[FleetRobot], given: list[str]) -> list[str]:
@@ -185,3 +199,10 @@ def instance_path(text: str) -> str:
     import hmrta
 
     return str(Path(hmrta.__file__).resolve().parent / "data" / "example.yaml")
+
+
+def check_namespace(text: str) -> str:
+    """The ``mission_namespace`` launch argument, checked and normalised ('/fleet1/' -> '/fleet1')."""
+    from hmrta_msgs_py.topics import check_mission_namespace
+
+    return check_mission_namespace(text)

@@ -125,6 +125,7 @@ class MissionProcesses:
     # applies those after the keyframe to its state)
     record: Path | None = None  # record the mission to this MCAP file (the recorder node)
     recorder: Child | None = None  # started first, stopped last (not among children())
+    mission_namespace: str = "/"  # every node's mission_namespace (topics <ns>/hmrta/..., <ns>/<robot>/...)
 
     def _spawn(self, name: str, module: str, args: list[str]) -> Child:
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -153,10 +154,31 @@ class MissionProcesses:
         part = part_path(out)
         part.unlink(missing_ok=True)
         self.recorder = self._spawn("recorder", "hmrta_coordinator.recorder",
-                                    ["--ros-args", *ros_params({"output": str(out), "robots": self.robots})])
+                                    ["--ros-args", *ros_params({"output": str(out), "robots": self.robots,
+                                                                **self._namespace()})])
         deadline = time.monotonic() + timeout
         while not part.exists() and self.recorder.proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
+
+    def wait_recorder_heard_board(self, timeout: float = 30.0) -> bool:
+        """Wait (at most ``timeout`` s) until the recorder has received the board's latched mission
+        message, so that it has discovered the board before the robots start: a fast mission
+        otherwise ends before a busy machine's DDS discovery matches the recorder, and the
+        recording holds nothing. False (and a warning) when it did not within ``timeout``."""
+        from hmrta_coordinator.recorder import HEARD
+
+        c = self.recorder
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and c.proc.poll() is None and (self.board.proc.poll() is None):
+            try:
+                if HEARD in c.log.read_text(errors="replace"):
+                    return True
+            except OSError:
+                pass
+            time.sleep(0.05)
+        print(f"hmrta-mission: warning: the recorder did not hear the board within {timeout:g} s; the recording may "
+              f"miss the mission's start (see {c.log})", file=sys.stderr, flush=True)
+        return False
 
     def stop_recorder(self, timeout: float = 10.0) -> None:
         """Stop the recorder (SIGINT: it finishes and renames its file), SIGKILL after ``timeout`` s."""
@@ -178,10 +200,14 @@ class MissionProcesses:
             c._fh.close()
             c._fh = None
 
+    def _namespace(self) -> dict[str, str]:
+        """The mission_namespace parameter of every node, when not the default."""
+        return {"mission_namespace": self.mission_namespace} if self.mission_namespace != "/" else {}
+
     def start(self) -> None:
         if self.record is not None and self.recorder is None:
             self.start_recorder()
-        common = {"seed": self.seed, "method": self.method, **self.method_options}
+        common = {"seed": self.seed, "method": self.method, **self.method_options, **self._namespace()}
         if self.keystore is not None:
             common["keystore"] = str(self.keystore)
         bp = {"instance": str(self.instance), "robot_names": self.robots, **common, **self.board_params}
@@ -191,7 +217,9 @@ class MissionProcesses:
             bp["journal"] = str(self.journal)
         self.board = self._spawn("task_board", "hmrta_coordinator.task_board",
                                  ["--ros-args", *ros_params(bp), *self.board_ros_args])
-        sp = {"time_scale": self.time_scale, **self.sim_params}
+        if self.recorder is not None:
+            self.wait_recorder_heard_board()
+        sp = {"time_scale": self.time_scale, **self._namespace(), **self.sim_params}
         if self.external:
             sp["external"] = self.external
         self.sim = self._spawn("sim_robot", "hmrta_coordinator.sim_robot", ["--ros-args", *ros_params(sp), *self.sim_ros_args])
@@ -320,7 +348,7 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
                bar_format="{desc}: {n_fmt}/{total_fmt} tasks |{bar}| {elapsed} {postfix}")
     told = [-1]  # without a terminal: one line per quarter of the tasks
 
-    seen = {"clock": math.nan, "phase": ""}  # mission clock (topics.CLOCK or the board's), board phase
+    seen = {"clock": math.nan, "phase": ""}  # mission clock (its clock topic or the board's), board phase
 
     def finished() -> bool:
         """The board ended the mission: its last board was seen, or its result is written (the
@@ -365,9 +393,10 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
     def keyframe_cb(msg: String) -> None:
         procs.last_board = msg.data
 
-    node.create_subscription(Clock, topics.CLOCK, clock_cb, topics.CLOCK_QOS)
-    node.create_subscription(String, topics.BOARD, board_cb, topics.BOARD_QOS)
-    node.create_subscription(String, topics.KEYFRAME, keyframe_cb, topics.KEYFRAME_QOS)
+    T = topics.MissionTopics(procs.mission_namespace)
+    node.create_subscription(Clock, T.clock, clock_cb, topics.CLOCK_QOS)
+    node.create_subscription(String, T.board, board_cb, topics.BOARD_QOS)
+    node.create_subscription(String, T.keyframe, keyframe_cb, topics.KEYFRAME_QOS)
     deadline = time.monotonic() + timeout
     status = f"timed out after {timeout:g} s"
     try:
@@ -530,6 +559,9 @@ def _main(argv: list[str] | None = None) -> int:
                    help="sim seconds per wall second (0: as fast as possible)")
     p.add_argument("--heartbeat-timeout", type=float, default=5.0, help="wall seconds before a silent robot is lost")
     p.add_argument("--domain-id", type=int, default=None, help="ROS domain (default: $ROS_DOMAIN_ID or random 100-199)")
+    p.add_argument("--mission-namespace", default="/", metavar="NS",
+                   help="namespace of the mission's topics (NS/hmrta/..., NS/<robot>/pose and goal_pose), to run "
+                        "beside another mission on the same ROS domain (default /)")
     p.add_argument("--plot", default=None, help="routes + Gantt picture (default: next to --out, .png)")
     p.add_argument("--no-plot", action="store_true", help="do not draw the picture")
     p.add_argument("--check-offline", action="store_true",
@@ -560,6 +592,12 @@ def _main(argv: list[str] | None = None) -> int:
                                "a ROS domain id in 0..232")):
         if not ok or (isinstance(v, float) and not math.isfinite(v)):
             p.error(f"{flag}: expected {want}, got {v}")
+    from hmrta_msgs_py.topics import check_mission_namespace
+
+    try:
+        mission_namespace = check_mission_namespace(args.mission_namespace, "--mission-namespace")
+    except ValueError as e:
+        p.error(str(e))
 
     from hmrta.formats import load_instance
     from hmrta.instance import InstanceError
@@ -634,7 +672,8 @@ def _main(argv: list[str] | None = None) -> int:
                              time_scale=args.time_scale, keystore=keystore,
                              board_params={"heartbeat_timeout": args.heartbeat_timeout, "progress_period": 0.0},
                              journal=None if args.no_journal else log_dir / "journal.jsonl",
-                             record=Path(args.record) if args.record else None, added=added)
+                             record=Path(args.record) if args.record else None, added=added,
+                             mission_namespace=mission_namespace)
     if procs.journal is not None and procs.journal.exists():  # a new mission never resumes a previous run's
         # journal; it is kept beside (the record of an interrupted run; task_board -p journal:=... resumes it)
         kept = procs.journal.with_name("journal.previous.jsonl")

@@ -1,8 +1,10 @@
 """recorder: record a mission to MCAP (rosbag2's default storage format), for Foxglove, rosbag2 and ``hmrta render --from``.
 
-Records every ``/hmrta/*`` topic (mission, board, choices, heartbeats, rejections, result, task
-requests and events, the mission clock ``clock_topic``; ``/hmrta/markers`` only with
-``markers:=true``; another node's ``/clock`` only when listed in ``topics``), and each robot's goals and poses (``/<robot>/goal_pose``, ``/<robot>/pose``; the
+Records every ``<ns>/hmrta/*`` topic of the mission (``<ns>``: ``mission_namespace``, default ``/``;
+mission, board, choices, heartbeats, rejections, result, task requests and events, the mission
+clock ``clock_topic``; ``<ns>/hmrta/markers`` only with ``markers:=true``; another node's
+``/clock`` only when listed in ``topics``), and each robot's goals and poses
+(``<ns>/<robot>/goal_pose``, ``<ns>/<robot>/pose``; the
 robots are named by the ``robots`` parameter or taken from the recorded mission message), plus
 any topic listed in ``topics``. Messages are stored as received (ROS 2 CDR, message encoding
 ``cdr``) with their message definitions as ``ros2msg`` schemas, read from the installed ``.msg``
@@ -36,6 +38,7 @@ from hmrta_msgs_py import topics
 from hmrta_msgs_py.runtime import spin_nodes, starting
 
 RECORDING_FORMAT = "hmrta-recording/1"  # the MCAP metadata record "hmrta" names it
+HEARD = "recorder: heard the mission on"  # printed (stdout) once the first mission message is recorded
 PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32", "uint32",
               "int64", "uint64", "string", "wstring"}
 SEPARATOR = "=" * 80
@@ -119,34 +122,35 @@ def _qos(depth: int, reliable: bool, latched: bool) -> QoSProfile:
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
-def known_topics(markers: bool, clock_topic: str = topics.CLOCK) -> dict[str, tuple[str, QoSProfile]]:
-    """The mission-wide HMRTA topics: name -> (type, a QoS compatible with their publishers).
-    Latched topics are subscribed transient local (the latest sample arrives even when the
-    recorder starts late); the rest reliable and deep enough for bursts."""
+def known_topics(markers: bool, clock_topic: str = topics.CLOCK,
+                 T: topics.MissionTopics = topics.MissionTopics()) -> dict[str, tuple[str, QoSProfile]]:
+    """The mission-wide HMRTA topics of the mission namespace of ``T``: name -> (type, a QoS
+    compatible with their publishers). Latched topics are subscribed transient local (the latest
+    sample arrives even when the recorder starts late); the rest reliable and deep enough for bursts."""
     S = "std_msgs/msg/String"
     out = {
-        topics.MISSION: (S, _qos(1, True, True)),
-        topics.BOARD: (S, _qos(1000, True, False)),
-        topics.KEYFRAME: (S, _qos(10, True, True)),
-        topics.KEYFRAME_REQUESTS: (S, _qos(1000, True, False)),
-        topics.RESULT: (S, _qos(1, True, True)),
-        topics.CHOICE: (S, _qos(1000, True, False)),
-        topics.STATUS: (S, _qos(1000, True, False)),
-        topics.REJECTIONS: (S, _qos(1000, True, False)),
-        topics.TASK_REQUESTS: (S, _qos(1000, True, False)),
-        topics.TASK_EVENTS: (S, _qos(100, True, True)),
+        T.mission: (S, _qos(1, True, True)),
+        T.board: (S, _qos(1000, True, False)),
+        T.keyframe: (S, _qos(10, True, True)),
+        T.keyframe_requests: (S, _qos(1000, True, False)),
+        T.result: (S, _qos(1, True, True)),
+        T.choice: (S, _qos(1000, True, False)),
+        T.status: (S, _qos(1000, True, False)),
+        T.rejections: (S, _qos(1000, True, False)),
+        T.task_requests: (S, _qos(1000, True, False)),
+        T.task_events: (S, _qos(100, True, True)),
         clock_topic: ("rosgraph_msgs/msg/Clock", _qos(100, True, True)),
     }
     if markers:
-        out[topics.MARKERS] = ("visualization_msgs/msg/MarkerArray", _qos(10, True, True))
+        out[T.markers] = ("visualization_msgs/msg/MarkerArray", _qos(10, True, True))
     return out
 
 
-def robot_topics(robot: str) -> dict[str, tuple[str, QoSProfile]]:
+def robot_topics(robot: str, namespace: str = topics.ROOT) -> dict[str, tuple[str, QoSProfile]]:
     """A robot's goal (reliable, as agents publish it) and pose (best effort: any driver's QoS)."""
     P = "geometry_msgs/msg/PoseStamped"
-    return {topics.robot_topic(robot, topics.GOAL): (P, _qos(100, True, False)),
-            topics.robot_topic(robot, topics.POSE): (P, _qos(100, False, False))}
+    return {topics.robot_topic(robot, topics.GOAL, namespace): (P, _qos(100, True, False)),
+            topics.robot_topic(robot, topics.POSE, namespace): (P, _qos(100, False, False))}
 
 
 def string_payload(data: bytes) -> str | None:
@@ -170,7 +174,8 @@ class Recorder(Node):
         self.markers = bool(P("markers", False).value)
         period = float(P("discovery_period", 1.0).value)
         compression = str(P("compression", "zstd").value)
-        self.clock_topic = str(P("clock_topic", "/hmrta/clock").value)
+        self.topics = topics.mission_topics(P("mission_namespace", "/").value)
+        self.clock_topic = self.topics.clock_topic(str(P("clock_topic", "").value))
         if compression not in COMPRESSION:
             raise ValueError(f"compression: expected one of {', '.join(COMPRESSION)}, got {compression!r}")
         self.output = Path(output or time.strftime("hmrta_%Y%m%d_%H%M%S.mcap")).absolute()
@@ -186,11 +191,12 @@ class Recorder(Node):
         self.subs: dict[str, Any] = {}
         self.skipped: set[str] = set()
         self.session: str | None = None
+        self.heard = False  # the mission message has been received (the board's latched topics are matched)
         self.closed = False
-        for name, (typ, qos) in known_topics(self.markers, self.clock_topic).items():
+        for name, (typ, qos) in known_topics(self.markers, self.clock_topic, self.topics).items():
             self._subscribe(name, typ, qos)
         for r in self.robot_names:
-            for name, (typ, qos) in robot_topics(r).items():
+            for name, (typ, qos) in robot_topics(r, self.topics.namespace).items():
                 self._subscribe(name, typ, qos)
         self.timer = self.create_timer(max(period, 0.05), self._discover)
         self.get_logger().info(f"recording to {self.output} ({len(self.subs)} topics so far)")
@@ -216,11 +222,11 @@ class Recorder(Node):
     def _wanted(self, name: str) -> bool:
         if name in self.extra:
             return True
-        if name == topics.MARKERS and not self.markers:
+        if name == self.topics.markers and not self.markers:
             return False
-        if name.startswith("/hmrta/") or name == self.clock_topic:
+        if name.startswith(self.topics.mission.rsplit("/", 1)[0] + "/") or name == self.clock_topic:  # <ns>/hmrta/
             return True
-        return any(name in robot_topics(r) for r in self.robot_names)
+        return any(name in robot_topics(r, self.topics.namespace) for r in self.robot_names)
 
     def _discover(self) -> None:
         """Subscribe to matching topics that appeared, with a QoS their publishers offer."""
@@ -251,7 +257,10 @@ class Recorder(Node):
         self.writer.add_message(ch, log_time=now, data=bytes(data), publish_time=int(sent or now),
                                 sequence=seq & 0xFFFFFFFF)
         self.counts[name] = seq + 1
-        if name == topics.MISSION:
+        if name == self.topics.mission:
+            if not self.heard:  # hmrta-mission waits for this line before it starts the robots (MissionProcesses)
+                self.heard = True
+                print(f"{HEARD} {name}", flush=True)
             self._learn_robots(data)
 
     def _learn_robots(self, data: bytes) -> None:
@@ -265,7 +274,7 @@ class Recorder(Node):
         for r in robots:
             if r not in self.robot_names:
                 self.robot_names.append(r)
-                for name, (typ, qos) in robot_topics(r).items():
+                for name, (typ, qos) in robot_topics(r, self.topics.namespace).items():
                     self._subscribe(name, typ, qos)
 
     def close(self) -> None:

@@ -1,5 +1,9 @@
 """sim_robot: simulated kinematics for any number of robots, and the mission clock.
 
+Topic names here are those of a mission in the root namespace; with ``-p mission_namespace:=/ns``
+(the same on every node of the mission) each is under ``/ns`` (``/ns/hmrta/board``,
+``/ns/<robot>/pose``), so that missions share a ROS domain (docs/ros.md).
+
 Each simulated robot consumes goals on ``/<robot>/goal_pose`` (``geometry_msgs/PoseStamped``,
 stamp = departure time) and drives there in a straight line at the instance velocity; it
 publishes its pose on ``/<robot>/pose`` when it arrives, as a heartbeat, and (paced mode) while
@@ -93,6 +97,7 @@ class SimRobot(Node):
         super().__init__("sim_robot", **node_kw)
         topics.check_root_namespace(self, "sim_robot")
         P = self.declare_parameter
+        self.topics = T = topics.mission_topics(P("mission_namespace", "/").value)
         self.only = list(P("robots", Parameter.Type.STRING_ARRAY).value or [])
         self.external = set(P("external", Parameter.Type.STRING_ARRAY).value or [])
         both = [r for r in self.only if r in self.external]
@@ -103,7 +108,7 @@ class SimRobot(Node):
         rate = P("rate", 20.0).value
         heartbeat = P("heartbeat_period", 1.0).value
         self.exit_on_done = P("exit_on_done", True).value
-        clock_topic = P("clock_topic", "/hmrta/clock").value
+        clock_topic = P("clock_topic", "").value
         silence = P("board_silence_warning", 10.0).value
         for k, v, ok, want in (("time_scale", self.time_scale, self.time_scale >= 0, "a number >= 0 (0: as fast "
                                                                                     "as possible)"),
@@ -112,7 +117,7 @@ class SimRobot(Node):
                                ("board_silence_warning", silence, silence >= 0, "a number of seconds >= 0 (0: never)")):
             if not ok or not math.isfinite(v):
                 raise ValueError(f"{k}: expected {want}, got {v!r}")
-        topics.check_clock_topic(clock_topic)
+        clock_topic = T.clock_topic(clock_topic)
         self.mission: Mission | None = None
         self.robots: dict[str, SimulatedRobot] = {}
         self.now = 0.0
@@ -131,10 +136,10 @@ class SimRobot(Node):
         self.silence = BoardSilence(silence)
         self._version: int | None = None  # the latest board version heard
         self.pub_clock = self.create_publisher(Clock, clock_topic, topics.CLOCK_QOS)
-        self.create_subscription(String, topics.MISSION, self.on_mission, topics.MISSION_QOS)
-        self.create_subscription(String, topics.BOARD, self.on_board, topics.BOARD_SIM_QOS)
-        self.create_subscription(String, topics.KEYFRAME, self.on_keyframe, topics.KEYFRAME_QOS)
-        self.pub_request = self.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
+        self.create_subscription(String, T.mission, self.on_mission, topics.MISSION_QOS)
+        self.create_subscription(String, T.board, self.on_board, topics.BOARD_SIM_QOS)
+        self.create_subscription(String, T.keyframe, self.on_keyframe, topics.KEYFRAME_QOS)
+        self.pub_request = self.create_publisher(String, T.keyframe_requests, topics.KEYFRAME_REQUEST_QOS)
         self._who = f"{socket.gethostname()}:{os.getpid()} sim_robot"
         self.create_timer(heartbeat, self.on_heartbeat)
         self.create_timer(1.0, self.on_silence)
@@ -181,9 +186,9 @@ class SimRobot(Node):
     def _simulate(self, n: str, a: int, placed: bool) -> SimulatedRobot:
         inst = self.mission.instance
         home = (float(inst.depots[a, 0]), float(inst.depots[a, 1]))
-        pub = self.create_publisher(PoseStamped, topics.robot_topic(n, topics.POSE), topics.POSE_PUB_QOS)
+        pub = self.create_publisher(PoseStamped, self.topics.robot(n, topics.POSE), topics.POSE_PUB_QOS)
         r = self.robots[n] = SimulatedRobot(n, home, pub, index=a, placed=placed)
-        self.create_subscription(PoseStamped, topics.robot_topic(n, topics.GOAL),
+        self.create_subscription(PoseStamped, self.topics.robot(n, topics.GOAL),
                                  lambda g, r=r: self.on_goal(r, g), topics.GOAL_QOS)
         return r
 
@@ -195,7 +200,7 @@ class SimRobot(Node):
         old = set(self.mission.robots)
         self.mission = m
         new = [n for n in m.robots if n not in old and n not in self.external and (not self.only or n in self.only)]
-        driven = [n for n in new if self.count_publishers(topics.robot_topic(n, topics.POSE)) > 0]
+        driven = [n for n in new if self.count_publishers(self.topics.robot(n, topics.POSE)) > 0]
         if driven:  # a real robot joined: its driver already publishes its pose
             self.get_logger().info(f"not simulating {', '.join(driven)}: joined with a pose published by another "
                                    f"node (a driver)")

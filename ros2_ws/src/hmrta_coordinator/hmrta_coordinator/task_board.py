@@ -1,5 +1,9 @@
 """task_board: the mission's shared state, owned by the SPEC §3 state machine (hmrta.core).
 
+Topic names here are those of a mission in the root namespace; with ``-p mission_namespace:=/ns``
+(the same on every node of the mission) each is under ``/ns`` (``/ns/hmrta/board``,
+``/ns/<robot>/pose``), so that missions share a ROS domain (docs/ros.md).
+
 The board never decides for anyone. It publishes the mission (``/hmrta/mission``) and the board:
 every version on the board stream (``/hmrta/board``: a header naming the robot whose turn it is,
 with the events applied since the previous version and the state's digest), and now and then a
@@ -99,6 +103,7 @@ class TaskBoard(Node):
         super().__init__("task_board", **node_kw)
         topics.check_root_namespace(self, "the task board")
         P = self.declare_parameter
+        self.topics = T = topics.mission_topics(P("mission_namespace", "/").value)
         path = P("instance", "").value
         self.seed = P("seed", 0).value
         self.method, method_opts = declare_method_parameters(self)
@@ -110,7 +115,7 @@ class TaskBoard(Node):
         except ValueError as e:  # a user error
             raise ValueError(f"pose_type: {e}") from None
         self.pose_types = _pose_types(list(P("pose_types", Parameter.Type.STRING_ARRAY).value or []))
-        clock_topic = P("clock_topic", "/hmrta/clock").value
+        clock_topic = P("clock_topic", "").value
         scale = P("scale", 1.0).value
         wait_for_robots = P("wait_for_robots", True).value
         startup_timeout = P("startup_timeout", 120.0).value
@@ -171,7 +176,7 @@ class TaskBoard(Node):
                                            + (f" (did you mean {close[r]!r}?)" if close[r] else "")
                                            for r in strangers)
                 + f"; its robots are {_names(names)}. The entry applies only if a robot of that name joins")
-        topics.check_clock_topic(clock_topic)
+        clock_topic = T.clock_topic(clock_topic)
         # KeystoreError (a ValueError, one line naming the file and field) is a user error
         if keystore:  # a key for every robot of the mission; those of robots a scenario adds are taken too
             load_keystore(keystore, names)
@@ -201,18 +206,18 @@ class TaskBoard(Node):
         self.clock_topic = clock_topic
         self._streamed = 0  # the latest version published
 
-        self.pub_mission = self.create_publisher(String, topics.MISSION, topics.MISSION_QOS)
-        self.pub_board = self.create_publisher(String, topics.BOARD, topics.BOARD_QOS)
-        self.pub_keyframe = self.create_publisher(String, topics.KEYFRAME, topics.KEYFRAME_QOS)
-        self.pub_result = self.create_publisher(String, topics.RESULT, topics.RESULT_QOS)
-        self.pub_rej = self.create_publisher(String, topics.REJECTIONS, topics.REJECTION_QOS)
-        self.pub_markers = self.create_publisher(MarkerArray, topics.MARKERS, topics.MARKER_QOS)
-        self.pub_task_events = self.create_publisher(String, topics.TASK_EVENTS, topics.TASK_EVENT_QOS)
-        self.create_subscription(String, topics.TASK_REQUESTS, self.on_task_request, topics.TASK_REQUEST_QOS)
-        self.create_subscription(String, topics.KEYFRAME_REQUESTS, self.on_keyframe_request,
+        self.pub_mission = self.create_publisher(String, T.mission, topics.MISSION_QOS)
+        self.pub_board = self.create_publisher(String, T.board, topics.BOARD_QOS)
+        self.pub_keyframe = self.create_publisher(String, T.keyframe, topics.KEYFRAME_QOS)
+        self.pub_result = self.create_publisher(String, T.result, topics.RESULT_QOS)
+        self.pub_rej = self.create_publisher(String, T.rejections, topics.REJECTION_QOS)
+        self.pub_markers = self.create_publisher(MarkerArray, T.markers, topics.MARKER_QOS)
+        self.pub_task_events = self.create_publisher(String, T.task_events, topics.TASK_EVENT_QOS)
+        self.create_subscription(String, T.task_requests, self.on_task_request, topics.TASK_REQUEST_QOS)
+        self.create_subscription(String, T.keyframe_requests, self.on_keyframe_request,
                                  topics.KEYFRAME_REQUEST_QOS)
-        self.create_subscription(String, topics.CHOICE, self.on_choice, _deeper(topics.CHOICE_QOS, queue_depth))
-        self.create_subscription(String, topics.STATUS, self.on_status, _deeper(topics.STATUS_QOS, queue_depth))
+        self.create_subscription(String, T.choice, self.on_choice, _deeper(topics.CHOICE_QOS, queue_depth))
+        self.create_subscription(String, T.status, self.on_status, _deeper(topics.STATUS_QOS, queue_depth))
         self.create_subscription(Clock, clock_topic, self.on_clock, topics.CLOCK_QOS)
         self._pose_subs = 0
         self._subscribe_poses()
@@ -246,7 +251,7 @@ class TaskBoard(Node):
         with its pose type's message class and QoS."""
         for a in range(self._pose_subs, len(self.names)):
             kind = self.pose_types.get(self.names[a], self.pose_type)
-            self.create_subscription(POSE_TYPES[kind], topics.robot_topic(self.names[a], topics.POSE),
+            self.create_subscription(POSE_TYPES[kind], self.topics.robot(self.names[a], topics.POSE),
                                      partial(self.on_pose, a), topics.POSE_SUB_QOS_BY_TYPE[kind])
         self._pose_subs = len(self.names)
 

@@ -4,11 +4,12 @@
     hmrta-task cancel inspect-7        (or a task of the mission by its index: hmrta-task cancel 3)
     hmrta-task list
 
-``add`` and ``cancel`` publish an ``hmrta-task-request/1`` on ``/hmrta/task_requests`` and wait
-for the board's answer on ``/hmrta/task_events`` (``hmrta-task-event/1``): the request carries a
+``add`` and ``cancel`` publish an ``hmrta-task-request/1`` on ``<ns>/hmrta/task_requests`` (``<ns>``:
+``--mission-namespace``, default ``/``) and wait for the board's answer on
+``<ns>/hmrta/task_events`` (``hmrta-task-event/1``): the request carries a
 fresh ``request_id`` that the board echoes, so only the answer to this very request counts (never
 a stored answer to an earlier request for the same task id); ``list`` asks the board for a
-keyframe of its current version (``/hmrta/keyframe_requests``) and prints its tasks (the latched
+keyframe of its current version (``<ns>/hmrta/keyframe_requests``) and prints its tasks (the latched
 keyframe when the board does not answer within a few seconds: a mission that is over). Exit
 status: 0 accepted (or listed), 3 rejected by the board (the reason is printed), 1 no answer
 within ``--timeout`` seconds (no board on this ROS domain?), 2 user error, 130 Ctrl-C while waiting.
@@ -53,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     p = Parser(prog="hmrta-task", description=__doc__.split("\n\n")[0])
     p.add_argument("--timeout", type=_number, default=10.0, help="seconds to wait for the board (default 10)")
     p.add_argument("--domain-id", type=int, default=None, help="ROS domain 0..232 (default: $ROS_DOMAIN_ID)")
+    p.add_argument("--mission-namespace", default="/", metavar="NS",
+                   help="the mission's namespace (its nodes' mission_namespace: topics NS/hmrta/...; default /)")
     sub = p.add_subparsers(dest="cmd", required=True)
     a = sub.add_parser("add", help="submit a task")
     a.add_argument("--location", type=_point, required=True, metavar="X,Y", help="in the unit square [0, 1]")
@@ -65,10 +68,16 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("id", help="an operator's task id, or a task of the mission by its index (hmrta-task list)")
     ls = sub.add_parser("list", help="the mission's tasks and their status, the board's state clock and the mission clock")
     ls.add_argument("--clock-topic", default=None, help="the mission clock's topic, if the mission renamed it "
-                                                        "(its nodes' clock_topic; default /hmrta/clock)")
+                                                        "(its nodes' clock_topic; default NS/hmrta/clock)")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if args.timeout <= 0:
         p.error("--timeout: expected a positive number")
+    from hmrta_msgs_py.topics import MissionTopics, check_mission_namespace
+
+    try:
+        T = MissionTopics(check_mission_namespace(args.mission_namespace, "--mission-namespace"))
+    except ValueError as e:
+        p.error(str(e))
     if getattr(args, "clock_topic", None) is not None:
         from hmrta_msgs_py.topics import check_clock_topic
 
@@ -108,10 +117,10 @@ def main(argv: list[str] | None = None) -> int:
 
             got: list = []
             now: list = []  # the mission clock (latched): the state's clock stays at the last completion while closing
-            node.create_subscription(String, topics.KEYFRAME, got.append, topics.KEYFRAME_QOS)
-            node.create_subscription(Clock, args.clock_topic or topics.CLOCK, lambda m: now.append(clock_from_msg(m)),
+            node.create_subscription(String, T.keyframe, got.append, topics.KEYFRAME_QOS)
+            node.create_subscription(Clock, args.clock_topic or T.clock, lambda m: now.append(clock_from_msg(m)),
                                      topics.CLOCK_QOS)
-            ask = node.create_publisher(String, topics.KEYFRAME_REQUESTS, topics.KEYFRAME_REQUEST_QOS)
+            ask = node.create_publisher(String, T.keyframe_requests, topics.KEYFRAME_REQUEST_QOS)
             while not got and time.monotonic() < deadline:
                 rclpy.spin_once(node, timeout_sec=0.1)
             if not got:
@@ -163,12 +172,12 @@ def main(argv: list[str] | None = None) -> int:
             if e.request_id == nonce and e.event in ("accepted", "rejected"):
                 answers.append(e)
 
-        node.create_subscription(String, topics.TASK_EVENTS, on_event, topics.TASK_EVENT_QOS)
-        pub = node.create_publisher(String, topics.TASK_REQUESTS, topics.TASK_REQUEST_QOS)
+        node.create_subscription(String, T.task_events, on_event, topics.TASK_EVENT_QOS)
+        pub = node.create_publisher(String, T.task_requests, topics.TASK_REQUEST_QOS)
         while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
         if pub.get_subscription_count() == 0:
-            print(f"hmrta-task: no board listens on {topics.TASK_REQUESTS} (waited {args.timeout:g} s)",
+            print(f"hmrta-task: no board listens on {T.task_requests} (waited {args.timeout:g} s)",
                   file=sys.stderr)
             return 1
         pub.publish(task_request_to_msg(TaskRequest(args.cmd, rid, task, nonce)))

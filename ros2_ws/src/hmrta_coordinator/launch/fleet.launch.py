@@ -37,12 +37,13 @@ def _nodes(context):
     arg = L.values(context, ARGS)
     if not arg["fleet"]:
         raise ValueError("fleet: set the fleet file: fleet:=FILE.yaml")
-    fleet = L.load_fleet(arg["fleet"])
+    ns = L.check_namespace(arg["mission_namespace"])
+    fleet = L.load_fleet(arg["fleet"], ns)
     common = L.node_values("agent_node", arg, only=tuple(a for a in ARGS if a not in PER_ROBOT))
     nodes = [L.agent_node(r, common) for r in fleet]
     if L.P.Param("board", L.P.BOOL, False, "").parse(arg["board"]):
         arg["instance"] = L.instance_path(arg["instance"])
-        nodes.insert(0, L.board_node(arg, [], L.board_remaps(fleet) + L.parse_remaps(arg["remaps"]), fleet))
+        nodes.insert(0, L.board_node(arg, [], L.board_remaps(fleet, ns) + L.parse_remaps(arg["remaps"]), fleet))
     return nodes
 
 

@@ -1,6 +1,6 @@
 """Launch a whole HMRTA mission on a ROS 2 install: the task board, the simulated robots and one
-agent node per simulated robot (own process, namespace /<robot>). The launch ends when the board
-does.
+agent node per simulated robot (own process, namespace <mission_namespace>/<robot>). The launch
+ends when the board does.
 
     ros2 launch hmrta_coordinator mission.launch.py instance:=/path/mission.yaml seed:=1 \\
         output:=/tmp/mission.json method:=greedy time_scale:=5.0
@@ -22,7 +22,8 @@ from launch_ros.actions import Node
 from hmrta_coordinator import launching as L
 
 ARGS = {**L.args_of("task_board", "sim_robot"), **L.EXTRA_ARGS}
-AGENT_PARAMS = ("seed", "exit_on_done", "keystore", "clock_topic", "method", *(p.name for p in L.P.method_parameters()))
+AGENT_PARAMS = ("seed", "exit_on_done", "keystore", "clock_topic", "mission_namespace", "method",
+                *(p.name for p in L.P.method_parameters()))
 
 
 def _nodes(context):
@@ -33,17 +34,19 @@ def _nodes(context):
     inst = load_instance(arg["instance"])
     robots = L.P.by_name(L.P.TASK_BOARD)["robot_names"].parse(arg["robot_names"]) or \
         [f"robot_{a}" for a in range(inst.n_agents)]
-    fleet = L.load_fleet(arg["fleet"]) if arg["fleet"] else []
+    ns = L.check_namespace(arg["mission_namespace"])
+    fleet = L.load_fleet(arg["fleet"], ns) if arg["fleet"] else []
     external = L.P.by_name(L.P.SIM_ROBOT)["external"].parse(arg["external"]) + [r.name for r in fleet]
     unknown = sorted(set(external) - set(robots))
     if unknown:
         raise ValueError(f"external: {', '.join(unknown)} not among the mission's robots ({', '.join(robots[:5])}...)")
-    board = L.board_node(arg, robots, L.board_remaps(fleet) + L.parse_remaps(arg["remaps"]), fleet)
+    board = L.board_node(arg, robots, L.board_remaps(fleet, ns) + L.parse_remaps(arg["remaps"]), fleet)
     sim_params = L.node_values("sim_robot", {**arg, "external": ",".join(dict.fromkeys(external))})
     sim = Node(package="hmrta_coordinator", executable="sim_robot", name="sim_robot", output="screen",
                parameters=[sim_params])
     common = L.node_values("agent_node", arg, only=AGENT_PARAMS)
-    agents = [L.agent_node(L.FleetRobot(r, "/" + r, f"/{r}/pose"), common, output="log")
+    agents = [L.agent_node(L.FleetRobot(r, L.robot_namespace(r, ns), L.robot_namespace(r, ns) + "/pose"), common,
+                           output="log")
               for r in robots if r not in external]
     return [board, sim, *agents]
 

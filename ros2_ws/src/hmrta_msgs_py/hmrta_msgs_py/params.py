@@ -54,13 +54,17 @@ class Param:
 TASK_BOARD: tuple[Param, ...] = (
     Param("instance", STRING, "", "mission file (hmrta-instance/1 YAML or CTAS-D config.json); required"),
     Param("seed", INTEGER, 0, "episode seed (decision order)"),
-    Param("output", STRING, "", "where to write the hmrta-solution/1 JSON (empty: only /hmrta/result)"),
+    Param("output", STRING, "", "where to write the hmrta-solution/1 JSON (empty: only <mission_namespace>/hmrta/result)"),
     Param("robot_names", STRING_ARRAY, [], "robot names in the mission's agent order (empty: robot_<i>)"),
     Param("frame_id", STRING, "map", "frame of goals, poses and markers; a pose in another frame is rejected"),
     Param("pose_type", STRING, "PoseStamped",
           "message type of every robot's pose topic: PoseStamped, PoseWithCovarianceStamped (amcl_pose) or Odometry"),
     Param("pose_types", STRING_ARRAY, [], "per-robot pose types overriding pose_type, ROBOT:TYPE (robot_1:Odometry)"),
-    Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic (rosgraph_msgs/Clock, published by sim_robot); never /clock"),
+    Param("mission_namespace", STRING, "/",
+          "the mission's namespace: its topics are <ns>/hmrta/... and <ns>/<robot>/pose, goal_pose (two missions "
+          "on one ROS domain: two namespaces; the same on every node of a mission)"),
+    Param("clock_topic", STRING, "", "mission clock topic (rosgraph_msgs/Clock, published by sim_robot; empty: "
+          "<mission_namespace>/hmrta/clock); never /clock"),
     Param("scale", DOUBLE, 1.0, "metres per mission unit (positions on the wire = mission coordinates x scale)"),
     Param("wait_for_robots", BOOL, True, "start the mission only once every robot's agent and pose are up"),
     Param("startup_timeout", DOUBLE, 120.0, "wall seconds to wait for the robots at start (0: forever)"),
@@ -74,7 +78,7 @@ TASK_BOARD: tuple[Param, ...] = (
           "then the robot is dropped as stuck (factor and floor 0: never)"),
     Param("leg_timeout_floor", DOUBLE, 10.0, "seconds added to every leg's timeout (see leg_timeout_factor)"),
     Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
-    Param("marker_period", DOUBLE, 0.5, "wall seconds between /hmrta/markers updates"),
+    Param("marker_period", DOUBLE, 0.5, "wall seconds between <mission_namespace>/hmrta/markers updates"),
     Param("progress_period", DOUBLE, 5.0, "wall seconds between progress log lines"),
     Param("real_time_departures", BOOL, False, "no back-dated departures (real robots cannot leave in the past)"),
     Param("keystore", STRING, "", "mission keystore folder (or its keys.json); empty: no authentication"),
@@ -91,7 +95,11 @@ SIM_ROBOT: tuple[Param, ...] = (
     Param("time_scale", DOUBLE, 0.0, "sim seconds per wall second (0: as fast as possible)"),
     Param("rate", DOUBLE, 20.0, "pose and clock updates per wall second while paced (time_scale > 0)"),
     Param("heartbeat_period", DOUBLE, 1.0, "wall seconds between pose and clock heartbeats"),
-    Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic to publish (rosgraph_msgs/Clock); never /clock"),
+    Param("mission_namespace", STRING, "/",
+          "the mission's namespace: its topics are <ns>/hmrta/... and <ns>/<robot>/pose, goal_pose (two missions "
+          "on one ROS domain: two namespaces; the same on every node of a mission)"),
+    Param("clock_topic", STRING, "", "mission clock topic to publish (rosgraph_msgs/Clock; empty: "
+          "<mission_namespace>/hmrta/clock); never /clock"),
     Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
     Param("board_silence_warning", DOUBLE, 10.0,
           "wall seconds without hearing the task board before a warning (repeated every 3 x as long; 0: never)"),
@@ -105,7 +113,11 @@ AGENT_NODE: tuple[Param, ...] = (
     Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
     Param("keystore", STRING, "", "mission keystore folder: sign with the hosted robots' keys (empty: unsigned)"),
     Param("key_file", STRING, "", "one robot's key file (robots/<robot>.key.json) to sign with"),
-    Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic (goals are sent when it passes their departure)"),
+    Param("mission_namespace", STRING, "/",
+          "the mission's namespace: its topics are <ns>/hmrta/... and <ns>/<robot>/pose, goal_pose (two missions "
+          "on one ROS domain: two namespaces; the same on every node of a mission)"),
+    Param("clock_topic", STRING, "", "mission clock topic (goals are sent when it passes their departure; empty: "
+          "<mission_namespace>/hmrta/clock)"),
     Param("board_silence_warning", DOUBLE, 10.0,
           "wall seconds without hearing the task board before a warning (repeated every 3 x as long; 0: never)"),
 )
@@ -114,10 +126,13 @@ RECORDER: tuple[Param, ...] = (
     Param("output", STRING, "", "MCAP file to write (empty: hmrta_<date>_<time>.mcap in the working folder)"),
     Param("robots", STRING_ARRAY, [], "robots whose goal_pose and pose topics to record (empty: the mission's robots)"),
     Param("topics", STRING_ARRAY, [], "further topics to record (any message type installed here)"),
-    Param("markers", BOOL, False, "also record /hmrta/markers (RViz markers; large)"),
+    Param("markers", BOOL, False, "also record <mission_namespace>/hmrta/markers (RViz markers; large)"),
     Param("discovery_period", DOUBLE, 1.0, "wall seconds between looks for new topics to record"),
     Param("compression", STRING, "zstd", "chunk compression: zstd, lz4 or none"),
-    Param("clock_topic", STRING, "/hmrta/clock", "mission clock topic to record"),
+    Param("mission_namespace", STRING, "/",
+          "the mission's namespace: its topics are <ns>/hmrta/... and <ns>/<robot>/pose, goal_pose (two missions "
+          "on one ROS domain: two namespaces; the same on every node of a mission)"),
+    Param("clock_topic", STRING, "", "mission clock topic to record (empty: <mission_namespace>/hmrta/clock)"),
 )
 
 NODES: dict[str, tuple[Param, ...]] = {"task_board": TASK_BOARD, "sim_robot": SIM_ROBOT, "agent_node": AGENT_NODE,

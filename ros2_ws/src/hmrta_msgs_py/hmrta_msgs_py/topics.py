@@ -1,28 +1,36 @@
 """Topic names and QoS profiles, declared once for every HMRTA node.
 
-Mission-wide topics are absolute (``/hmrta/...``) so that nodes in robot namespaces share them;
-per-robot topics are relative names resolved in the robot's namespace (``/<robot>/goal_pose``,
-``/<robot>/pose``), so a real robot is integrated by namespace or by remapping.
+A mission lives in a *mission namespace* (every node's ``mission_namespace`` parameter, default
+``/``): its mission-wide topics are ``<ns>/hmrta/...`` (:class:`MissionTopics`), absolute so that
+nodes in robot namespaces share them, and its robots' topics are ``<ns>/<robot>/goal_pose`` and
+``<ns>/<robot>/pose`` (:func:`robot_topic`); an agent publishes its goals on the relative name
+``goal_pose``, resolved in the robot's namespace, so a real robot is integrated by namespace or by
+remapping. Two missions on one ROS domain run in two mission namespaces (docs/ros.md).
 """
 from __future__ import annotations
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-# ---- mission-wide topics ------------------------------------------------------------------------
-MISSION = "/hmrta/mission"  # std_msgs/String hmrta-mission/1       board -> all (latched)
-BOARD = "/hmrta/board"  # std_msgs/String hmrta-board/2 header per version (events)  board -> all
-KEYFRAME = "/hmrta/board_keyframe"  # std_msgs/String hmrta-board/2 keyframe: header, legs, state  (latched)
-KEYFRAME_REQUESTS = "/hmrta/keyframe_requests"  # std_msgs/String hmrta-keyframe-request/1  replicas -> board
-CHOICE = "/hmrta/choice"  # std_msgs/String hmrta-choice/1          agents -> board
-STATUS = "/hmrta/agent_status"  # std_msgs/String hmrta-status/1    agents -> board (heartbeat)
-REJECTIONS = "/hmrta/rejections"  # std_msgs/String hmrta-rejection/1  board -> anyone
-RESULT = "/hmrta/result"  # std_msgs/String hmrta-solution/1        board -> all (latched)
-MARKERS = "/hmrta/markers"  # visualization_msgs/MarkerArray        board -> RViz
-TASK_REQUESTS = "/hmrta/task_requests"  # std_msgs/String hmrta-task-request/1  operators -> board
-TASK_EVENTS = "/hmrta/task_events"  # std_msgs/String hmrta-task-event/1  board -> operators
-# the mission clock (sim_robot -> all; ``clock_topic`` parameter): inside the /hmrta namespace, so
-# another node's /clock (a simulator such as Gazebo) never moves a mission
-CLOCK = "/hmrta/clock"  # rosgraph_msgs/Clock (check_clock_topic: what may name it)
+ROOT = "/"  # the default mission namespace: /hmrta/..., /<robot>/pose
+
+# ---- mission-wide topics: <mission namespace>/hmrta/<leaf> (MissionTopics) ---------------------
+LEAVES = {  # MissionTopics attribute: leaf
+    "mission": "mission",  # std_msgs/String hmrta-mission/1                 board -> all (latched)
+    "board": "board",  # std_msgs/String hmrta-board/2 header per version (events)  board -> all
+    "keyframe": "board_keyframe",  # std_msgs/String hmrta-board/2 keyframe: header, legs, state (latched)
+    "keyframe_requests": "keyframe_requests",  # std_msgs/String hmrta-keyframe-request/1  replicas -> board
+    "choice": "choice",  # std_msgs/String hmrta-choice/1                      agents -> board
+    "status": "agent_status",  # std_msgs/String hmrta-status/1                agents -> board (heartbeat)
+    "rejections": "rejections",  # std_msgs/String hmrta-rejection/1           board -> anyone
+    "result": "result",  # std_msgs/String hmrta-solution/1                    board -> all (latched)
+    "markers": "markers",  # visualization_msgs/MarkerArray                    board -> RViz
+    "task_requests": "task_requests",  # std_msgs/String hmrta-task-request/1  operators -> board
+    "task_events": "task_events",  # std_msgs/String hmrta-task-event/1        board -> operators
+    # the mission clock (sim_robot -> all; the default of the nodes' ``clock_topic``): inside the
+    # mission's hmrta namespace, so another node's /clock (a simulator such as Gazebo) never moves a
+    # mission (check_clock_topic: what may name it)
+    "clock": "clock",  # rosgraph_msgs/Clock
+}
 
 # ---- per-robot topics (relative: resolved in the robot's namespace) -----------------------------
 GOAL = "goal_pose"  # geometry_msgs/PoseStamped  agent -> robot driver (Nav2's goal topic)
@@ -30,9 +38,76 @@ POSE = "pose"  # robot driver -> board (position): geometry_msgs/PoseStamped (de
 # geometry_msgs/PoseWithCovarianceStamped (amcl_pose) or nav_msgs/Odometry (the board's pose_type)
 
 
-def robot_topic(robot: str, leaf: str) -> str:
-    """Absolute per-robot topic, e.g. robot_topic('robot_3', POSE) -> '/robot_3/pose'."""
-    return f"/{robot.strip('/')}/{leaf}"
+def robot_topic(robot: str, leaf: str, namespace: str = ROOT) -> str:
+    """Absolute per-robot topic in a mission namespace, e.g. robot_topic('robot_3', POSE) ->
+    '/robot_3/pose', robot_topic('robot_3', POSE, '/fleet1') -> '/fleet1/robot_3/pose'."""
+    return f"{namespace.rstrip('/')}/{robot.strip('/')}/{leaf}"
+
+
+def check_mission_namespace(ns: object, what: str = "mission_namespace") -> str:
+    """``ns`` as a mission namespace ('/' or '/a/b', no trailing slash), or a ValueError naming
+    ``what`` (the nodes' parameter, a command's option) that says what was expected."""
+    want = "an absolute ROS namespace such as / or /fleet1"
+    if not isinstance(ns, str) or not ns.startswith("/"):
+        raise ValueError(f"{what}: expected {want}, got {ns!r}")
+    norm = "/" + ns.strip("/")
+    if norm != "/":
+        from rclpy.validate_namespace import validate_namespace
+
+        try:
+            validate_namespace(norm)
+        except Exception as e:  # noqa: BLE001 - rclpy's InvalidNamespaceException: its first line says why
+            raise ValueError(f"{what}: expected {want}, got {ns!r} ({str(e).splitlines()[0]})") from None
+    return norm
+
+
+class MissionTopics:
+    """The mission-wide topic names of one mission namespace, one attribute per entry of
+    :data:`LEAVES` (``MissionTopics('/fleet1').board`` is '/fleet1/hmrta/board'); the module's
+    constants (``BOARD``, ...) are those of the root namespace."""
+
+    mission: str
+    board: str
+    keyframe: str
+    keyframe_requests: str
+    choice: str
+    status: str
+    rejections: str
+    result: str
+    markers: str
+    task_requests: str
+    task_events: str
+    clock: str
+
+    def __init__(self, namespace: str = ROOT):
+        self.namespace = namespace
+        for attr, leaf in LEAVES.items():
+            setattr(self, attr, f"{namespace.rstrip('/')}/hmrta/{leaf}")
+
+    def __repr__(self) -> str:
+        return f"MissionTopics({self.namespace!r})"
+
+    def robot(self, robot: str, leaf: str) -> str:
+        """A robot's topic in this mission namespace (:func:`robot_topic`)."""
+        return robot_topic(robot, leaf, self.namespace)
+
+    def clock_topic(self, given: str, what: str = "clock_topic") -> str:
+        """The mission clock topic: ``given`` (checked by :func:`check_clock_topic`) or, when
+        empty, this namespace's ``<ns>/hmrta/clock``."""
+        return check_clock_topic(given, what) if given else self.clock
+
+
+def mission_topics(namespace: object, what: str = "mission_namespace") -> MissionTopics:
+    """The topics of the mission in ``namespace`` (a node's ``mission_namespace`` parameter),
+    checked by :func:`check_mission_namespace` (ValueError naming ``what``)."""
+    return MissionTopics(check_mission_namespace(namespace, what))
+
+
+_ROOT_TOPICS = MissionTopics()  # the root namespace's names, as constants
+MISSION, BOARD, KEYFRAME = _ROOT_TOPICS.mission, _ROOT_TOPICS.board, _ROOT_TOPICS.keyframe
+KEYFRAME_REQUESTS, CHOICE, STATUS = _ROOT_TOPICS.keyframe_requests, _ROOT_TOPICS.choice, _ROOT_TOPICS.status
+REJECTIONS, RESULT, MARKERS = _ROOT_TOPICS.rejections, _ROOT_TOPICS.result, _ROOT_TOPICS.markers
+TASK_REQUESTS, TASK_EVENTS, CLOCK = _ROOT_TOPICS.task_requests, _ROOT_TOPICS.task_events, _ROOT_TOPICS.clock
 
 
 def _qos(depth: int, reliable: bool = True, latched: bool = False) -> QoSProfile:
@@ -77,13 +152,14 @@ POSE_SUB_QOS_BY_TYPE = {"PoseStamped": POSE_SUB_QOS, "PoseWithCovarianceStamped"
 
 def check_root_namespace(node, what: str) -> None:
     """A ValueError unless ``node`` (the task board, sim_robot) runs in the root namespace: the
-    mission's topics are absolute, so a namespace (``-r __ns:=/fleet1``) would not separate its
-    mission from another on the same ROS domain; each mission needs its own ROS_DOMAIN_ID."""
+    mission's topics are absolute names in its *mission* namespace, so a node namespace
+    (``-r __ns:=/fleet1``) would not move them; ``-p mission_namespace:=/fleet1`` does."""
     ns = node.get_namespace()
     if ns != "/":
-        raise ValueError(f"namespace {ns}: {what} takes no namespace (the mission's topics are absolute: /hmrta/..., "
-                         f"/<robot>/pose; a namespace would not keep this mission apart from another on the same "
-                         f"ROS domain): run each mission on its own ROS_DOMAIN_ID (docs/ros.md, Several machines)")
+        raise ValueError(f"namespace {ns}: {what} takes no node namespace (the mission's topics are absolute names "
+                         f"in its mission namespace: <ns>/hmrta/..., <ns>/<robot>/pose): to keep this mission apart "
+                         f"from another on the same ROS domain, give every node of the mission "
+                         f"-p mission_namespace:={ns} instead (docs/ros.md, Several missions on one ROS domain)")
 
 
 def check_clock_topic(name: str, what: str = "clock_topic") -> str:
