@@ -135,6 +135,7 @@ def test_a_goal_waits_for_its_departure_and_the_clock_sends_only_the_goals_due(g
     agents[0]._take_legs(2, ((1, 0.1, 0.2, 0.0), (2, 0.3, 0.4, 5.0)))  # one leg now, one departing at t=5
     agents[1]._take_legs(1, ((1, 0.5, 0.6, 0.0),))
     assert list(host.waiting.values()) == [agents[0]] and len(agents[0].pending) == 1
+    host._new_horizon("s1", 10.0)  # a board header: the clock may run up to t=10
     host._on_clock(clock_to_msg(4.0))
     graph.spin_until(lambda: len(got["robot_0"]) >= 1 and len(got["robot_1"]) >= 1, 10, "the goals due at t=0")
     assert got["robot_0"] == [pytest.approx((0.1, 0.2, 0.0))] and agents[0].pending
@@ -145,6 +146,55 @@ def test_a_goal_waits_for_its_departure_and_the_clock_sends_only_the_goals_due(g
     while time.monotonic() < quiet:
         graph.executor.spin_once(timeout_sec=0.05)
     assert got["robot_1"] == [pytest.approx((0.5, 0.6, 0.0))] and got["robot_2"] == []
+
+
+def test_the_clock_is_followed_only_up_to_the_boards_horizon(graph):
+    """A clock past the board's horizon (a stray publisher on the clock topic) is followed only up
+    to the horizon, and further as later horizons allow, as the board does; a clock heard before
+    the header that allows it (the two come from different publishers) is caught up with; a clock
+    within the horizon is followed as it comes and forgets the stray value."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.parameter import Parameter
+
+    from hmrta_agent.agent_node import AgentNode
+    from hmrta_msgs_py import topics
+    from hmrta_msgs_py.codec import clock_to_msg, pose_from_msg
+
+    host = Host()
+    agent = AgentNode(host, context=graph.context, namespace="/robot_0", start_parameter_services=False,
+                      parameter_overrides=[Parameter("robot", value="robot_0")])
+    graph.nodes.append(agent)
+    listener = graph.node("goal_listener")
+    got: list[tuple[float, float, float]] = []
+    listener.create_subscription(PoseStamped, f"/robot_0/{topics.GOAL}", lambda m: got.append(pose_from_msg(m)),
+                                 topics.GOAL_QOS)
+    agent.mission = SimpleNamespace(frame_id="map", scale=1.0)
+    agent.leg_seq = 0
+    graph.spin_until(lambda: agent.goal_pub.get_subscription_count() >= 1, 10, "the goal listener")
+
+    def settle() -> None:
+        quiet = time.monotonic() + 0.3
+        while time.monotonic() < quiet:
+            graph.executor.spin_once(timeout_sec=0.05)
+
+    host._new_horizon("s1", 3.0)
+    agent._take_legs(3, ((1, 0.1, 0.1, 5.0), (2, 0.2, 0.2, 9.0), (3, 0.3, 0.3, 11.5)))
+    host._on_clock(clock_to_msg(100000.0))  # stray: held at the horizon
+    assert host.clock == 3.0 and len(agent.pending) == 3
+    host._new_horizon("s1", 6.0)  # the next horizon: up to it, not beyond
+    assert host.clock == 6.0 and len(agent.pending) == 2
+    host._on_clock(clock_to_msg(6.0))  # the simulated robots' clock: the stray value is forgotten
+    host._new_horizon("s1", 10.0)
+    assert host.clock == 6.0 and len(agent.pending) == 2
+    host._on_clock(clock_to_msg(12.0))  # the robots' clock heard before the header that allows it
+    assert host.clock == 10.0 and len(agent.pending) == 1
+    host._new_horizon("s1", 13.0)
+    assert host.clock == 12.0 and not agent.pending
+    host._new_horizon("s2", 1.0)  # a new session starts its horizons again
+    assert host.horizon == 1.0
+    graph.spin_until(lambda: len(got) >= 3, 10, "the three goals")
+    settle()
+    assert [g[2] for g in got] == [5.0, 9.0, 11.5]
 
 
 def test_the_waiting_check_names_what_is_missing_and_never_marks_an_agent_ready(graph):

@@ -186,8 +186,8 @@ def test_foreign_clock_moves_nothing(tmp_path, graph, mission_procs):
 
 def test_a_stray_clock_on_the_mission_clock_topic_cannot_run_the_mission_ahead(tmp_path, graph, mission_procs):
     """Another node publishes t = 100000 on /hmrta/clock itself (a recording played back, another
-    mission's sim_robot) through a paced mission: the board follows it only up to the horizons it
-    published, warns, and the mission equals the offline rollout."""
+    mission's sim_robot) through a paced mission: the board and the agents follow it only up to
+    the horizons the board published (the board warns); the mission equals the offline rollout."""
     inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
     seed = 3
     node = graph.node("stray_clock")

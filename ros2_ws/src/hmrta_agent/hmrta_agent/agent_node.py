@@ -3,7 +3,8 @@
 Builds its view only from received topics: the mission (``<ns>/hmrta/mission``; ``<ns>`` is the
 ``mission_namespace`` parameter, default ``/``), the board stream (``<ns>/hmrta/board``: every
 version's events) and keyframes (``<ns>/hmrta/board_keyframe``), and the mission clock
-(``clock_topic``, default ``<ns>/hmrta/clock``; never ``/clock``); the agents hosted in one
+(``clock_topic``, default ``<ns>/hmrta/clock``; never ``/clock``; followed only up to the horizon
+of the board's stream, as the board follows it); the agents hosted in one
 process share one subscription to each, one choice publisher, one replica of the board's state
 machine (:class:`hmrta.replica.Replica`: it starts from a keyframe and applies every version's
 events; a version it misses, or a state whose digest differs from the board's, makes it ask for a
@@ -83,6 +84,7 @@ class Host:
     once), one replica of the board's state, and the heartbeat."""
 
     def __init__(self) -> None:
+        self._node: Node | None = None  # the node the process's subscriptions live on (attach)
         self.replica = Replica()
         self._deciders: dict[tuple, Any] = {}
         self._mission_text: str | None = None
@@ -92,7 +94,10 @@ class Host:
         self._seq = 0
         self._status_pub = None
         self._request_pub = None
-        self.clock = 0.0
+        self.clock = 0.0  # the mission clock as followed: never past the board's horizon (_on_clock)
+        self.horizon = 0.0  # the latest horizon of the board's session (the clock may run up to it)
+        self._horizon_session: str | None = None
+        self._beyond = 0.0  # a clock heard past the horizon, followed as later horizons allow
         self.waiting: dict[int, "AgentNode"] = {}  # agents with legs not yet due, by id (the clock flushes them)
         self.keys: dict[str, bytes] = {}  # the hosted robots' keys (authenticated missions)
         self.signer: Signer | None = None  # one per process: its counter orders every message it signs
@@ -246,6 +251,8 @@ class Host:
         m = self.mission
         if m is not None and b.session != m.session:
             return
+        if m is not None:
+            self._new_horizon(b.session, b.horizon)
         r = self.replica
         before = r.why
         out = r.receive(b, keyframe, m.instance if m is not None else None, latched)
@@ -319,7 +326,33 @@ class Host:
                 and not a.finished and a.leg_seq == st.leg_seq(i))
 
     def _on_clock(self, msg: Clock) -> None:
+        """The mission clock, followed only up to the horizon the board has published, as the
+        board itself does (``MissionBoard.set_clock``): the simulated robots never take it
+        further, so a clock past it comes from another publisher (a recording played back, a
+        stray node), and following it would send goals early. Held there, it is released as
+        later horizons allow (the simulated robots' clock often comes before the board's header
+        that allows it: the two have different publishers); a clock within the horizon forgets
+        the one beyond. Silent: the board warns of a stray clock, and here a held clock is
+        mostly that ordinary race."""
         t = clock_from_msg(msg)
+        if t <= self.horizon + EPS:
+            self._beyond = 0.0
+        else:
+            self._beyond = max(self._beyond, t)
+            t = self.horizon
+        self._advance(t)
+
+    def _new_horizon(self, session: str, horizon: float) -> None:
+        """A board header's horizon (``_take``, before the agents see its version): the clock held
+        at the previous horizon moves on up to it."""
+        if session != self._horizon_session:
+            self._horizon_session, self.horizon = session, 0.0
+        if horizon > self.horizon:
+            self.horizon = horizon
+            if self._beyond > self.clock:
+                self._advance(min(self._beyond, horizon))
+
+    def _advance(self, t: float) -> None:
         if t > self.clock:
             self.clock = t
             for k, a in list(self.waiting.items()):  # only the robots with goals waiting, not the whole team
