@@ -205,9 +205,8 @@ def read_recording(path: str | Path) -> Recording:
             if len(spaces) > 1:
                 raise ReplayError(f"{path}: holds the topics of several missions (mission namespaces "
                                   f"{', '.join(sorted(spaces))}); record one mission per file")
-        if ns is not None and topic.endswith(MISSION_TOPIC):
-            if mission_text is None:
-                mission_text = getattr(msg, "data", None)
+        if ns is not None and topic.endswith(MISSION_TOPIC):  # the latest: a robot that joined is in it
+            mission_text = getattr(msg, "data", None)
         elif ns is not None and topic.endswith(RESULT_TOPIC):
             result_text = getattr(msg, "data", None)
         elif ns is not None:  # the board stream or a keyframe
@@ -234,7 +233,8 @@ def read_recording(path: str | Path) -> Recording:
             else:
                 poses.setdefault((where or "/", robot), []).append((t, stamp, *xy))
     if mission_text is None:
-        raise ReplayError(f"{path}: no mission message on {MISSION_TOPIC} (record from the mission's start, "
+        where = (next(iter(spaces)) if spaces else "/").rstrip("/") + MISSION_TOPIC  # the namespace of its board
+        raise ReplayError(f"{path}: no mission message on {where} (record from the mission's start, "
                           f"or with the board running: it is latched)")
     space = spaces.pop()  # the one mission's namespace: its robots' topics are <space>/<robot>/...
     mission = _json(mission_text, f"the {MISSION_TOPIC} message", path)

@@ -16,6 +16,7 @@ from mcap_ros2.writer import Writer  # noqa: E402
 from hmrta.cli import main as cli_main  # noqa: E402
 from hmrta.core import MissionState  # noqa: E402
 from hmrta.formats import load_instance  # noqa: E402
+from hmrta.generators import ScenarioGenerator  # noqa: E402
 from hmrta.methods import solve  # noqa: E402
 from hmrta.render import agent_timeline  # noqa: E402
 from hmrta.replay import ReplayError, read_recording, render_recording  # noqa: E402
@@ -158,6 +159,17 @@ def test_a_mission_in_a_namespace_reads_back_from_its_own_topics(tmp_path):
     with pytest.raises(ReplayError, match=r"two\.mcap: holds the topics of several missions \(mission namespaces "
                                           r"/fleet1, /fleet2\); record one mission per file"):
         read_recording(tmp_path / "two.mcap")
+
+
+def test_the_latest_mission_message_is_the_mission(tmp_path):
+    """The board publishes the mission again when robots join (same session, more robots): the
+    recording is read with the latest one, which the result matches."""
+    other = ScenarioGenerator("MA-AT", 4, 2, 5, 3).instance(1, 0)
+    early = ((-2.0, "/hmrta/mission", "std_msgs/msg/String",
+              {"data": mission_payload(other, [f"robot_{a}" for a in range(other.n_agents)])}),)
+    inst, sol, robots = write_recording(tmp_path / "r.mcap", extra=early)
+    rec = read_recording(tmp_path / "r.mcap")
+    assert rec.instance.to_dict() == inst.to_dict() and rec.robots == robots and rec.routes == sol.routes
 
 
 def test_no_arrival_is_read_from_a_robot_first_heard_at_its_task(tmp_path):

@@ -130,3 +130,17 @@ def test_recorder_help_and_bad_compression(tmp_path, domain):
                        env=_env(domain, tmp_path))
     assert r.returncode == 2 and "compression: expected one of zstd, lz4, none" in r.stderr
     assert not list(tmp_path.glob("x.mcap*"))
+
+
+def test_the_recorder_takes_its_own_missions_topics_by_name_not_by_prefix():
+    """A recorder of the root mission does not take the topics of a mission whose namespace is
+    /hmrta (/hmrta/hmrta/board, /hmrta/robot_0/pose): the recording would hold two missions."""
+    from types import SimpleNamespace
+
+    from hmrta_coordinator.recorder import Recorder, known_topics
+
+    rec = SimpleNamespace(extra=["/tf"], known=set(known_topics(False)), robot_names=["robot_0"],
+                          topics=topics.MissionTopics())
+    wanted = {n for n in ("/hmrta/board", "/hmrta/clock", "/robot_0/pose", "/tf", "/hmrta/hmrta/board",
+                          "/hmrta/markers", "/hmrta/robot_0/pose", "/hmrta/other") if Recorder._wanted(rec, n)}
+    assert wanted == {"/hmrta/board", "/hmrta/clock", "/robot_0/pose", "/tf"}

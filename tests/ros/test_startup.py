@@ -228,6 +228,7 @@ def test_no_board_heard_and_a_board_gone_silent_are_warned(tmp_path, start):
     for p in (agent, sim):
         p.wait_for("no task board heard for 1 s", 60)
     assert "ROS_DOMAIN_ID" in agent.text() and "ROS_AUTOMATIC_DISCOVERY_RANGE (LOCALHOST)" in agent.text()
+    assert "nothing on /hmrta/mission or /hmrta/board" in agent.text() and "mission_namespace (/)" in agent.text()
     board = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "wait_for_robots:=true")
     agent.wait_for("robot_0: agent 0 (species 0) of mission example", 60)
     sim.wait_for("simulating 15 robot(s)", 60)
@@ -238,6 +239,38 @@ def test_no_board_heard_and_a_board_gone_silent_are_warned(tmp_path, start):
     for p in (agent, sim):
         p.wait_for("the task board has not been heard for ", 30)
         assert p.stop() == 0 and "Traceback" not in p.text()
+
+
+def test_a_node_in_another_mission_namespace_than_the_board_is_told_where_the_board_is(tmp_path, start):
+    """A board in the root namespace, an agent and a sim_robot given mission_namespace /f1: they
+    hear no board, and the warning names their own topics and the namespace a board publishes in."""
+    board = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", name="board")
+    agent = start("agent_node", "--ros-args", "-r", "__ns:=/f1/robot_0", "-p", "mission_namespace:=/f1",
+                  "-p", "board_silence_warning:=3.0", name="agent")
+    sim = start("sim_robot", "--ros-args", "-p", "mission_namespace:=/f1", "-p", "board_silence_warning:=3.0",
+                name="sim")
+    for p in (agent, sim):  # (a warning due before discovery found the board does not name it yet: a later one does)
+        p.wait_for("a board publishes in mission namespace /: is this node's mission_namespace right?", 60)
+        assert "(nothing on /f1/hmrta/mission or /f1/hmrta/board)" in p.text() and "mission_namespace (/f1)" in p.text()
+        assert p.stop() == 0
+    assert board.stop(signal.SIGTERM) == 0
+
+
+def test_a_second_mission_in_the_same_mission_namespace_is_refused(tmp_path, start):
+    """A second task board in a mission namespace where a mission already runs (its latched
+    mission message, another session) stops at once with exit status 2 and says why; the running
+    board warns and goes on."""
+    first = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "mission_namespace:=/f1",
+                  "-p", "wait_for_robots:=false", "-p", "exit_on_done:=false", name="first")
+    first.wait_for("starting", 60)
+    second = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "mission_namespace:=/f1",
+                   "-p", "exit_on_done:=false", name="second")
+    assert second.proc.wait(timeout=60) == 2, second.text()
+    says = "in mission namespace /f1 on this ROS domain: two missions in one mission namespace mix"
+    assert says in second.text() and "stopping (exit status 2)" in second.text() and "Traceback" not in second.text()
+    first.wait_for(says, 60)
+    assert first.proc.poll() is None
+    assert first.stop(signal.SIGTERM) == 0
 
 
 def test_a_namespace_that_would_not_keep_missions_apart_is_refused(tmp_path, start):

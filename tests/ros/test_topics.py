@@ -29,7 +29,7 @@ def test_a_namespace_prefixes_every_mission_and_robot_topic():
         t.clock_topic("/clock")
 
 
-@pytest.mark.parametrize("bad", ["fleet1", "", "/fleet 1", "/1fleet", "/a//b", 7])
+@pytest.mark.parametrize("bad", ["fleet1", "", "/fleet 1", "/1fleet", "/a//b", "//", 7])
 def test_what_is_no_namespace_is_refused_naming_the_parameter(bad):
     with pytest.raises(ValueError, match=r"^mission_namespace: expected an absolute ROS namespace such as / or /fleet1, "):
         topics.mission_topics(bad)

@@ -67,7 +67,8 @@ from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (Choice, DecodeError, Join, KeyframeRequest, Mission, Status, board_from_msg,
                                  choice_to_msg, clock_from_msg, keyframe_request_to_msg, mission_from_msg,
                                  pose_from_msg, pose_to_msg, rejection_from_msg, status_to_msg)
-from hmrta_msgs_py.runtime import BoardSilence, LEAN_NODE, declare_method_parameters, spin_nodes, starting
+from hmrta_msgs_py.runtime import (BoardSilence, LEAN_NODE, declare_method_parameters, mission_namespaces, spin_nodes,
+                                   starting)
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 
@@ -156,7 +157,7 @@ class Host:
         self._status_pub = node.create_publisher(String, T.status, topics.STATUS_QOS)
         self._request_pub = node.create_publisher(String, T.keyframe_requests, topics.KEYFRAME_REQUEST_QOS)
         self._host = f"{socket.gethostname()}:{os.getpid()}"
-        self.silence = BoardSilence(getattr(node, "board_silence_warning", 10.0))
+        self.silence = BoardSilence(getattr(node, "board_silence_warning", 10.0), mission=T)
         node.create_timer(period, self._beat)
         node.create_timer(1.0, self._check_silence)
         self._beat()
@@ -171,7 +172,8 @@ class Host:
         head = self.replica.head
         if self.silence is None or self.all_done.done() or (head is not None and head.phase == "done"):
             return
-        text = self.silence.check(self.replica.version if head is not None else None)
+        text = self.silence.check(self.replica.version if head is not None else None,
+                                  lambda: mission_namespaces(self._node))
         if text is not None:
             self._node.get_logger().warning(text)
 
@@ -747,7 +749,7 @@ def main(args: list[str] | None = None) -> int:
                                 epilog="ROS parameters (--ros-args -p NAME:=VALUE):\n"
                                        + parameters_help(node_parameters("agent_node")))
     p.add_argument("--robots", type=robots_arg, default=None,
-                   help="host several robots in this process (node /<robot>/agent each); default: one "
+                   help="host several robots in this process (node <mission_namespace>/<robot>/agent each); default: one "
                         "robot named by -p robot:=NAME or by the namespace")
     p.add_argument("--heartbeat-period", type=float, default=0.5, metavar="S",
                    help="seconds between status messages (default 0.5)")
@@ -776,7 +778,7 @@ def main(args: list[str] | None = None) -> int:
                 if nodes[-1].get_namespace() != own:  # a global -r __ns:= puts every robot's node there
                     raise ValueError(f"--robots: each robot's agent runs in its own namespace ({own}/agent), but "
                                      f"-r __ns:= moved it to {nodes[-1].get_namespace()}; leave __ns out with --robots "
-                                     f"(one agent per process takes -r __ns:=/ROBOT)")
+                                     f"(one agent per process takes -r __ns:={own})")
         else:
             nodes = [AgentNode(host)]
         _set_torch_threads(cli.torch_threads)  # the deciders are built: torch is loaded if they use it

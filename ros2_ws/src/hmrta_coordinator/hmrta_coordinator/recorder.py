@@ -193,7 +193,9 @@ class Recorder(Node):
         self.session: str | None = None
         self.heard = False  # the mission message has been received (the board's latched topics are matched)
         self.closed = False
-        for name, (typ, qos) in known_topics(self.markers, self.clock_topic, self.topics).items():
+        known = known_topics(self.markers, self.clock_topic, self.topics)
+        self.known = set(known)  # this mission's topics: exactly these names (another mission may be in <ns>/hmrta)
+        for name, (typ, qos) in known.items():
             self._subscribe(name, typ, qos)
         for r in self.robot_names:
             for name, (typ, qos) in robot_topics(r, self.topics.namespace).items():
@@ -222,9 +224,7 @@ class Recorder(Node):
     def _wanted(self, name: str) -> bool:
         if name in self.extra:
             return True
-        if name == self.topics.markers and not self.markers:
-            return False
-        if name.startswith(self.topics.mission.rsplit("/", 1)[0] + "/") or name == self.clock_topic:  # <ns>/hmrta/
+        if name in self.known:
             return True
         return any(name in robot_topics(r, self.topics.namespace) for r in self.robot_names)
 

@@ -50,7 +50,7 @@ from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (DecodeError, KeyframeRequest, Mission, board_from_msg, clock_to_msg,
                                  keyframe_request_to_msg, mission_from_msg, pose_from_msg, pose_to_msg)
-from hmrta_msgs_py.runtime import BoardSilence, spin_nodes, starting
+from hmrta_msgs_py.runtime import BoardSilence, mission_namespaces, spin_nodes, starting
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 EPS = 1e-6
@@ -133,7 +133,7 @@ class SimRobot(Node):
         self._due: list[tuple[float, int, SimulatedRobot]] = []
         self._seq = itertools.count()
         self.done = Future()
-        self.silence = BoardSilence(silence)
+        self.silence = BoardSilence(silence, mission=T)
         self._version: int | None = None  # the latest board version heard
         self.pub_clock = self.create_publisher(Clock, clock_topic, topics.CLOCK_QOS)
         self.create_subscription(String, T.mission, self.on_mission, topics.MISSION_QOS)
@@ -150,7 +150,7 @@ class SimRobot(Node):
     # ------------------------------------------------------------------------------------------
     def on_silence(self) -> None:
         if not self.done.done():
-            text = self.silence.check(self._version)
+            text = self.silence.check(self._version, lambda: mission_namespaces(self))
             if text is not None:
                 self.get_logger().warning(text)
 

@@ -89,7 +89,7 @@ from hmrta.methods import rules as method_rules
 from hmrta.reading import short
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mission, Rejection, TaskEvent,
-                                 board_to_msg, pose_type,
+                                 board_to_msg, mission_from_msg, pose_type,
                                  choice_from_msg, clock_from_msg, keyframe_request_from_msg, markers_to_msg,
                                  mission_to_msg, pose_from_msg, rejection_to_msg, request_id_of, result_to_msg,
                                  status_from_msg, task_event_to_msg, task_request_from_msg)
@@ -219,6 +219,11 @@ class TaskBoard(Node):
         self.create_subscription(String, T.choice, self.on_choice, _deeper(topics.CHOICE_QOS, queue_depth))
         self.create_subscription(String, T.status, self.on_status, _deeper(topics.STATUS_QOS, queue_depth))
         self.create_subscription(Clock, clock_topic, self.on_clock, topics.CLOCK_QOS)
+        # another board's mission in this namespace (its latched message): two missions would mix
+        self.create_subscription(String, T.mission, self.on_other_mission, topics.MISSION_QOS)
+        self.refusal: str | None = None  # why this board stopped at start (another mission in its namespace)
+        self.refused = Future()  # done when it stopped so (whatever exit_on_done says)
+        self._other_warned = -math.inf
         self._pose_subs = 0
         self._subscribe_poses()
         self.create_timer(0.1, self.on_watchdog)
@@ -424,7 +429,8 @@ class TaskBoard(Node):
             agents = [n for a, n in enumerate(self.names) if b.seen_status[a] is None]
             poses = [n for a, n in enumerate(self.names) if b.seen_pose[a] is None]
             self.get_logger().info(f"waiting for the agents of {agents[:8]}{'...' if len(agents) > 8 else ''} and "
-                                   f"the poses of {poses[:8]}{'...' if len(poses) > 8 else ''}",
+                                   f"the poses of {poses[:8]}{'...' if len(poses) > 8 else ''} (heartbeats on "
+                                   f"{self.topics.status}, poses on {self.topics.robot('<robot>', topics.POSE)})",
                                    throttle_duration_sec=5.0)
         b.tick()
         self._flush()
@@ -484,8 +490,41 @@ class TaskBoard(Node):
             self.get_logger().error(f"mission failed: {self.failure} (exit status 3)")
 
     def exit_status(self) -> int:
-        """0, or 3 when the mission finished and failed (as ``hmrta solve`` and ``hmrta-mission``)."""
-        return 3 if self.failure is not None else 0
+        """0; 3 when the mission finished and failed (as ``hmrta solve`` and ``hmrta-mission``); 2
+        when it stopped at start, another mission being in its mission namespace."""
+        return 2 if self.refusal is not None else 3 if self.failure is not None else 0
+
+    # a board that hears another mission within this many seconds of its start is the newcomer: it stops
+    NEWCOMER = 10.0
+
+    def on_other_mission(self, msg: String) -> None:
+        """A mission message of another session on this board's mission topic: a second mission in
+        the same mission namespace on this ROS domain, whose agents and robots would answer both
+        boards. The newcomer (a board that hears it within ``NEWCOMER`` s of its start, before its
+        mission started) stops with exit status 2 and says why; the other warns (every 10 s)."""
+        if self.refusal is not None:
+            return
+        try:
+            other = mission_from_msg(msg)
+        except DecodeError:
+            return
+        if other.session == self.board.session:
+            return
+        ns = self.topics.namespace
+        text = (f"another task board publishes mission {short(other.instance.name)} (session {short(other.session)}) "
+                f"in mission namespace {ns} on this ROS domain: two missions in one mission namespace mix (agents and "
+                f"robots answer both boards); give each mission its own mission_namespace or ROS_DOMAIN_ID")
+        now = time.monotonic()
+        if not self.board.started and now - self.t_created <= self.NEWCOMER:
+            self.refusal = text
+            self.get_logger().error(f"{text}; stopping (exit status 2)")
+            self.board.close()
+            for f in (self.done, self.refused):
+                if not f.done():
+                    f.set_result(True)
+        elif now - self._other_warned >= 10.0:
+            self._other_warned = now
+            self.get_logger().warning(text)
 
     def stopped(self, sig: str) -> str:
         """The log line of a board stopped by a signal."""
@@ -537,7 +576,7 @@ def main(args: list[str] | None = None) -> int:
     # a bad mission file, policy or parameter is a user error
     with starting("task_board", (InstanceError, MethodError, JournalError, ValueError), args=argv):
         board = TaskBoard()
-    spin_nodes([board], until=board.done if board.exit_on_done else None, stopped=board.stopped)
+    spin_nodes([board], until=board.done if board.exit_on_done else board.refused, stopped=board.stopped)
     return board.exit_status()
 
 

@@ -124,8 +124,8 @@ def main(argv: list[str] | None = None) -> int:
             while not got and time.monotonic() < deadline:
                 rclpy.spin_once(node, timeout_sec=0.1)
             if not got:
-                print(f"hmrta-task: no board within {args.timeout:g} s (is a mission running on this ROS domain?)",
-                      file=sys.stderr)
+                print(f"hmrta-task: no board within {args.timeout:g} s (nothing on {T.keyframe}: is a mission running "
+                      f"on this ROS domain, in mission namespace {T.namespace}?)", file=sys.stderr)
                 return 1
             try:
                 b = board_from_msg(got[-1])

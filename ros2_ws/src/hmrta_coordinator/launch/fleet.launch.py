@@ -14,8 +14,10 @@ Fleet file (YAML)::
 
 Every parameter of ``agent_node`` that is not per robot (``seed``, ``method`` and its options,
 ``keystore``, ``exit_on_done``) and, for ``board:=true``, every parameter of ``task_board`` is a
-launch argument of the same name. With the board here, the mission's other robots are simulated
-only if a ``sim_robot`` runs (``mission.launch.py fleet:=...`` starts both). See docs/ros.md.
+launch argument of the same name; ``mission_namespace`` (the mission's, default ``/``) also sets
+the defaults of a fleet robot's namespace and pose topic (``<mission_namespace>/<name>``). With the
+board here, the mission's other robots are simulated only if a ``sim_robot`` runs
+(``mission.launch.py fleet:=...`` starts both). See docs/ros.md.
 """
 from launch import LaunchDescription
 from launch.actions import OpaqueFunction

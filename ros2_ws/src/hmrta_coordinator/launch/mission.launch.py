@@ -13,7 +13,9 @@ built-in example mission.
 Real robots: list them in ``external`` (comma-separated) or in a fleet file (``fleet:=FILE.yaml``,
 whose robots are external and whose pose topics the board reads); they get no simulation and no
 agent here: start their agents with ``fleet.launch.py`` (or ``hmrta_agent agent.launch.py``) next
-to them. ``remaps`` adds board remappings (``/robot_1/pose:=/tb3_1/pose``). See docs/ros.md.
+to them. ``remaps`` adds board remappings (``/robot_1/pose:=/tb3_1/pose``; in a mission namespace
+``<mission_namespace>/robot_1/pose:=...``). ``mission_namespace:=/fleet1`` runs the whole mission
+there (every node; agents in ``/fleet1/<robot>``). See docs/ros.md.
 """
 from launch import LaunchDescription
 from launch.actions import OpaqueFunction

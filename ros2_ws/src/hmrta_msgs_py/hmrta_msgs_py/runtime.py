@@ -358,12 +358,30 @@ def warn_unknown_parameters(nodes: list) -> None:
                                    f"parameter{hint} (see {Path(sys.argv[0]).stem or n.get_name()} --help)")
 
 
+def mission_namespaces(node) -> list[str]:
+    """The mission namespaces in which something publishes a mission on ``node``'s domain (topics
+    ``<ns>/hmrta/mission`` with a publisher), as far as discovery knows now."""
+    out = []
+    try:
+        found = node.get_topic_names_and_types()
+    except Exception:  # noqa: BLE001 (the context is shutting down)
+        return out
+    for name, _ in found:
+        if name.endswith("/hmrta/mission") and node.count_publishers(name) > 0:
+            out.append(name[:-len("/hmrta/mission")] or "/")
+    return sorted(out)
+
+
 class BoardSilence:
     """When to warn that no task board is heard: ``after`` wall seconds without a message from
-    it, then every 3 x ``after`` while the silence lasts (``after`` 0: never)."""
+    it, then every 3 x ``after`` while the silence lasts (``after`` 0: never). ``mission`` is
+    the topics of the node's mission namespace (default the root's)."""
 
-    def __init__(self, after: float, now: Callable[[], float] = time.monotonic):
+    def __init__(self, after: float, now: Callable[[], float] = time.monotonic, mission=None):
+        from .topics import MissionTopics
+
         self.after, self.now = after, now
+        self.mission = mission or MissionTopics()
         self.since = now()  # the start, or the latest message heard
         self.ever = False  # whether a board was heard at all
         self.due = after
@@ -371,20 +389,23 @@ class BoardSilence:
     def heard(self) -> None:
         self.since, self.ever, self.due = self.now(), True, self.after
 
-    def check(self, version: int | None = None) -> str | None:
-        """The warning to log now, or None."""
+    def check(self, version: int | None = None, elsewhere: Callable[[], list[str]] | None = None) -> str | None:
+        """The warning to log now, or None. ``elsewhere`` (called only for the warning that no
+        board was ever heard): the mission namespaces in which a mission has a publisher on this
+        domain (:func:`mission_namespaces`), named when this node's is not among them."""
         quiet = self.now() - self.since
         if self.after <= 0 or quiet < self.due:
             return None
         self.due += 3 * self.after
         if not self.ever:
-            env = os.environ
-            from .topics import BOARD, MISSION
-
-            return (f"no task board heard for {quiet:.0f} s (nothing on {MISSION} or {BOARD}): is task_board "
-                    f"running, with the same "
-                    f"ROS_DOMAIN_ID ({env.get('ROS_DOMAIN_ID') or 'unset: 0'}) and {DISCOVERY_VAR} "
-                    f"({env.get(DISCOVERY_VAR) or 'unset: SUBNET'}) as this process? Still waiting")
+            env, T = os.environ, self.mission
+            others = sorted(set(elsewhere() if elsewhere is not None else ()) - {T.namespace})
+            seen = (f"; a board publishes in mission namespace {', '.join(others)}: is this node's mission_namespace "
+                    f"right?" if others else "")
+            return (f"no task board heard for {quiet:.0f} s (nothing on {T.mission} or {T.board}): is task_board "
+                    f"running, with the same ROS_DOMAIN_ID ({env.get('ROS_DOMAIN_ID') or 'unset: 0'}), "
+                    f"{DISCOVERY_VAR} ({env.get(DISCOVERY_VAR) or 'unset: SUBNET'}) and mission_namespace "
+                    f"({T.namespace}) as this process?{seen} Still waiting")
         return (f"the task board has not been heard for {quiet:.0f} s"
                 + (f" (its latest version {version})" if version is not None else "")
                 + ": it stopped, or the network to it is down; still waiting (a board restarted on its journal "

@@ -50,6 +50,8 @@ def check_mission_namespace(ns: object, what: str = "mission_namespace") -> str:
     want = "an absolute ROS namespace such as / or /fleet1"
     if not isinstance(ns, str) or not ns.startswith("/"):
         raise ValueError(f"{what}: expected {want}, got {ns!r}")
+    if "//" in ns:
+        raise ValueError(f"{what}: expected {want}, got {ns!r} (a namespace has no empty token: no '//')")
     norm = "/" + ns.strip("/")
     if norm != "/":
         from rclpy.validate_namespace import validate_namespace
@@ -57,7 +59,7 @@ def check_mission_namespace(ns: object, what: str = "mission_namespace") -> str:
         try:
             validate_namespace(norm)
         except Exception as e:  # noqa: BLE001 - rclpy's InvalidNamespaceException: its first line says why
-            raise ValueError(f"{what}: expected {want}, got {ns!r} ({str(e).splitlines()[0]})") from None
+            raise ValueError(f"{what}: expected {want}, got {ns!r} ({str(e).splitlines()[0].rstrip(':')})") from None
     return norm
 
 
@@ -158,8 +160,8 @@ def check_root_namespace(node, what: str) -> None:
     if ns != "/":
         raise ValueError(f"namespace {ns}: {what} takes no node namespace (the mission's topics are absolute names "
                          f"in its mission namespace: <ns>/hmrta/..., <ns>/<robot>/pose): to keep this mission apart "
-                         f"from another on the same ROS domain, give every node of the mission "
-                         f"-p mission_namespace:={ns} instead (docs/ros.md, Several missions on one ROS domain)")
+                         f"from another on the same ROS domain, leave -r __ns:= out and give every node of the mission "
+                         f"-p mission_namespace:={ns} (docs/ros.md, Several missions on one ROS domain)")
 
 
 def check_clock_topic(name: str, what: str = "clock_topic") -> str:
