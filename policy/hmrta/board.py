@@ -524,6 +524,9 @@ class MissionBoard(BoardCore):
         self.log = log or (lambda level, text: None)
         self.state = BoardState(inst, seed=seed, rules=rules)
         self.session = session or uuid.uuid4().hex[:12]
+        # when this mission was first created (wall clock, journaled: a board restarted on its journal
+        # keeps it): of two missions in one mission namespace, the later one gives way (ROS nodes)
+        self.created = round(time.time(), 6)
         self.version = 0  # published board version
         self.rev = 0  # state revision
         self.phase = "starting"
@@ -616,7 +619,7 @@ class MissionBoard(BoardCore):
     def _mission_header(self) -> dict[str, Any]:
         return {"format": JOURNAL_FORMAT, "session": self.session, "instance": self.inst.name,
                 "instance_sha256": instance_digest(self.inst), "robots": list(self.names), "seed": self.seed,
-                "method": self.method, "rules": self.rules.to_dict()}
+                "method": self.method, "rules": self.rules.to_dict(), "created": self.created}
 
     def _open_journal(self, path: Path) -> None:
         header, records, keep, dropped = read_journal(path)
@@ -632,6 +635,9 @@ class MissionBoard(BoardCore):
                 raise JournalError(f"{path}: written for another mission ({k} differs: {header.get(k)!r} in the "
                                    f"journal, {mine[k]!r} now); remove it or give another journal path")
         self.session = str(header["session"])
+        created = header.get("created")  # (a journal written without it: this process's start)
+        if isinstance(created, (int, float)) and not isinstance(created, bool) and math.isfinite(created):
+            self.created = float(created)
         for i, rec in enumerate(records):
             try:
                 self._replay(rec)

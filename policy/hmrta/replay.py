@@ -195,6 +195,8 @@ def read_recording(path: str | Path) -> Recording:
     goals: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     clock: list[tuple[int, float]] = []
     spaces: set[str] = set()  # the mission namespaces of the mission-wide topics recorded
+    missions: dict[str, str] = {}  # session -> its latest mission message
+    sessions: dict[str, int] = {}  # session -> board messages recorded
     for topic, typ, t, msg in _messages(path):
         counts[topic] = counts.get(topic, 0) + 1
         types.setdefault(topic, typ)
@@ -205,13 +207,20 @@ def read_recording(path: str | Path) -> Recording:
             if len(spaces) > 1:
                 raise ReplayError(f"{path}: holds the topics of several missions (mission namespaces "
                                   f"{', '.join(sorted(spaces))}); record one mission per file")
-        if ns is not None and topic.endswith(MISSION_TOPIC):  # the latest: a robot that joined is in it
-            mission_text = getattr(msg, "data", None)
+        if ns is not None and topic.endswith(MISSION_TOPIC):  # the latest of a session: robots that joined
+            text = getattr(msg, "data", None)
+            try:
+                missions[str(json.loads(text).get("session"))] = text
+            except (TypeError, ValueError, AttributeError):
+                missions[""] = text  # (malformed: reported below if it is the one read)
+            mission_text = text
         elif ns is not None and topic.endswith(RESULT_TOPIC):
             result_text = getattr(msg, "data", None)
         elif ns is not None:  # the board stream or a keyframe
             text = getattr(msg, "data", None)
             head = _board_header(text)
+            if head is not None:
+                sessions[str(head.get("session"))] = sessions.get(str(head.get("session")), 0) + 1
             if head is not None and isinstance(head.get("clock"), (int, float)):
                 clock.append((t, float(head["clock"])))
             if isinstance(text, str) and text.count("\n") == 2:  # a keyframe (or an hmrta-board/1 board)
@@ -236,6 +245,10 @@ def read_recording(path: str | Path) -> Recording:
         where = (next(iter(spaces)) if spaces else "/").rstrip("/") + MISSION_TOPIC  # the namespace of its board
         raise ReplayError(f"{path}: no mission message on {where} (record from the mission's start, "
                           f"or with the board running: it is latched)")
+    if sessions:  # the mission whose board the recording follows (another board may have published one briefly:
+        # a second mission in the namespace, which gave way)
+        ran = max(sessions, key=sessions.get)
+        mission_text = missions.get(ran, mission_text)
     space = spaces.pop()  # the one mission's namespace: its robots' topics are <space>/<robot>/...
     mission = _json(mission_text, f"the {MISSION_TOPIC} message", path)
     try:

@@ -163,13 +163,21 @@ def test_a_mission_in_a_namespace_reads_back_from_its_own_topics(tmp_path):
 
 def test_the_latest_mission_message_is_the_mission(tmp_path):
     """The board publishes the mission again when robots join (same session, more robots): the
-    recording is read with the latest one, which the result matches."""
+    recording is read with the latest one of the session whose board it recorded."""
     other = ScenarioGenerator("MA-AT", 4, 2, 5, 3).instance(1, 0)
     early = ((-2.0, "/hmrta/mission", "std_msgs/msg/String",
               {"data": mission_payload(other, [f"robot_{a}" for a in range(other.n_agents)])}),)
     inst, sol, robots = write_recording(tmp_path / "r.mcap", extra=early)
     rec = read_recording(tmp_path / "r.mcap")
     assert rec.instance.to_dict() == inst.to_dict() and rec.robots == robots and rec.routes == sol.routes
+    # a mission of another session published later (a second board in the namespace, which gave
+    # way): the recording follows the board whose stream it holds
+    stray = json.loads(mission_payload(other, [f"robot_{a}" for a in range(other.n_agents)]))
+    stray["session"] = "s2"
+    late = ((0.5, "/hmrta/mission", "std_msgs/msg/String", {"data": json.dumps(stray)}),)
+    inst, sol, robots = write_recording(tmp_path / "s.mcap", board=6, extra=late)
+    rec = read_recording(tmp_path / "s.mcap")
+    assert rec.instance.to_dict() == inst.to_dict() and rec.routes == sol.routes
 
 
 def test_no_arrival_is_read_from_a_robot_first_heard_at_its_task(tmp_path):

@@ -28,9 +28,10 @@ _RNG = random.Random(os.getpid() ^ time.time_ns())
 
 
 def _domain() -> int:
-    """A domain in 100..199 that none of the latest 50 tests got: a process a test left to die
-    (a killed DDS participant lingers for its lease) never meets the next tests. (The suite has
-    more ROS tests than the range has domains, so domains are reused, the oldest first.)"""
+    """A domain in 100..199, at random among those that none of the latest 50 tests of this
+    process got: a process a test left to die (a killed DDS participant lingers for its lease)
+    never meets the next tests. (The suite has more ROS tests than the range has domains, so
+    domains are reused. Tests run one at a time: nothing here keeps two pytest processes apart.)"""
     d = _RNG.choice([d for d in range(100, 200) if d not in _RECENT])
     _RECENT.append(d)
     del _RECENT[:-50]
@@ -72,7 +73,7 @@ class Graph:
 
 @pytest.fixture
 def domain() -> int:
-    """A ROS domain no other test of this session uses."""
+    """A ROS domain none of the latest 50 tests of this session used (_domain)."""
     return _domain()
 
 

@@ -190,8 +190,8 @@ def test_the_clock_is_followed_only_up_to_the_boards_horizon(graph):
     assert host.clock == 10.0 and len(agent.pending) == 1
     host._new_horizon("s1", 13.0)
     assert host.clock == 12.0 and not agent.pending
-    host._new_horizon("s2", 1.0)  # a new session starts its horizons again
-    assert host.horizon == 1.0
+    host._new_horizon("s2", 1.0)  # a new session starts its horizons and its clock again
+    assert host.horizon == 1.0 and host.clock == 0.0
     graph.spin_until(lambda: len(got) >= 3, 10, "the three goals")
     settle()
     assert [g[2] for g in got] == [5.0, 9.0, 11.5]

@@ -202,6 +202,33 @@ def test_two_missions_on_one_domain_in_two_mission_namespaces(tmp_path, domain):
     assert all(t.startswith("/fleet_b/") or t == "/rosout" for t in rec.counts), sorted(rec.counts)
 
 
+def test_a_second_board_in_the_namespace_gives_way_and_the_running_mission_is_not_disturbed(tmp_path, graph,
+                                                                                            mission_procs):
+    """A task board started in the mission namespace of a running mission (same robot names)
+    stops at once (exit 2, it gives way to the earlier mission); the agents keep to the running
+    mission, which completes equal to its offline rollout with nobody lost."""
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    path = save_instance(inst, tmp_path / "inst.yaml")
+    procs = mission_procs(path, robots_of(inst), seed=3, agents_per_process=6, time_scale=3.0,
+                          board_params={"progress_period": 0.0})
+    watch = BoardWatch(graph.node("observer"))
+    graph.spin_until(lambda: watch.board is not None and watch.board.n_done >= 1, 90, "the mission under way")
+    log = open(tmp_path / "second.log", "w")
+    second = subprocess.Popen([str(BIN / "task_board"), "--ros-args", "-p", f"instance:={path}",
+                               "-p", "exit_on_done:=false"], env=procs.env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        assert second.wait(timeout=60) == 2, (tmp_path / "second.log").read_text()
+    finally:
+        if second.poll() is None:
+            second.kill()
+        log.close()
+    assert "this board gives way" in (tmp_path / "second.log").read_text()
+    wait_board_exit(graph, procs, 150)
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert result["lost_robots"] == []
+    assert_same_as_offline(result, inst, 3)
+
+
 def test_mission_namespace_errors():
     """A bad namespace is a one-line user error of hmrta-mission and hmrta-task (exit 2), before
     anything starts."""

@@ -257,17 +257,18 @@ def test_a_node_in_another_mission_namespace_than_the_board_is_told_where_the_bo
 
 
 def test_a_second_mission_in_the_same_mission_namespace_is_refused(tmp_path, start):
-    """A second task board in a mission namespace where a mission already runs (its latched
-    mission message, another session) stops at once with exit status 2 and says why; the running
-    board warns and goes on."""
+    """A second task board in a mission namespace where a mission was created first (its latched
+    mission message, another session) stops at once with exit status 2 and says why, also while
+    the first still waits for its robots (neither has started); the first warns and goes on."""
     first = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "mission_namespace:=/f1",
-                  "-p", "wait_for_robots:=false", "-p", "exit_on_done:=false", name="first")
-    first.wait_for("starting", 60)
+                  "-p", "exit_on_done:=false", name="first")
+    first.wait_for("waiting for every robot's agent and pose", 60)
     second = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "mission_namespace:=/f1",
                    "-p", "exit_on_done:=false", name="second")
     assert second.proc.wait(timeout=60) == 2, second.text()
     says = "in mission namespace /f1 on this ROS domain: two missions in one mission namespace mix"
-    assert says in second.text() and "stopping (exit status 2)" in second.text() and "Traceback" not in second.text()
+    assert says in second.text() and "this board gives way; stopping (exit status 2)" in second.text()
+    assert "Traceback" not in second.text()
     first.wait_for(says, 60)
     assert first.proc.poll() is None
     assert first.stop(signal.SIGTERM) == 0

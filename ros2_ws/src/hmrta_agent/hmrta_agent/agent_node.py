@@ -99,6 +99,8 @@ class Host:
         self.horizon = 0.0  # the latest horizon of the board's session (the clock may run up to it)
         self._horizon_session: str | None = None
         self._beyond = 0.0  # a clock heard past the horizon, followed as later horizons allow
+        self._session_heard = -math.inf  # when the board of the mission followed was last heard
+        self._held: String | None = None  # a later mission heard while that board is (_on_mission)
         self.waiting: dict[int, "AgentNode"] = {}  # agents with legs not yet due, by id (the clock flushes them)
         self.keys: dict[str, bytes] = {}  # the hosted robots' keys (authenticated missions)
         self.signer: Signer | None = None  # one per process: its counter orders every message it signs
@@ -166,7 +168,16 @@ class Host:
         if self.silence is not None:
             self.silence.heard()
 
+    def _mission_over(self) -> bool:
+        h = self.replica.head
+        return self.mission is not None and h is not None and h.session == self.mission.session and h.phase == "done"
+
     def _check_silence(self) -> None:
+        held = self._held
+        if held is not None and not self.all_done.done() and (
+                time.monotonic() - self._session_heard >= self.KEEP or self._mission_over()):
+            self._held = None  # the mission followed is gone or over: the later one is taken
+            self._on_mission(held)
         for a in self.agents:
             a.check_waiting()
         head = self.replica.head
@@ -188,15 +199,34 @@ class Host:
                 if a.robot == r.robot and a.mission is None:
                     a.refused(r.detail)
 
+    # seconds: a mission whose board was heard this recently is kept over a later-created one
+    KEEP = 5.0
+
     def _on_mission(self, msg: String) -> None:
+        """The mission (again when robots join). A mission of another session replaces the one
+        followed, except a later-created one while the board of the one followed is heard (two
+        missions in one mission namespace: the later one's board gives way, task_board): it is
+        held, and taken once that board has been silent for ``KEEP`` s or its mission is over."""
         self._heard()
         if msg.data == self._mission_text:
             return
         try:
-            self.mission = mission_from_msg(msg)
+            m = mission_from_msg(msg)
         except DecodeError as e:
             self._node.get_logger().error(f"ignoring malformed mission: {e}")
             return
+        cur, now = self.mission, time.monotonic()
+        if (cur is not None and m.session != cur.session and m.newer_than(cur) and now - self._session_heard < self.KEEP
+                and not self._mission_over()):
+            if self._held is None or mission_from_msg(self._held).session != m.session:
+                self._node.get_logger().warning(
+                    f"a later mission {m.instance.name} (session {m.session}) is published on {self.topics.mission} "
+                    f"while the board of mission {cur.instance.name} (session {cur.session}) is heard: keeping "
+                    f"that one (two missions in one mission namespace)")
+            self._held = msg
+            return
+        self._held = None
+        self.mission, self._session_heard = m, now
         self._mission_text = msg.data
         for a in self.agents:
             a.join(self.mission)
@@ -254,6 +284,7 @@ class Host:
         if m is not None and b.session != m.session:
             return
         if m is not None:
+            self._session_heard = time.monotonic()
             self._new_horizon(b.session, b.horizon)
         r = self.replica
         before = r.why
@@ -348,6 +379,8 @@ class Host:
         """A board header's horizon (``_take``, before the agents see its version): the clock held
         at the previous horizon moves on up to it."""
         if session != self._horizon_session:
+            if self._horizon_session is not None:  # a new mission: its clock starts again
+                self.clock, self._beyond = 0.0, 0.0
             self._horizon_session, self.horizon = session, 0.0
         if horizon > self.horizon:
             self.horizon = horizon
@@ -726,14 +759,24 @@ def _set_torch_threads(n: int) -> None:
         torch.set_num_threads(n)
 
 
-def _mission_namespace() -> str:
-    """The ``mission_namespace`` parameter given to this process (``-p``, a parameter file), read
-    on a short-lived node before the robots' nodes are made (their namespaces are under it)."""
-    probe = rclpy.create_node("agent", namespace="/_hmrta_probe", start_parameter_services=False, enable_rosout=False)
-    try:
-        return topics.mission_topics(probe.declare_parameter("mission_namespace", "/").value).namespace
-    finally:
-        probe.destroy_node()
+def _mission_namespace(argv: list[str]) -> str:
+    """The ``mission_namespace`` given on the command line (``--ros-args -p mission_namespace:=NS``),
+    before the robots' nodes are made: their namespaces are under it. Read from the arguments, not
+    from a node, so that no extra node comes and goes; each node then checks the value it gets
+    (a parameter file may say otherwise)."""
+    ros = argv[argv.index("--ros-args") + 1:] if "--ros-args" in argv else []
+    ns = "/"
+    for flag, value in zip(ros, ros[1:]):
+        if flag in ("-p", "--param") and value.startswith("mission_namespace:="):
+            ns = value.split(":=", 1)[1]
+    try:  # a YAML value, as ROS reads it ("/f1" quoted or not)
+        import yaml
+
+        parsed = yaml.safe_load(ns)
+        ns = parsed if isinstance(parsed, str) else ns
+    except yaml.YAMLError:
+        pass
+    return topics.check_mission_namespace(ns)
 
 
 def main(args: list[str] | None = None) -> int:
@@ -770,11 +813,14 @@ def main(args: list[str] | None = None) -> int:
         if cli.robots:
             lean = LEAN_NODE if len(cli.robots) > 1 else {}
             nodes = []
-            ns = _mission_namespace()
+            ns = _mission_namespace(argv)
             for r in cli.robots:
                 own = topics.robot_topic(r, "", ns).rstrip("/")  # the robot's namespace in the mission's: <ns>/<robot>
                 nodes.append(AgentNode(host, namespace=own, parameter_overrides=[Parameter("robot", value=r)],
                                        **lean))
+                if nodes[-1].topics.namespace != ns:
+                    raise ValueError(f"--robots: mission_namespace {nodes[-1].topics.namespace} does not match the "
+                                     f"command line's ({ns}): give it as --ros-args -p mission_namespace:=NS")
                 if nodes[-1].get_namespace() != own:  # a global -r __ns:= puts every robot's node there
                     raise ValueError(f"--robots: each robot's agent runs in its own namespace ({own}/agent), but "
                                      f"-r __ns:= moved it to {nodes[-1].get_namespace()}; leave __ns out with --robots "

@@ -176,8 +176,10 @@ class MissionProcesses:
             except OSError:
                 pass
             time.sleep(0.05)
-        print(f"hmrta-mission: warning: the recorder did not hear the board within {timeout:g} s; the recording may "
-              f"miss the mission's start (see {c.log})", file=sys.stderr, flush=True)
+        why = ("the recorder exited" if c.proc.poll() is not None else "the task board exited"
+               if self.board.proc.poll() is not None else f"the recorder did not hear the board within {timeout:g} s")
+        print(f"hmrta-mission: warning: {why}; the recording may miss the mission's start (see {c.log})",
+              file=sys.stderr, flush=True)
         return False
 
     def stop_recorder(self, timeout: float = 10.0) -> None:

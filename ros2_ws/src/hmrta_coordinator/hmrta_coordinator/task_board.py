@@ -191,7 +191,7 @@ class TaskBoard(Node):
                                   keyframe_period=keyframe_period, log=self._log)
         self.names = self.board.names  # the board's list: robots that join are appended to it
         self.mission = Mission(self.board.session, inst, tuple(names), self.seed, self.method, frame_id, scale,
-                               rules=rules)
+                               rules=rules, created=self.board.created)
 
         self.t_created = time.monotonic()
         self.failure: str | None = None  # why the finished mission failed
@@ -494,14 +494,16 @@ class TaskBoard(Node):
         when it stopped at start, another mission being in its mission namespace."""
         return 2 if self.refusal is not None else 3 if self.failure is not None else 0
 
-    # a board that hears another mission within this many seconds of its start is the newcomer: it stops
+    # a board that hears an older mission in its namespace within this many seconds of its start stops
     NEWCOMER = 10.0
 
     def on_other_mission(self, msg: String) -> None:
         """A mission message of another session on this board's mission topic: a second mission in
         the same mission namespace on this ROS domain, whose agents and robots would answer both
-        boards. The newcomer (a board that hears it within ``NEWCOMER`` s of its start, before its
-        mission started) stops with exit status 2 and says why; the other warns (every 10 s)."""
+        boards. The later-created mission gives way (its agents keep to the earlier one, see
+        agent_node): its board, if it hears the other within ``NEWCOMER`` s of its start, stops
+        with exit status 2 and says why; otherwise, and on the earlier mission's board, a warning
+        (every 10 s)."""
         if self.refusal is not None:
             return
         try:
@@ -515,9 +517,9 @@ class TaskBoard(Node):
                 f"in mission namespace {ns} on this ROS domain: two missions in one mission namespace mix (agents and "
                 f"robots answer both boards); give each mission its own mission_namespace or ROS_DOMAIN_ID")
         now = time.monotonic()
-        if not self.board.started and now - self.t_created <= self.NEWCOMER:
-            self.refusal = text
-            self.get_logger().error(f"{text}; stopping (exit status 2)")
+        if self.mission.newer_than(other) and now - self.t_created <= self.NEWCOMER:
+            self.refusal = text + "; that mission was created earlier: this board gives way"
+            self.get_logger().error(f"{self.refusal}; stopping (exit status 2)")
             self.board.close()
             for f in (self.done, self.refused):
                 if not f.done():

@@ -217,6 +217,12 @@ class Mission:
     frame_id: str = "map"
     scale: float = 1.0  # frame units per mission unit
     rules: Rules | None = None  # the state-machine rules the mission runs under (required on the wire)
+    created: float = 0.0  # wall time its board first created it (0: not said, as the oldest): the later of two
+    # missions in one mission namespace gives way
+
+    def newer_than(self, other: "Mission") -> bool:
+        """Whether this mission was created after ``other`` (ties: by session)."""
+        return (self.created, self.session) > (other.created, other.session)
 
     def index(self, robot: str) -> int | None:
         try:
@@ -231,7 +237,7 @@ def mission_to_msg(m: Mission) -> String:
     rules = m.rules if isinstance(m.rules, Rules) else parse_rules(m.rules, "Mission.rules")  # or its to_dict()
     return _str(_dumps({"format": MISSION_FORMAT, "session": m.session, "instance": m.instance.to_dict(),
                         "robots": list(m.robots), "seed": m.seed, "method": m.method,
-                        "frame_id": m.frame_id, "scale": m.scale, "rules": rules.to_dict()}))
+                        "frame_id": m.frame_id, "scale": m.scale, "rules": rules.to_dict(), "created": m.created}))
 
 
 def mission_from_msg(msg: String) -> Mission:
@@ -253,8 +259,11 @@ def mission_from_msg(msg: String) -> Mission:
         rules = parse_rules(rules)
     except ValueError as e:
         raise DecodeError(f"{w}.{e}") from None
+    created = d.get("created", 0.0)
+    if isinstance(created, bool) or not isinstance(created, (int, float)) or not (0 <= created < math.inf):
+        raise DecodeError(f"{w}.created: expected a wall time in seconds >= 0, got {created!r}")
     return Mission(_get(d, "session", str, w), inst, names, _get(d, "seed", int, w), _get(d, "method", str, w),
-                   _get(d, "frame_id", str, w), scale, rules)
+                   _get(d, "frame_id", str, w), scale, rules, float(created))
 
 
 # ---------------------------------------------------------------------------------------------
