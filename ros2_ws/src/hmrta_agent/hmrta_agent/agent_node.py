@@ -100,7 +100,7 @@ class Host:
         self._horizon_session: str | None = None
         self._beyond = 0.0  # a clock heard past the horizon, followed as later horizons allow
         self._session_heard = -math.inf  # when the board of the mission followed was last heard
-        self._held: String | None = None  # a later mission heard while that board is (_on_mission)
+        self._held: tuple[String, Mission] | None = None  # a later mission heard while that board is (_on_mission)
         self.waiting: dict[int, "AgentNode"] = {}  # agents with legs not yet due, by id (the clock flushes them)
         self.keys: dict[str, bytes] = {}  # the hosted robots' keys (authenticated missions)
         self.signer: Signer | None = None  # one per process: its counter orders every message it signs
@@ -177,7 +177,7 @@ class Host:
         if held is not None and not self.all_done.done() and (
                 time.monotonic() - self._session_heard >= self.KEEP or self._mission_over()):
             self._held = None  # the mission followed is gone or over: the later one is taken
-            self._on_mission(held)
+            self._on_mission(held[0])
         for a in self.agents:
             a.check_waiting()
         head = self.replica.head
@@ -218,12 +218,12 @@ class Host:
         cur, now = self.mission, time.monotonic()
         if (cur is not None and m.session != cur.session and m.newer_than(cur) and now - self._session_heard < self.KEEP
                 and not self._mission_over()):
-            if self._held is None or mission_from_msg(self._held).session != m.session:
+            if self._held is None or self._held[1].session != m.session:
                 self._node.get_logger().warning(
                     f"a later mission {m.instance.name} (session {m.session}) is published on {self.topics.mission} "
                     f"while the board of mission {cur.instance.name} (session {cur.session}) is heard: keeping "
                     f"that one (two missions in one mission namespace)")
-            self._held = msg
+            self._held = (msg, m)
             return
         self._held = None
         self.mission, self._session_heard = m, now
@@ -815,7 +815,7 @@ def main(args: list[str] | None = None) -> int:
             nodes = []
             ns = _mission_namespace(argv)
             for r in cli.robots:
-                own = topics.robot_topic(r, "", ns).rstrip("/")  # the robot's namespace in the mission's: <ns>/<robot>
+                own = topics.robot_namespace(r, ns)
                 nodes.append(AgentNode(host, namespace=own, parameter_overrides=[Parameter("robot", value=r)],
                                        **lean))
                 if nodes[-1].topics.namespace != ns:

@@ -27,10 +27,10 @@ OPTIONS = {p.name for p in P.method_parameters()} - {"method"}
 def _agent(context):
     arg = {k: LaunchConfiguration(k).perform(context) for k in ARGS}
     params = {p.name: p.parse(arg[p.name]) for p in PARAMS if not (p.name in OPTIONS and arg[p.name] == "")}
-    from hmrta_msgs_py.topics import check_mission_namespace
+    from hmrta_msgs_py.topics import check_mission_namespace, robot_namespace
 
-    ns = check_mission_namespace(params.get("mission_namespace", "/")).rstrip("/")
-    return [Node(package="hmrta_agent", executable="agent_node", name="agent", namespace=f"{ns}/{arg['robot'].strip('/')}",
+    ns = robot_namespace(arg["robot"], check_mission_namespace(params.get("mission_namespace", "/")))
+    return [Node(package="hmrta_agent", executable="agent_node", name="agent", namespace=ns,
                  output="screen", parameters=[params], remappings=[("goal_pose", arg["goal_topic"])])]
 
 

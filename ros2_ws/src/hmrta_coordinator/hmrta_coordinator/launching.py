@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from hmrta_msgs_py import params as P
+from hmrta_msgs_py.topics import check_mission_namespace as check_namespace  # noqa: F401 (for the launch files)
+from hmrta_msgs_py.topics import robot_namespace
 
 POSE_TYPES = ("PoseStamped", "PoseWithCovarianceStamped", "Odometry")
 FLEET_FIELDS = ("name", "species", "namespace", "pose_topic", "pose_type", "goal_topic", "key_file")
@@ -139,12 +141,6 @@ def parse_remaps(text: str) -> list[tuple[str, str]]:
     return out
 
 
-def robot_namespace(robot: str, mission_namespace: str = "/") -> str:
-    """A robot's namespace in the mission's: ``<mission_namespace>/<robot>`` (where its agent runs
-    and the board and sim_robot expect its topics)."""
-    return f"{mission_namespace.rstrip('/')}/{robot.strip('/')}"
-
-
 def board_remaps(fleet: list[FleetRobot], mission_namespace: str = "/") -> list[tuple[str, str]]:
     """The board reads each robot's pose on <mission_namespace>/<robot>/pose: point it at the
     fleet's pose topics."""
@@ -200,9 +196,3 @@ def instance_path(text: str) -> str:
 
     return str(Path(hmrta.__file__).resolve().parent / "data" / "example.yaml")
 
-
-def check_namespace(text: str) -> str:
-    """The ``mission_namespace`` launch argument, checked and normalised ('/fleet1/' -> '/fleet1')."""
-    from hmrta_msgs_py.topics import check_mission_namespace
-
-    return check_mission_namespace(text)

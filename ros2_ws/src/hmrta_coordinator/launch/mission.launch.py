@@ -47,9 +47,8 @@ def _nodes(context):
     sim = Node(package="hmrta_coordinator", executable="sim_robot", name="sim_robot", output="screen",
                parameters=[sim_params])
     common = L.node_values("agent_node", arg, only=AGENT_PARAMS)
-    agents = [L.agent_node(L.FleetRobot(r, L.robot_namespace(r, ns), L.robot_namespace(r, ns) + "/pose"), common,
-                           output="log")
-              for r in robots if r not in external]
+    homes = {r: L.robot_namespace(r, ns) for r in robots if r not in external}  # <ns>/<robot>
+    agents = [L.agent_node(L.FleetRobot(r, home, home + "/pose"), common, output="log") for r, home in homes.items()]
     return [board, sim, *agents]
 
 

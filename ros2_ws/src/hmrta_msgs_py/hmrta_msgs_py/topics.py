@@ -38,10 +38,16 @@ POSE = "pose"  # robot driver -> board (position): geometry_msgs/PoseStamped (de
 # geometry_msgs/PoseWithCovarianceStamped (amcl_pose) or nav_msgs/Odometry (the board's pose_type)
 
 
+def robot_namespace(robot: str, namespace: str = ROOT) -> str:
+    """A robot's namespace in a mission namespace: robot_namespace('robot_3', '/fleet1') ->
+    '/fleet1/robot_3' (where its agent runs and the board and sim_robot expect its topics)."""
+    return f"{namespace.rstrip('/')}/{robot.strip('/')}"
+
+
 def robot_topic(robot: str, leaf: str, namespace: str = ROOT) -> str:
     """Absolute per-robot topic in a mission namespace, e.g. robot_topic('robot_3', POSE) ->
     '/robot_3/pose', robot_topic('robot_3', POSE, '/fleet1') -> '/fleet1/robot_3/pose'."""
-    return f"{namespace.rstrip('/')}/{robot.strip('/')}/{leaf}"
+    return f"{robot_namespace(robot, namespace)}/{leaf}"
 
 
 def check_mission_namespace(ns: object, what: str = "mission_namespace") -> str:
