@@ -259,9 +259,17 @@ class CoalitionGreedy:
         S = len(first)
         f, x, y = free_at[order[first]], pos[order[first], 0], pos[order[first], 1]  # [S] each
         cap_s = np.add.reduceat(cap[order], first, axis=0)  # [S, K] capability of each set (exact sums)
-        useful = (cap_s > 0).astype(np.float64) @ (rem > 1e-9).T.astype(np.float64) > 0  # [S, N]
-        dx, dy = x - loc[:, 0:1], y - loc[:, 1:2]  # [N, S] each
-        arr = np.where(useful.T, f + np.sqrt(dx * dx + dy * dy) / v, np.inf)  # [N, S] approximate
+        # f + sqrt(dx^2 + dy^2) / v, in place (the same operations, in the same order)
+        arr = x - loc[:, 0:1]  # [N, S] dx
+        arr *= arr
+        dy = y - loc[:, 1:2]  # [N, S]
+        dy *= dy
+        arr += dy
+        np.sqrt(arr, out=arr)
+        arr /= v
+        arr += f  # [N, S] approximate arrivals
+        useless = (rem > 1e-9).astype(np.float64) @ (cap_s > 0).T.astype(np.float64) == 0  # [N, S]
+        arr[useless] = np.inf
         big = 0.0 if f.min() >= 0 else float(np.abs(f).max())  # (times in a mission are never negative)
 
         def sets_in_order(rows, part, ga):  # the sets looked at, by exact arrival (ties in any order)
@@ -295,9 +303,12 @@ class CoalitionGreedy:
         while len(rows):
             a = arr[rows]  # [R, G]
             if q < G:  # the q earliest groups, and the earliest of the others
-                part = np.argpartition(a, q, axis=1)  # [R, G]
-                after = np.take_along_axis(a, part[:, q:q + 1], 1)[:, 0]  # [R] the earliest not looked at
-                part = part[:, :q]  # [R, q]
+                after = np.partition(a, q, axis=1)[:, q]  # [R] the earliest not looked at
+                sel = a < after[:, None]  # [R, G] at most q a row
+                if np.count_nonzero(sel) == q * len(rows):  # q in every row: the q earliest
+                    part = np.nonzero(sel)[1].reshape(len(rows), q)  # [R, q]
+                else:  # a tie at the q-th arrival: q of the earliest, any of the tied ones
+                    part = np.argpartition(a, q, axis=1)[:, :q]  # [R, q]
                 ga = np.take_along_axis(a, part, 1)  # [R, q] their arrivals
                 more = np.isfinite(after)  # [R] groups not looked at yet may still count
             else:
