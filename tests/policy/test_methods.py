@@ -8,6 +8,7 @@ import inspect
 import io
 import math
 import pickle
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -421,5 +422,12 @@ def test_a_method_spec_can_name_its_own_checkpoint(tmp_path, monkeypatch):
     (tmp_path / "broad").write_bytes(b"mine")  # a stray file cannot change what rl@broad (a portfolio candidate) runs
     assert checkpoint_path("broad") == SHIPPED_DIR / "broad.pt"
     assert methods.solve(inst, "rl@broad", seed=1).makespan == own.makespan
-    assert checkpoint_path("./broad") == Path("broad")
+    assert checkpoint_path("./broad") == tmp_path / "broad"  # the file here, whatever reads the path again
+    assert checkpoint_path(checkpoint_path("./broad")) == tmp_path / "broad"
     assert checkpoint_path("elsewhere/broad") == Path("elsewhere/broad")
+    with pytest.raises(CheckpointError, match="broad"):  # the stray file is read, and refused
+        methods.solve(inst, "rl", seed=1, checkpoint="./broad")
+    shutil.copyfile(coalition, tmp_path / "broad")  # ./broad runs the file here and names it
+    sol = methods.solve(inst, "rl", seed=1, checkpoint="./broad")
+    assert sol.makespan == methods.solve(inst, "rl", seed=1, checkpoint=coalition).makespan
+    assert sol.extra["checkpoint"]["path"] == str(tmp_path / "broad")

@@ -45,7 +45,7 @@ def shipped_checkpoints() -> list[str]:
 def missing(path: Path) -> CheckpointError:
     """The error for a checkpoint file that is not there (names the shipped ones)."""
     env = os.environ.get("HMRTA_CHECKPOINT")
-    via = " (named by $HMRTA_CHECKPOINT)" if env and Path(env) == Path(path) else ""
+    via = " (named by $HMRTA_CHECKPOINT)" if env and checkpoint_path(env) == Path(path) else ""
     return CheckpointError(f"{path}{via}: no such checkpoint (shipped: {', '.join(shipped_checkpoints())}; "
                            "or train one with `hmrta train`)")
 
@@ -62,6 +62,8 @@ def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
     path, name = Path(given), str(given)
     if path.suffix == "" and "/" not in name and (SHIPPED_DIR / f"{name}.pt").is_file():
         return SHIPPED_DIR / f"{name}.pt"
+    if "/" not in str(path) and (SHIPPED_DIR / f"{path}.pt").is_file():
+        return path.absolute()  # ./broad, which Path writes as broad: the file here, also when read again
     return path
 
 
