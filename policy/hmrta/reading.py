@@ -115,9 +115,28 @@ def read_text(path: str | Path, error: type[Exception] = InputError) -> str:
 # ---------------------------------------------------------------------------------------------
 # JSON
 # ---------------------------------------------------------------------------------------------
+class _DuplicateKey(Exception):
+    pass
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
+    """An object whose every key is written once (json's default keeps the last silently)."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen: set[str] = set()
+        for k, _ in pairs:
+            if k in seen:
+                raise _DuplicateKey(k)
+            seen.add(k)
+    return out
+
+
 def parse_json(text: str, source: str, error: type[Exception] = InputError) -> Any:
     try:
-        data = json.loads(text)
+        data = json.loads(text, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as e:
+        raise error(f"{source}: invalid JSON (duplicate key {short(e.args[0])} in one object: "
+                    "the last would silently win)") from None
     except json.JSONDecodeError as e:
         raise error(f"{source}:{e.lineno}: invalid JSON ({e.msg})") from None
     except RecursionError:

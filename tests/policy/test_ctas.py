@@ -134,3 +134,12 @@ def test_two_keys_for_one_index(cfg, tmp_path):
     p.write_text(json.dumps(cfg))
     with pytest.raises(InstanceError, match=r"tasks: keys '02' and '2' are the same index|tasks: keys '2' and '02'"):
         load_instance(p)
+
+
+def test_a_key_written_twice_is_refused(cfg, tmp_path):
+    """JSON keeps the last of two equal keys silently: a robot written twice would vanish."""
+    text = json.dumps(cfg, indent=1)
+    p = tmp_path / "config.json"
+    p.write_text(text.replace('"robots": {', '"robots": {\n  "1": {"pos": [0, 0]},', 1))
+    with pytest.raises(InstanceError, match=r"config.json: invalid JSON \(duplicate key '1' in one object"):
+        load_instance(p)

@@ -254,6 +254,15 @@ def test_duplicate_yaml_key_is_rejected_with_its_line(tmp_path):
         load_instance(p)
 
 
+def test_duplicate_json_key_is_rejected(tmp_path):
+    """An hmrta-instance/1 JSON file with a key written twice (json keeps the last silently)."""
+    p = tmp_path / "dup.json"
+    p.write_text('{"format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2, "velocity": 50, '
+                 '"skills": 1, "species": [{"traits": [1], "count": 1, "depot": [0, 0]}], "tasks": []}')
+    with pytest.raises(InstanceError, match=r"dup.json: invalid JSON \(duplicate key 'velocity'"):
+        load_instance(p)
+
+
 def test_format_dispatch_sits_above_instance_and_ctas():
     """hmrta.formats dispatches by format; hmrta.instance imports neither hmrta.ctas nor
     hmrta.formats (not even in a function), hmrta.ctas never imports hmrta.formats: no import
