@@ -251,6 +251,33 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
         methods.resolve(inst, "cpsat")
 
 
+def test_portfolio_compute_time_leaves_out_model_loading(monkeypatch, tmp_path):
+    """As for every method, the portfolio's compute seconds leave out loading its candidates'
+    models: here a checkpoint that takes over a second to load."""
+    pytest.importorskip("torch")
+    import time
+
+    from hmrta.rl import inference
+    from hmrta.rl.checkpoint_info import SHIPPED_DIR
+
+    slow = tmp_path / "slow.pt"
+    shutil.copyfile(SHIPPED_DIR / "broad.pt", slow)  # a file of its own: not yet loaded in this process
+    load = inference.load_policy
+
+    def slow_load(checkpoint=None):
+        time.sleep(1.2)
+        return load(checkpoint)
+
+    monkeypatch.setattr(inference, "load_policy", slow_load)
+    inst = load_instance(EXAMPLE)
+    t0 = time.perf_counter()
+    sol = methods.solve(inst, "portfolio", candidates=f"greedy,rl@{slow}")
+    assert time.perf_counter() - t0 > 1.2 > sol.compute_seconds > 0
+    rl = methods.solve(inst, f"rl@{slow}")
+    greedy = methods.solve(inst, "greedy")
+    assert sol.extra["portfolio"]["candidates"] == {"greedy": greedy.makespan, f"rl@{slow}": rl.makespan}
+
+
 def test_portfolio_without_torch_leaves_out_its_default_rl_candidates_but_not_named_ones(monkeypatch, caplog):
     import dataclasses
     import sys
