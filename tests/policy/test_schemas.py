@@ -419,6 +419,11 @@ def test_bench_bound_and_mapping_outputs_validate(tmp_path, capsys):
     dyn = json.loads((tmp_path / "dyn" / "results.json").read_text())
     assert dyn["rows"][0]["results"]["greedy"].get("dynamic")
     assert_valid("hmrta-bench/1", dyn)
+    mixed = tmp_path / "mixed"  # a row of missions of different sizes: each count that differs, as low-high
+    assert main(["bench", str(EXAMPLE), str(ctas), "--methods", "greedy", "--out", str(mixed), "--no-progress"]) == 0
+    rows = json.loads((mixed / "results.json").read_text())
+    assert any(isinstance(x, str) for x in rows["rows"][0]["size"])
+    assert_valid("hmrta-bench/1", rows)
     sol = tmp_path / "sol.json"
     assert main(["solve", str(EXAMPLE), "--method", "greedy", "--out", str(sol), "--no-progress"]) == 0
     capsys.readouterr()
