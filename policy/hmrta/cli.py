@@ -97,6 +97,8 @@ def writable(flag: str, path: str | Path, folder: bool = False, inputs: tuple = 
     import tempfile
 
     p = Path(path)
+    if not folder and str(path).endswith(("/", os.sep)):  # (Path drops the slash)
+        raise UserError(f"{flag} {path}: names a folder (a trailing /), expected a file name")
     if not folder:
         _not_an_input(flag, p, inputs)
     if folder and p.exists() and not p.is_dir():

@@ -488,6 +488,8 @@ def test_out_paths_of_the_wrong_kind_leave_nothing(tmp_path, monkeypatch, capsys
         (["convert", str(EXAMPLE), "--out", "folder"], "--out folder: is a folder, expected a file name"),
         (["convert", str(CTAS), "--out", "folder"], "--out folder: is a folder, expected a file name"),
         (["schedules", "--count", "1", "--out", "folder"], "--out folder: is a folder, expected a file name"),
+        (["convert", str(EXAMPLE), "--out", "new/"], "--out new/: names a folder (a trailing /), expected a file name"),
+        (["demo", "--method", "greedy", "--out", "new/"], "--out new/: names a folder (a trailing /)"),
         (["keys", "create", "--robots", "a", "--out", "afile"], "afile: exists and is not a folder"),
     ):
         _exit2(argv, capsys, msg)
