@@ -175,11 +175,22 @@ def _plannable(methods: list[str], missions: list[tuple[str, object]]) -> None:
                 raise MethodError(f"{where}: {e}") from None
 
 
+def _ctas_folder(folder: Path) -> bool:
+    """Whether ``folder`` is one CTAS-D mission (it holds config.json), saying so where it also
+    holds mission files, which are then not read."""
+    if not (folder / "config.json").exists():
+        return False
+    if any(folder.glob("*.yaml")) or any(folder.glob("*.yml")):
+        print(f"warning: {folder}: read as one CTAS-D mission (its config.json); the *.yaml files in it are not "
+              "read (name them to use them)", file=sys.stderr)
+    return True
+
+
 def _resolve_instances(paths: list[str]) -> list[Path]:
     out: list[Path] = []
     for p in paths:
         pp = Path(p)
-        if pp.is_dir() and not (pp / "config.json").exists():
+        if pp.is_dir() and not _ctas_folder(pp):
             files = sorted([*pp.glob("*.yaml"), *pp.glob("*.yml")])
             if not files:
                 raise UserError(f"{pp}: folder has no instance files (*.yaml) and no config.json")
@@ -687,7 +698,7 @@ def _mission_sets(paths: list[str]) -> list:
     rows, singles = [], []
     for p in paths:
         pp = Path(p)
-        if pp.is_dir() and not (pp / "config.json").exists():
+        if pp.is_dir() and not _ctas_folder(pp):
             rows.append(MissionSet.load(pp.resolve().name, _resolve_instances([p])))
         else:
             singles.append(pp)
@@ -695,6 +706,12 @@ def _mission_sets(paths: list[str]) -> list:
         name = (singles[0].resolve().name if singles[0].is_dir() else singles[0].stem) if len(singles) == 1 \
             else "missions"
         rows.append(MissionSet.load(name, singles))
+    seen: dict[Path, Path] = {}
+    for f in (f for r in rows for f in r.files):  # a mission given twice would count twice
+        if f.resolve() in seen:
+            also = "" if seen[f.resolve()] == f else f" (also as {seen[f.resolve()]})"
+            raise UserError(f"{f}: given twice{also}: its results would count twice")
+        seen[f.resolve()] = f
     return rows
 
 

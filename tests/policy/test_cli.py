@@ -7,6 +7,7 @@ import csv
 import io
 import json
 import re
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -671,3 +672,27 @@ def test_an_output_is_never_the_mission_a_scenario_names(tmp_path, capsys):
     capsys.readouterr()
     assert main(["solve", str(scen), "--method", "greedy", "--out", str(mission)]) == 2
     assert "is an input of this command" in _one_error_line(capsys) and mission.read_bytes() == before
+
+
+def test_bench_refuses_a_mission_given_twice(tmp_path, capsys):
+    """Its results would count twice in the row's means: the same file, or a folder given twice."""
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    shutil.copyfile(EXAMPLE, folder / "a.yaml")
+    out = tmp_path / "out"
+    _exit2(["bench", str(EXAMPLE), str(EXAMPLE), "--methods", "greedy", "--out", str(out)], capsys,
+           f"{EXAMPLE}: given twice: its results would count twice")
+    _exit2(["bench", str(folder), str(folder / "a.yaml"), "--methods", "greedy", "--out", str(out)], capsys,
+           f"{folder / 'a.yaml'}: given twice")
+    assert not out.exists()
+
+
+def test_a_ctas_folder_that_also_holds_missions_says_they_are_not_read(tmp_path, capsys):
+    folder = tmp_path / "both"
+    shutil.copytree(CTAS, folder)
+    shutil.copyfile(EXAMPLE, folder / "mine.yaml")
+    assert main(["solve", str(folder), "--method", "greedy", "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {folder}: read as one CTAS-D mission (its config.json); the *.yaml files in it are not read" in err
+    assert main(["solve", str(CTAS), "--method", "greedy", "--no-progress"]) == 0
+    assert "warning" not in capsys.readouterr().err
