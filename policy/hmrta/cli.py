@@ -1412,16 +1412,22 @@ def build_parser() -> argparse.ArgumentParser:
 class _PrintedOutput:
     """Standard output that goes quiet, and lets the command go on, once its reader has gone
     (``hmrta solve ... | head -1``): what a command writes to files is its result, what it prints
-    is a summary, so a closed pipe must not cut a solve short or lose a file it was to write."""
+    is a summary, so a closed pipe must not cut a solve short or lose a file it was to write.
+    Another failure to write it (a full disk) also lets the command go on, and is kept in
+    ``failed`` to be reported once."""
 
     def __init__(self, stream):
         self._stream, self.reader_gone = stream, False
+        self.failed: OSError | None = None
 
     def write(self, text: str) -> int:
         if not self.reader_gone:
             try:
                 return self._stream.write(text)
             except BrokenPipeError:
+                self._gone()
+            except OSError as e:
+                self.failed = e
                 self._gone()
         return len(text)
 
@@ -1430,6 +1436,9 @@ class _PrintedOutput:
             try:
                 self._stream.flush()
             except BrokenPipeError:
+                self._gone()
+            except OSError as e:
+                self.failed = e
                 self._gone()
 
     def _gone(self) -> None:
@@ -1449,11 +1458,17 @@ class _PrintedOutput:
 
 def main(argv: list[str] | None = None) -> int:
     stdout = sys.stdout
-    sys.stdout = _PrintedOutput(stdout)
+    sys.stdout = printed = _PrintedOutput(stdout)
     try:
-        return _main(argv)
+        status = _main(argv)
+        printed.flush()
     finally:
         sys.stdout = stdout
+    if printed.failed is not None:  # what was to be printed is lost; files written with --out are whole
+        print(f"hmrta: error: cannot write to standard output ({printed.failed.strerror or printed.failed})",
+              file=sys.stderr)
+        return status or 1
+    return status
 
 
 def _main(argv: list[str] | None) -> int:

@@ -634,6 +634,22 @@ def test_a_reader_that_goes_early_loses_no_output_file(tmp_path):
         assert all(f.exists() for f in written), (args, list(out.glob("*")) if out.exists() else [])
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+def test_a_standard_output_that_cannot_be_written_is_one_line_and_no_output_file_is_lost(tmp_path):
+    """``hmrta solve ... > /dev/full``: the solution file is still written whole; the lost summary
+    is said in one line, exit 1, no traceback."""
+    import subprocess
+
+    out = tmp_path / "sol.json"
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", "hmrta.cli", "solve", str(EXAMPLE), "--method", "greedy",
+                               "--out", str(out), "--no-progress"], stdout=full, stderr=subprocess.PIPE, timeout=120)
+    err = proc.stderr.decode()
+    assert proc.returncode == 1 and "Traceback" not in err, err
+    assert err.strip() == "hmrta: error: cannot write to standard output (No space left on device)"
+    assert json.loads(out.read_text())["success"]
+
+
 def test_an_output_is_never_one_of_the_inputs(tmp_path, capsys):
     """``--out`` naming a file the command reads is refused before any work (exit 2, one line),
     and the file is left as it was: solve (a file, or a folder holding the input's .json name),
