@@ -165,8 +165,10 @@ def _load(path: str, static: str | None = None, releases: bool = False):
 def _plannable(methods: list[str], missions: list[tuple[str, object]]) -> None:
     """MethodError naming the mission (``(where, instance)`` pairs) unless every method can plan
     every mission (:func:`hmrta.methods.check_instance`): checked before any work."""
-    from .methods import MethodError, check_instance
+    from .methods import MethodError, check_instance, parse
 
+    for m in methods:  # a method that does not exist is not the missions' fault
+        parse(m)
     for where, inst in missions:
         for m in methods:
             try:
@@ -1099,6 +1101,7 @@ def cmd_demo(args) -> int:
     if args.out:
         writable("--out", args.out)
     inst = _load(args.instance or str(EXAMPLE))
+    _plannable([args.method], [(str(args.instance or EXAMPLE), inst)])  # before anything is printed
     print(f"mission {inst.name}: {inst.n_agents} robots in {inst.n_species} species, {inst.n_tasks} tasks, "
           f"{inst.requirement_type} requirements")
     with SolveProgress(args.method, _progress_on(args)) as prog:
