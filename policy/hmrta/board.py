@@ -406,6 +406,14 @@ class Journal:
 # ---------------------------------------------------------------------------------------------
 # the state machine and the events that move it (the board, its journal replay, replicas)
 # ---------------------------------------------------------------------------------------------
+def _point_or_none(p: Any) -> tuple[float, float] | None:
+    """(x, y) of a journaled position [x, y] of finite numbers, else None."""
+    if (isinstance(p, list) and len(p) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in p)):
+        return float(p[0]), float(p[1])
+    return None
+
+
 class BoardCore:
     """The board's state machine (:class:`BoardState`, revision ``rev``, lost robots ``lost``) and
     how the board's events change it. :class:`MissionBoard` applies events as they come and
@@ -548,6 +556,7 @@ class MissionBoard(BoardCore):
         self.last_pose: list[tuple[float, float] | None] = [None] * A
         self.ptr = [0] * A  # route prefix whose arrivals are confirmed
         self.lost: dict[int, str] = {}
+        self.stopped_at: dict[int, tuple[float, float]] = {}  # lost robot -> its last reported position
         self.accepted: set[tuple[int, int]] = set()
         self.released_at = 0.0  # wall time when the current decision was released
         # the board's own stalls (a watchdog tick more than STALL_GAP after the previous one: its
@@ -660,6 +669,8 @@ class MissionBoard(BoardCore):
             if kind == "start":
                 self.started = True
                 self._started_wall = ev.get("wall")
+            elif kind == "drop_agent" and _point_or_none(ev.get("pose")) is not None:
+                self.stopped_at[int(ev["robot"])] = _point_or_none(ev["pose"])
             elif kind == "choice":
                 self.accepted.add((int(ev["robot"]), int(ev["version"])))
                 if ev.get("latency_ms") is not None:
@@ -1052,8 +1063,11 @@ class MissionBoard(BoardCore):
             return []
         t = self._event_time()
         cancelled = self._drop(a, reason, t)
-        self._events.append({"type": "drop_agent", "t": t, "until": float(self.state.until), "robot": a,
-                             "reason": reason})
+        ev = {"type": "drop_agent", "t": t, "until": float(self.state.until), "robot": a, "reason": reason}
+        if self.last_pose[a] is not None:  # where the robot itself last said it was (the plan may differ)
+            self.stopped_at[a] = (float(self.last_pose[a][0]), float(self.last_pose[a][1]))
+            ev["pose"] = list(self.stopped_at[a])
+        self._events.append(ev)
         extra = f"; cancelled task(s) {cancelled} (no longer satisfiable)" if cancelled else ""
         self.log("warning", f"robot {self.names[a]} lost ({reason}): its commitments are released{extra}")
         return cancelled
@@ -1488,6 +1502,11 @@ class MissionBoard(BoardCore):
         # compute: what the agents spent deciding (each choice's compute_ms, journaled), as a
         # solve's compute is its planning time; the mission's own time is mission_wall_seconds
         sol = solution_from_state(st, self.method, self.seed, round(sum(self.agent_ms) / 1000.0, 6))
+        dyn = sol.extra.get("dynamic")
+        if isinstance(dyn, dict) and self.stopped_at:  # a lost robot's last reported position (copies: the
+            dyn["events"] = [{**e, "reported_at": list(self.stopped_at[e["agent"]])}  # state's log stays as it is)
+                             if e.get("type") == "drop_agent" and e.get("agent") in self.stopped_at else e
+                             for e in dyn.get("events", ())]
         alive = [a for a in range(st.A) if a not in self.lost]
         sol.extra.update({
             "transport": "ros2",

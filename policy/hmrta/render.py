@@ -23,9 +23,11 @@ each leg started and where it went, home and back included, cut short where the 
 Without them (a solution of route evaluation or another solver) they are recomputed from the task
 starts/finishes and straight-line travel: an agent leaves a task at its finish, arrives after the
 travel time and waits until the task's start. A
-lost robot's X stands where it stopped (the ``at`` of its ``drop_agent`` record), reached by its
-last leg; a solution written before the record carried it shows the robot where it was last
-known: its last task, or where it started.
+lost robot's X stands where it stopped: in a live mission, where the robot last reported itself
+(``reported_at``: a robot that stopped short of its goal is shown there, not where its plan had
+it), else the ``at`` of its ``drop_agent`` record, reached by its last leg; a solution written
+before the record carried it shows the robot where it was last known: its last task, or where
+it started.
 """
 from __future__ import annotations
 
@@ -61,6 +63,8 @@ class Changes:
     lost: dict[int, float] = field(default_factory=dict)  # robot -> when it was lost
     # robot -> (where it stopped, since when it was there), where the solution records it
     lost_at: dict[int, tuple[tuple[float, float], float]] = field(default_factory=dict)
+    # robot -> its last reported position when it was lost (a live mission's ``reported_at``)
+    reported_at: dict[int, tuple[float, float]] = field(default_factory=dict)
     joined: dict[int, tuple[float, tuple[float, float]]] = field(default_factory=dict)  # robot -> (when, where)
     cancelled: dict[int, tuple[float, bool]] = field(default_factory=dict)  # task -> (when, by the operator)
     stopped: dict[int, float] = field(default_factory=dict)  # task cancelled in progress -> when it had started
@@ -109,6 +113,8 @@ def mission_changes(inst: Instance, sol: Solution, source: str = "solution") -> 
                 if not finite(since) or not 0 <= since <= t:
                     raise SolutionError(f"{w}.since: expected a time in [0, {t:g}] (the loss), got {short(since)}")
                 out.lost_at[a] = (_point(e["at"], f"{w}.at"), float(since))
+            if "reported_at" in e:  # where the robot itself last said it was (live: a robot that stopped short)
+                out.reported_at[a] = _point(e["reported_at"], f"{w}.reported_at")
         elif kind == "add_agent":
             a = _index(e.get("id"), inst.n_agents, f"{w}.id")
             out.joined[a] = (t, _point(e.get("position", inst.depots[a].tolist()), f"{w}.position"))
@@ -415,7 +421,7 @@ def _draw_map(ax, inst: Instance, sol: Solution, colors: list, changes: Changes 
                     color=CROSS_COLORS[ch.cancelled[m][1]], zorder=5)
     if ch.lost:  # an X in the species colour where the robot stopped (or was last known)
         lost = sorted(ch.lost)
-        xy = np.array([_position(tl[a], starts[a], ch.lost[a]) for a in lost]) + np.array(
+        xy = np.array([ch.reported_at.get(a) or _position(tl[a], starts[a], ch.lost[a]) for a in lost]) + np.array(
             [offsets[a] for a in lost])[:, None]  # [L, 2]
         marks = ax.scatter(xy[:, 0], xy[:, 1], marker="X", s=110, c=[colors[int(inst.agent_species[a])] for a in lost],
                            edgecolors="black", linewidths=0.8, zorder=9.5)

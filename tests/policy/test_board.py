@@ -986,6 +986,16 @@ def test_a_robot_that_never_arrives_gets_its_goal_again_then_is_dropped_and_the_
     assert r.state.leg_log == b.state.leg_log and r.rev == b.rev and r.finished
     for st in (b.state, r.state):  # the resend counts as a leg in the counter the digest reads
         assert st.leg_seqs.tolist() == [n + len(log) for n, log in zip(st.leg_base, st.leg_log)]
+    # the result says where the robot was, its depot (reported_at), not only where its plan had it
+    # (at: its task); so does the board replayed from the journal, and the map's X stands there
+    for board in (b, r):
+        drop, = [e for e in board.result().extra["dynamic"]["events"] if e["type"] == "drop_agent"]
+        assert drop["reported_at"] == pytest.approx(INST.depots[s].tolist()) and drop["at"] != drop["reported_at"]
+    assert "reported_at" not in next(e for e in b.state.log if e["type"] == "drop_agent")  # the state's own log
+    from hmrta.render import mission_changes
+
+    got = mission_changes(INST, sol).reported_at
+    assert list(got) == [s] and got[s] == pytest.approx(INST.depots[s].tolist())
 
 
 def test_a_late_robot_that_arrives_after_its_goal_was_re_sent_is_kept():
