@@ -965,6 +965,13 @@ class MissionBoard(BoardCore):
             self.lose(self.state.agent, f"no decision within {self.decision_timeout:g} s")
         self._check_legs(now)
 
+    @property
+    def resumed_at(self) -> float:
+        """When (``now()``) the board last ran again after a stall of its own or was restarted on
+        its journal (-inf if never): what it was sent before is still arriving, so silences count
+        from then."""
+        return self._resumed
+
     def _stalled(self, now: float, gap: float) -> None:
         """The board itself did not run for ``gap`` seconds (more than STALL_GAP): what the robots
         sent meanwhile is still unread in its queues, or lost on the way and being repaired by the
@@ -1341,7 +1348,7 @@ class MissionBoard(BoardCore):
             away = [self.names[a] for a in range(st.A)
                     if a not in self.lost and not self._near(a, st.inst.depots[a])]
             return f"clock {self.clock:.3f} s, robots not yet home: {', '.join(away[:10]) or 'none'}"
-        late = []
+        late, due = [], []  # unconfirmed arrivals; those of tasks due to start by now (holding the clock)
         for a in range(st.A):
             route = st.routes[a]
             if a not in self.lost and self.ptr[a] < len(route):
@@ -1353,8 +1360,10 @@ class MissionBoard(BoardCore):
                         f"from the task")
                     late.append(f"{self.names[a]} at task {m} (starts t={float(st.start[m]):.3f} s, {where}, "
                                 f"task at {self._m(locs[m])}, tolerance {self.tolerance * self.scale:.2f} m)")
+                    if float(st.start[m]) <= self.clock + EPS:
+                        due.append(late[-1])
         return (f"clock {self.clock:.3f} s, plan at {float(st.clock):.3f} s; arrivals not confirmed: "
-                f"{'; '.join(late[:10]) or 'none'}")
+                f"{'; '.join((due or late)[:10]) or 'none'}")
 
     def _target(self) -> tuple[str, int | None, float]:
         """(phase, decider, horizon) from the state, the clock and the confirmations; sets

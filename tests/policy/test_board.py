@@ -998,6 +998,33 @@ def test_a_robot_that_never_arrives_gets_its_goal_again_then_is_dropped_and_the_
     assert list(got) == [s] and got[s] == pytest.approx(INST.depots[s].tolist())
 
 
+def test_the_clock_held_by_a_robot_names_the_robots_due_not_those_on_their_way():
+    """While one robot holds the clock at its task's start, the others on their way to later
+    starts are on time: the diagnostics name only the robots due by the clock."""
+    import re
+
+    inst = ScenarioGenerator("MA-AT", 9, 3, 12, 3).instance(5, 0)
+    b = MissionBoard(inst, seed=SEED, rules=RULES, wait_for_robots=False, now=FakeTime(), leg_timeout_factor=1.0,
+                     leg_timeout_floor=2.0, heartbeat_timeout=0.0, log=lambda level, text: None)
+    s, said = 6, []  # robot 6 stays at its depot; others are on their way to later starts meanwhile
+
+    def where(a, xy):
+        if a == s:
+            said.append(b.waiting_for())
+            return tuple(inst.depots[a])
+        return xy
+
+    drive(b, tick=0.1, where=where)
+    held = 0
+    for text in said:  # while robot s is due (its task's start reached), only robots due are named
+        mine = re.search(rf"{b.names[s]} at task \d+ \(starts t=([0-9.]+) s", text)
+        clock = float(re.search(r"clock ([0-9.]+) s", text).group(1))
+        if mine and float(mine.group(1)) <= clock + 1e-3:
+            held += 1
+            assert all(float(x) <= clock + 1e-3 for x in re.findall(r"starts t=([0-9.]+) s", text)), text
+    assert held
+
+
 def test_a_late_robot_that_arrives_after_its_goal_was_re_sent_is_kept():
     b, now, logs = stuck_board()
     s, late = 1, {}

@@ -79,6 +79,7 @@ def test_a_board_stopped_longer_than_the_heartbeat_timeout_resumes_without_dropp
     assert result["success"] and result["lost_robots"] == [] and result["undone_tasks"] == []
     log = (tmp_path / "mission_logs" / "task_board.log").read_text()
     assert "the board did not run for" in log, log[-2000:]
+    assert "nothing heard on" not in log, log[-2000:]  # the board stalled, not the mission clock
 
 
 def test_incident_time_falls_back_to_the_journal(tmp_path):

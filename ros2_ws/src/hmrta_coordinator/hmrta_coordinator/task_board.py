@@ -440,8 +440,8 @@ class TaskBoard(Node):
                                       f"{self.rejection_rate:g}/s, or a robot's pose rejected again within 5 s); "
                                       f"by reason so far: {dict(b.rejected)}")
             self._rej_quiet = 0
-        if b.phase in ("wait", "closing") and now - max(self._published_at, self._clock_at) > 5.0:
-            silent = now - self._clock_heard
+        if b.phase in ("wait", "closing") and now - max(self._published_at, self._clock_at, b.resumed_at) > 5.0:
+            silent = now - max(self._clock_heard, b.resumed_at)  # (the board's own stall: not the clock's silence)
             if silent > 5.0:  # nobody drives the clock: not a robot's fault
                 self.get_logger().warning(f"mission clock held: nothing heard on {self.clock_topic} for {silent:.0f} s "
                                           f"(is sim_robot, or whatever publishes the mission clock, running?); "
