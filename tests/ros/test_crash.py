@@ -192,8 +192,9 @@ def test_killed_board_ends_the_launcher_with_a_partial_result(tmp_path, domain, 
     print(f"board killed with {done_then} tasks done; the launcher ended {ended:.2f} s later")
     assert rc == 1, so + se
     assert "the mission did not complete (board process died (SIGKILL) at t=" in se
+    assert "; not restarted (the board's state lives in that process))" in se  # why it ended, on the console
     result = json.loads(out.read_text())
-    assert result["success"] is False and result["partial"] is True
+    assert result["success"] is False and result["partial"] is True and result["journal"] is None
     assert result["failure"].startswith("board process died (SIGKILL) at t=")
     done = [m for m, t in enumerate(result["tasks"]) if t["finish"] is not None]
     # the state of a board version the launcher held (its latest keyframe and the versions after it

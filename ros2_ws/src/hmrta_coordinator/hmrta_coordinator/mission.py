@@ -432,6 +432,7 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
                                                      if rc == 2 else
                                                      f"; not restarted: it was restarted {procs.board.restarts} "
                                                      f"time(s) already (at most {procs.max_restarts})"))
+                    status = procs.incidents[-1]  # what the console and the partial result say: why, too
                 break
             if not finished():  # after the end everybody exits on their own
                 failure = procs.supervise(seen["clock"])
@@ -500,6 +501,8 @@ def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: 
         "board_clock": b.clock if b is not None else None,
         "incidents": list(procs.incidents),
         "mission_wall_seconds": round(wall, 3),
+        # a task_board started with -p journal:=<it> (and the same instance, seed and method) resumes it
+        "journal": str(procs.journal) if procs.journal is not None and procs.journal.exists() else None,
     })
     return sol
 
@@ -701,8 +704,10 @@ def _main(argv: list[str] | None = None) -> int:
             status = "the task board exited without writing the result"
         sol = partial_result(inst, procs, args.method, args.seed, wall, status)
         sol.save(out)
+        resume = (f"; its journal {sol.extra['journal']} can resume it (task_board -p journal:=..., docs/ros.md)"
+                  if sol.extra.get("journal") else "")
         print(f"hmrta-mission: the mission did not complete ({status}); {sol.extra['tasks_done']}/{len(sol.tasks)} "
-              f"tasks were done; wrote the partial result {out}; board log tail:\n{log_tail(procs.board.log)}",
+              f"tasks were done; wrote the partial result {out}{resume}; board log tail:\n{log_tail(procs.board.log)}",
               file=sys.stderr)
         if procs.record is not None and procs.record.exists():
             print(f"wrote {procs.record} (the recording up to the end)", file=sys.stderr)
