@@ -101,8 +101,9 @@ def instance_from_ctas_config(data: Any, source: str = "config.json") -> Instanc
         else:
             index[sig] = len(species)
             species.append({"traits": traits, "count": 1, "depot": pose})
-    tasks = []
+    tasks, labels = [], []
     for key in _indexed(tasks_d, f"{source}: tasks"):
+        labels.append(short(key))
         t = tasks_d[key]
         w = f"{source}: tasks[{short(key)}]"
         tasks.append(
@@ -122,4 +123,4 @@ def instance_from_ctas_config(data: Any, source: str = "config.json") -> Instanc
         "species": species,
         "tasks": tasks,
     }
-    return instance_from_dict(d, source=source)
+    return instance_from_dict(d, source=source, task_labels=labels)  # errors name a task by its key

@@ -232,18 +232,20 @@ class Instance:
         atomic_write_text(Path(path), self.to_yaml())
 
     # ---- feasibility ---------------------------------------------------------------------------
-    def infeasibility(self) -> str | None:
-        """None if the whole team can satisfy every task, else a message naming task and skill."""
+    def infeasibility(self, labels: Sequence[str] | None = None) -> str | None:
+        """None if the whole team can satisfy every task, else a message naming task and skill
+        (task m named ``labels[m]`` if given: its key in the file it came from)."""
         team = (self.species_traits * np.array([s.count for s in self.species])[:, None]).sum(0)  # [skills]
         for m, t in enumerate(self.tasks):
+            name = m if labels is None else labels[m]
             for k, q in enumerate(t.requirements):
                 if self.additive and q - team[k] > self.cover_tol:  # (short by no more: met)
                     return (
-                        f"task {m} is infeasible: it needs {_num(q)} of skill {k} "
+                        f"task {name} is infeasible: it needs {_num(q)} of skill {k} "
                         f"but the whole team has {_num(team[k])}"
                     )
                 if not self.additive and q > 0 and team[k] <= 0:
-                    return f"task {m} is infeasible: it needs skill {k}, which no species has"
+                    return f"task {name} is infeasible: it needs skill {k}, which no species has"
         return None
 
 
@@ -344,8 +346,9 @@ def _keys(d: Any, allowed: set[str], required: set[str], where: str) -> dict:
     return d
 
 
-def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
-    """Validate a parsed `hmrta-instance/1` mapping and build an Instance."""
+def instance_from_dict(d: Any, source: str = "<data>", task_labels: Sequence[str] | None = None) -> Instance:
+    """Validate a parsed `hmrta-instance/1` mapping and build an Instance. ``task_labels``: how
+    errors name each task (its key in a file of another format; default: its index)."""
     d = _keys(d, _TOP_KEYS, _REQUIRED_TOP, source)
     if d["format"] != FORMAT:
         raise _err(f"{source}: format", f"expected {FORMAT!r}, got {short(d['format'])}")
@@ -397,7 +400,7 @@ def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
                                          f"at most {MAX_AGENTS}")
     tasks = []
     for m, t in enumerate(d["tasks"]):
-        w = f"{source}: tasks[{m}]"
+        w = f"{source}: tasks[{m if task_labels is None else task_labels[m]}]"
         t = _keys(t, _TASK_KEYS | _TASK_OPTIONAL, _TASK_KEYS, w)
         loc = _vector(t["location"], 2, f"{w}.location", unit=True)
         req = _vector(t["requirements"], k, f"{w}.requirements")
@@ -411,7 +414,7 @@ def instance_from_dict(d: Any, source: str = "<data>") -> Instance:
             raise _err(f"{w}.release", f"expected a time >= 0 and <= {MAX_VALUE:g}, got {short(t['release'])}")
         tasks.append(Task(loc, req, dur, rel))  # type: ignore[arg-type]
     inst = Instance(rt, vel, k, tuple(species), tuple(tasks), name, added_agents=tuple(added))
-    why = inst.infeasibility()
+    why = inst.infeasibility(task_labels)
     if why:
         raise InstanceError(f"{source}: {why}")
     return inst

@@ -98,7 +98,7 @@ def _mut(cfg, path, value=None, delete=False):
     (("tasks", "0", "duration"), "long", False, "tasks['0'].duration: expected a number, got 'long'"),
     (("setup", "velocity"), 1e-300, False, "setup.velocity: expected a value in [1e-09, 1e+09]"),
     (("setup", "num_skills"), 10**12, False, "setup.num_skills: expected a positive integer (at most 10000)"),
-    (("tasks", "2", "skillset", "1"), 4, False, "task 2 is infeasible"),  # team has 3 of skill 1
+    (("tasks", "2", "skillset", "1"), 4, False, "task '2' is infeasible"),  # team has 3 of skill 1
 ])
 def test_config_errors(cfg, tmp_path, path, value, delete, expect):
     _mut(cfg, path, value, delete)
@@ -142,4 +142,18 @@ def test_a_key_written_twice_is_refused(cfg, tmp_path):
     p = tmp_path / "config.json"
     p.write_text(text.replace('"robots": {', '"robots": {\n  "1": {"pos": [0, 0]},', 1))
     with pytest.raises(InstanceError, match=r"config.json: invalid JSON \(duplicate key '1' in one object"):
+        load_instance(p)
+
+
+def test_errors_name_a_task_by_its_key(cfg, tmp_path):
+    """Tasks keyed from 1: the task keyed '2' (index 1 in the mission) is named by its key."""
+    cfg["tasks"] = {str(int(k) + 1): t for k, t in cfg["tasks"].items()}
+    cfg["tasks"]["2"]["skillset"]["1"] = 4  # the team has 3 of skill 1
+    p = tmp_path / "config.json"
+    p.write_text(json.dumps(cfg))
+    with pytest.raises(InstanceError, match=r"config.json: task '2' is infeasible: it needs 4 of skill 1"):
+        load_instance(p)
+    cfg["tasks"]["2"]["skillset"] = {"0": 0, "1": 0, "2": 0}
+    p.write_text(json.dumps(cfg))
+    with pytest.raises(InstanceError, match=r"tasks\['2'\].skillset: expected at least one non-zero"):
         load_instance(p)
