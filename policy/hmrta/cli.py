@@ -48,10 +48,16 @@ MAX_SET_TASKS = 1_000_000  # tasks in all of a generated set (hmrta generate dra
 
 def _row_sizes(args) -> None:
     """--agents, --species, --tasks and --skills of a generated row: positive integers (a mission
-    without tasks is readable, but a generated set of them measures nothing; the generator then
-    checks --agents against --species)."""
+    without tasks is readable, but a generated set of them measures nothing), --agents a multiple
+    of --species."""
     for k in ROW_SIZES:
         _positive(f"--{k}", getattr(args, k))
+    if args.agents < args.species:
+        raise UserError(f"--agents {args.agents}: expected at least --species ({args.species}): every species has "
+                        f"a robot")
+    if args.agents % args.species:  # (each species has agents / species robots)
+        raise UserError(f"--agents {args.agents}: expected a multiple of --species ({args.species}): each species "
+                        f"has --agents / --species robots")
 
 
 def _with_scenario_missions(files) -> tuple:
