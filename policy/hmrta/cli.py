@@ -604,8 +604,11 @@ def cmd_bench(args) -> int:
             takers = [n for n, rec in METHODS.items() if rec.option(k)]
             raise MethodError(f"--{k.replace('_', '-')}: none of the methods {', '.join(methods)} takes it "
                               f"(methods that do: {', '.join(takers)})")
-    for m in methods:  # and a value out of range, before the cache is written
-        check_options(m, options_for(m, _solve_opts(args)))
+    for m in methods:  # and a value out of range (a portfolio's candidates too), before the cache is written
+        if check_options(m, options_for(m, _solve_opts(args))).get("candidates") is not None:
+            from .portfolio import candidate_methods
+
+            candidate_methods(args.candidates)
     given = [x for x, on in (("INSTANCE", args.instances), ("--suite", args.suite), ("--scenario", args.scenario))
              if on]
     if len(given) > 1:

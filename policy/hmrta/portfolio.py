@@ -47,7 +47,10 @@ def candidate_methods(candidates: str | None) -> list[str]:
     if not names:
         raise MethodError("portfolio: option candidates: expected a comma list of methods, got nothing")
     for c in names:
-        name, _ = methods.parse(c)
+        try:
+            name, _ = methods.parse(c)
+        except MethodError as e:
+            raise MethodError(f"portfolio: option candidates: {e}") from None
         if methods.get(name).decide is None:
             raise MethodError(f"portfolio: option candidates: {c} cannot be a candidate (it has no per-decision "
                               f"form; candidates: {', '.join(methods.live_methods())})")
