@@ -16,6 +16,7 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -717,7 +718,9 @@ def _signed(v: float, nd: int = 2) -> str:
 def _method_name(method: str, paper: bool = False) -> str:
     """How a table names a method; ``paper``: in a table with the paper's columns, which also says
     the paper's method those columns show when it is another one (CP-SAT beside the paper's CTAS-D)."""
-    name = DISPLAY_NAME.get(method, method)
+    base, at, ck = method.partition("@")
+    m = re.fullmatch(r"rl-s(\d+)", base)
+    name = DISPLAY_NAME.get(method) or (f"RL(s.{m.group(1)}){at}{ck}" if m else method)  # rl-s3: RL(s.3)
     theirs = PAPER_NAME.get(method)
     return f"{name} (vs paper {theirs})" if paper and theirs and theirs != name else name
 

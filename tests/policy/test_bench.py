@@ -318,3 +318,10 @@ def test_a_portfolio_names_the_candidates_it_left_out(tmp_path):
                for line in logged), logged
     assert s["provenance"]["checkpoint"] is not None and set(s["provenance"]["own_checkpoints"]) == {
         "rl@broad", "rl@coalition-team"}
+
+
+def test_sampled_rollouts_are_named_alike_whatever_their_number():
+    from hmrta.bench import _method_name
+
+    assert [_method_name(m) for m in ("rl-s10", "rl-s3", "rl-s3@broad", "rl")] == \
+        ["RL(s.10)", "RL(s.3)", "RL(s.3)@broad", "RL(g.)"]
