@@ -767,9 +767,6 @@ def cmd_train(args) -> int:
             raise UserError(f"{args.config}: pretrain.schedules: {f}: no such file (a config's paths are relative "
                             f"to the working folder, {Path.cwd()}; the shipped configs' to the repository root)")
     _train_device(torch, args.device)
-    if args.check:
-        print(f"{args.config}: a valid training config (name {cfg['name']!r})")
-        return 0
     if (args.init or args.reseed) and not args.resume:
         raise UserError("--init and --reseed only apply with --resume")
     run_dir = writable("--run-dir", args.run_dir or f"runs/{cfg['name']}", folder=True)
@@ -783,6 +780,9 @@ def cmd_train(args) -> int:
     if args.resume and not args.init and not last.is_file():
         raise UserError(f"--resume: no checkpoint {last} to continue (start a new run without --resume, or give "
                         f"--init CHECKPOINT)")
+    if args.check:  # the config, and the command line as it would run
+        print(f"{args.config}: a valid training config (name {cfg['name']!r})")
+        return 0
     if args.threads:
         torch.set_num_threads(args.threads)
     import signal
@@ -1313,7 +1313,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--export", default=None, help="after training, write the best weights + config here")
     t.add_argument("--no-progress", action="store_true", help="no progress bar (drawn only when stderr is a terminal)")
     t.add_argument("--check", action="store_true", help="only validate the config (with --iterations and "
-                                                        "--max-minutes applied), then exit (no training)")
+                                                        "--max-minutes applied) and the command line (the run "
+                                                        "folder, --resume, --init, --export), then exit (no training)")
     t.set_defaults(fn=cmd_train)
 
     ck = sub.add_parser("checkpoint", help="policy checkpoints: info (what one holds), average (the weights of several)", formatter_class=F)
@@ -1321,7 +1322,9 @@ def build_parser() -> argparse.ArgumentParser:
     ca = cksub.add_parser("average", help="average the weights (the moving average where present) of checkpoints "
                                           "of the same network and rules; writes the config and the lineage "
                                           "(sources with sha256)", formatter_class=F)
-    ca.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT", help="checkpoint files (.pt)")
+    ca.add_argument("checkpoints", nargs="+", metavar="CHECKPOINT",
+                    help="checkpoint files (.pt), or names of shipped ones (default, broad, ...; a file of such a "
+                         "name here is ./NAME)")
     ca.add_argument("--out", required=True, help="checkpoint to write (atomically); never one of the sources")
     ca.add_argument("--force", action="store_true", help="replace an existing --out file")
     ca.add_argument("--json", action="store_true",

@@ -583,6 +583,11 @@ def test_train_finds_the_shipped_configs_by_name_from_any_directory(tmp_path, mo
     assert "(name 'mine')" in capsys.readouterr().out
     assert main(["train", "--config", "nosuch", "--check"]) == 2
     capsys.readouterr()
+    # --check checks the command line as the run would: --init without --resume, nothing to resume
+    assert main(["train", "--check", "--init", "x.pt"]) == 2
+    assert "--init and --reseed only apply with --resume" in capsys.readouterr().err
+    assert main(["train", "--check", "--resume"]) == 2
+    assert "--resume: no checkpoint runs/mine/last.pt to continue" in capsys.readouterr().err
     # a dataset a config names is looked for before anything is written (from here: relative paths miss)
     assert main(["train", "--config", "schedules", "--check"]) == 2
     assert "pretrain.schedules: policy/datasets/" in capsys.readouterr().err
