@@ -1198,6 +1198,22 @@ class Parser(argparse.ArgumentParser):
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
+    def parse_args(self, args=None, namespace=None):  # type: ignore[override]
+        """An argument no parser knows is said by the (sub)command's own parser: ``hmrta solve
+        --bogus`` points to ``hmrta solve --help``."""
+        ns, extra = self.parse_known_args(args, namespace)
+        if extra:
+            self._innermost(ns).error(f"unrecognized arguments: {' '.join(extra)}")
+        return ns
+
+    def _innermost(self, ns) -> argparse.ArgumentParser:
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                sub = action.choices.get(getattr(ns, action.dest, None) or "")
+                if sub is not None:
+                    return sub._innermost(ns) if isinstance(sub, Parser) else sub
+        return self
+
 
 def build_parser() -> argparse.ArgumentParser:
     from .methods import add_arguments as add_method_arguments

@@ -716,3 +716,10 @@ def test_a_ctas_folder_that_also_holds_missions_says_they_are_not_read(tmp_path,
     assert f"warning: {folder}: read as one CTAS-D mission (its config.json); the *.yaml files in it are not read" in err
     assert main(["solve", str(CTAS), "--method", "greedy", "--no-progress"]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_an_unknown_option_points_to_its_commands_help(capsys):
+    _exit2(["solve", str(EXAMPLE), "--bogus"], capsys,
+           "hmrta solve: error: unrecognized arguments: --bogus (see hmrta solve --help)")
+    _exit2(["checkpoint", "average", "a.pt", "--out", "b.pt", "--bogus"], capsys,
+           "hmrta checkpoint average: error: unrecognized arguments: --bogus (see hmrta checkpoint average --help)")
