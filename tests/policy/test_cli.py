@@ -719,7 +719,11 @@ def test_a_ctas_folder_that_also_holds_missions_says_they_are_not_read(tmp_path,
 
 
 def test_an_unknown_option_points_to_its_commands_help(capsys):
-    _exit2(["solve", str(EXAMPLE), "--bogus"], capsys,
-           "hmrta solve: error: unrecognized arguments: --bogus (see hmrta solve --help)")
-    _exit2(["checkpoint", "average", "a.pt", "--out", "b.pt", "--bogus"], capsys,
-           "hmrta checkpoint average: error: unrecognized arguments: --bogus (see hmrta checkpoint average --help)")
+    for argv, said in ((["solve", str(EXAMPLE), "--bogus"],
+                        "hmrta solve: error: unrecognized arguments: --bogus (see hmrta solve --help)"),
+                       (["checkpoint", "average", "a.pt", "--out", "b.pt", "--bogus"],
+                        "hmrta checkpoint average: error: unrecognized arguments: --bogus (see hmrta checkpoint "
+                        "average --help)")):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2 and capsys.readouterr().err.strip() == said
