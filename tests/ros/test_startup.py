@@ -229,6 +229,7 @@ def test_no_board_heard_and_a_board_gone_silent_are_warned(tmp_path, start):
         p.wait_for("no task board heard for 1 s", 60)
     assert "ROS_DOMAIN_ID" in agent.text() and "ROS_AUTOMATIC_DISCOVERY_RANGE (LOCALHOST)" in agent.text()
     assert "nothing on /hmrta/mission or /hmrta/board" in agent.text() and "mission_namespace (/)" in agent.text()
+    assert "A mission that is over has no board" in agent.text()  # a robot joining a mission that ended
     board = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "wait_for_robots:=true")
     agent.wait_for("robot_0: agent 0 (species 0) of mission example", 60)
     sim.wait_for("simulating 15 robot(s)", 60)

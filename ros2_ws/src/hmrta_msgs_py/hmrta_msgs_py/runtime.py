@@ -405,7 +405,8 @@ class BoardSilence:
             return (f"no task board heard for {quiet:.0f} s (nothing on {T.mission} or {T.board}): is task_board "
                     f"running, with the same ROS_DOMAIN_ID ({env.get('ROS_DOMAIN_ID') or 'unset: 0'}), "
                     f"{DISCOVERY_VAR} ({env.get(DISCOVERY_VAR) or 'unset: SUBNET'}) and mission_namespace "
-                    f"({T.namespace}) as this process?{seen} Still waiting")
+                    f"({T.namespace}) as this process?{seen} (A mission that is over has no board: it exits "
+                    f"when it is done.) Still waiting")
         return (f"the task board has not been heard for {quiet:.0f} s"
                 + (f" (its latest version {version})" if version is not None else "")
                 + ": it stopped, or the network to it is down; still waiting (a board restarted on its journal "
