@@ -210,7 +210,7 @@ def test_killed_board_ends_the_launcher_with_a_partial_result(tmp_path, domain, 
     assert ended < 15
 
 
-def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_version_1():
+def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_version_1(tmp_path):
     """The launcher's keyframe subscription may match after the board died (DDS discovery): with
     the stream from version 1 it rebuilds the board's state from the mission's initial state, so
     the partial result still says what was done. No processes: the board's own test drivers play
@@ -244,8 +244,12 @@ def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_v
         tb.pump = pump
     assert 0 < b.state.n_done < tb.INST.n_tasks and tb.RULES == rules("greedy")
     procs = SimpleNamespace(last_board=None, board_tail=tail, method="greedy", method_options={},
-                            robots=b.names, incidents=[])
+                            robots=b.names, incidents=[], journal=tmp_path / "journal.jsonl")
     sol = partial_result(tb.INST, procs, "greedy", tb.SEED, 1.0, "board process died (SIGKILL)")
+    assert sol.extra["journal"] is None  # none was written
+    procs.journal.write_text("{}\n")
+    sol = partial_result(tb.INST, procs, "greedy", tb.SEED, 1.0, "board process died (SIGKILL)")
+    assert sol.extra["journal"] == str(procs.journal)  # the journal that can resume the mission
     d = sol.to_dict()
     assert d["board_version"] == b.version and d["tasks_done"] == b.state.n_done > 0
     assert d["routes"] == [list(r) for r in b.state.routes]
