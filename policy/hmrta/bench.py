@@ -521,7 +521,6 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
             except json.JSONDecodeError:
                 continue  # a line cut short by an interruption
             cache[(r["row"], r["method"], r["index"], r["seed"], r.get("variant"))] = r
-        log(f"resuming: {len(cache)} results cached in {cache_path}")
     sets = [(row, _row_instances(row, count, seed)) for row in rows]
     if out_dir:  # once the instances are drawn: a row that cannot be drawn leaves no empty folder
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -534,6 +533,11 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
                                "methods": methods, "rows": []}
     opts = {m: _options_for(m, solve_opts) for m in methods}
     variants = {m: method_variant(m, opts[m]) for m in methods}
+    if cache:  # what this run can take from the cache: the same mission, method and options
+        wanted = [(row.key, m, ident, 0 if getattr(row, "kind", "generated") == "missions" else seed, variants[m])
+                  for row, insts in sets for m in methods for ident, _ in insts]
+        log(f"resuming: {sum(k in cache for k in wanted)} of {len(wanted)} results cached in {cache_path} (the "
+            f"others are solved: new, or their mission or options changed)")
 
     def store(key: tuple, r: dict) -> None:
         cache[key] = r

@@ -727,3 +727,17 @@ def test_an_unknown_option_points_to_its_commands_help(capsys):
         with pytest.raises(SystemExit) as e:
             main(argv)
         assert e.value.code == 2 and capsys.readouterr().err.strip() == said
+
+
+def test_a_resumed_bench_says_how_many_of_its_results_the_cache_holds(tmp_path, capsys):
+    mission = tmp_path / "m.yaml"
+    mission.write_text(EXAMPLE.read_text())
+    argv = ["bench", str(mission), "--methods", "greedy,greedy-coalition", "--out", str(tmp_path / "res"),
+            "--no-progress"]
+    assert main(argv) == 0
+    assert "resuming" not in capsys.readouterr().err
+    assert main(argv) == 0
+    assert f"resuming: 2 of 2 results cached in {tmp_path / 'res' / 'cache.jsonl'}" in capsys.readouterr().err
+    mission.write_text(EXAMPLE.read_text().replace("velocity: 0.2", "velocity: 0.3"))  # another mission
+    assert main(argv) == 0
+    assert "resuming: 0 of 2 results cached" in capsys.readouterr().err
