@@ -1135,9 +1135,12 @@ class MissionBoard(BoardCore):
                     "the way)" if lost_on_the_way else None)
         if not self._names_a_task(rid):
             return None  # no such task: said as such
-        return ("the mission is over (every task is done or cancelled; the robots are going home)" if lost_on_the_way
-                else "nothing to cancel: every task is done or cancelled (the robots are going home; a task added "
-                     "now reopens the mission)")
+        if lost_on_the_way:
+            return "the mission is over (every task is done or cancelled; the robots are going home)"
+        m = st.names.index(rid) if rid in st.names else _task_index(rid, st.M)
+        which = f"task {rid!r}: already {STATUS_NAMES[st.status[m]]}; " if m is not None else ""
+        return (f"{which}nothing to cancel: every task is done or cancelled (the robots are going home; a task "
+                f"added now reopens the mission)")
 
     def _id_problem(self, op: str, rid: str) -> str | None:
         """Why task id ``rid`` cannot be added (taken, or decimal digits) or cancelled (no such

@@ -570,7 +570,8 @@ def test_an_operator_task_while_the_robots_drive_home_reopens_the_mission(tmp_pa
     b.set_clock(b.state.clock + later * (home - b.state.clock))  # on the way home
     pump(b)
     task = {"location": [0.9, 0.1], "requirements": [1, 1, 0], "duration": 1.5}
-    assert b.task_request("cancel", "3")["reason"].startswith("nothing to cancel: every task is done")
+    assert b.task_request("cancel", "3")["reason"].startswith("task '3': already done; nothing to cancel: every "
+                                                                "task is done")
     assert b.task_request("cancel", "nosuch")["reason"].startswith("task 'nosuch': no task with this id")
     ans = b.task_request("add", "late", task)
     assert ans["event"] == "accepted" and ans["task"] == INST.n_tasks and ans["t"] == pytest.approx(b.clock)
