@@ -77,3 +77,20 @@ def test_run_exits_with_what_main_returns(tmp_path):
     assert run_python("from hmrta_msgs_py.console import run; run('a', 'node_a')", **env).returncode == 3
     b = run_python("from hmrta_msgs_py.console import run; run('b', 'node_b')", **env)
     assert b.returncode == 0 and b.stdout == "ran\n"
+
+
+def test_a_ctrl_c_that_a_library_swallows_during_start_up_still_ends_it(tmp_path):
+    """A library that catches what its imports raise (an optional extension's ImportError, a bare
+    except) may swallow the KeyboardInterrupt of a Ctrl-C: start-up notes every Ctrl-C and ends
+    with one line and 130 all the same, while the module loads or while its nodes are built."""
+    swallow = ("import os, signal, time\ntry:\n    os.kill(os.getpid(), signal.SIGINT)\n    time.sleep(1.0)\n"
+               "except BaseException:\n    pass\n")
+    (tmp_path / "swallowing_import.py").write_text(swallow + "def main():\n    print('ran')\n")
+    (tmp_path / "swallowing_build.py").write_text(
+        "from hmrta_msgs_py.runtime import starting\n\ndef main():\n    with starting('some_node'):\n"
+        + "".join("        " + line + "\n" for line in swallow.splitlines()) + "    print('spun')\n")
+    env = {"PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    for module in ("swallowing_import", "swallowing_build"):
+        out = run_python(f"from hmrta_msgs_py.console import run; run('some_node', '{module}')", **env)
+        assert (out.returncode, out.stderr, out.stdout) == (130, "some_node: interrupted during start-up\n", ""), \
+            (module, out)

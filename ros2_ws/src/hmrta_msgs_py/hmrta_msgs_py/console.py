@@ -10,13 +10,31 @@ is running handles Ctrl-C itself (:func:`hmrta_msgs_py.runtime.spin_nodes`)."""
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
+import threading
+
+# the Ctrl-Cs received since start-up began: a library that catches what an import raises (an
+# optional C extension's ImportError, a bare except) may swallow the KeyboardInterrupt of one,
+# and the process would go on as if it had not come; start-up checks this list at its steps
+INTERRUPTED: list[int] = []
+
+
+def _noted(sig: int, frame) -> None:
+    INTERRUPTED.append(sig)
+    raise KeyboardInterrupt  # as Python's own handler does
 
 
 def run(prog: str, module: str, func: str = "main") -> None:
     """Import ``module`` and exit with what its ``func()`` returns (None: 0)."""
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _noted)
     try:
-        code = getattr(importlib.import_module(module), func)()
+        main = getattr(importlib.import_module(module), func)
+        if INTERRUPTED:  # (swallowed while the module loaded)
+            raise KeyboardInterrupt
+        code = main()
     except KeyboardInterrupt:
         _interrupted(prog)
     except ImportError as e:

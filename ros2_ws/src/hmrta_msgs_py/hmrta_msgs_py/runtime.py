@@ -54,10 +54,12 @@ def starting(prog: str, user_errors: tuple[type[BaseException], ...] = (ValueErr
 
     try:
         try:
+            _interrupted_before()
             if args is not None:
                 check_ros_args(args)
                 rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
             yield
+            _interrupted_before()  # a Ctrl-C a library swallowed while the nodes were built
         except _rclpy.RCLError as e:
             text = ros_error_text(str(e), args or [])
             if text is None:
@@ -75,6 +77,14 @@ def starting(prog: str, user_errors: tuple[type[BaseException], ...] = (ValueErr
         rclpy.try_shutdown()
         warnings.simplefilter("ignore")  # rclpy's warnings about the node it failed to build
         raise SystemExit(2) from None
+
+
+def _interrupted_before() -> None:
+    """KeyboardInterrupt if a Ctrl-C came during start-up (:data:`hmrta_msgs_py.console.INTERRUPTED`)
+    though no KeyboardInterrupt reached here."""
+    console = sys.modules.get("hmrta_msgs_py.console")
+    if console is not None and console.INTERRUPTED:
+        raise KeyboardInterrupt
 
 
 class RosArgsError(ValueError):
