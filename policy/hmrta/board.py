@@ -70,6 +70,7 @@ import numpy as np
 from .core import DONE, LOST, STATUS_NAMES, EventRejected, MissionState, Rules, apply_event, copy_fields
 from .instance import Instance
 from .keys import rejection_code
+from .reading import finite
 from .solution import Solution, solution_from_state
 
 EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
@@ -408,10 +409,7 @@ class Journal:
 # ---------------------------------------------------------------------------------------------
 def _point_or_none(p: Any) -> tuple[float, float] | None:
     """(x, y) of a journaled position [x, y] of finite numbers, else None."""
-    if (isinstance(p, list) and len(p) == 2
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in p)):
-        return float(p[0]), float(p[1])
-    return None
+    return (float(p[0]), float(p[1])) if isinstance(p, list) and len(p) == 2 and all(map(finite, p)) else None
 
 
 class BoardCore:
@@ -645,7 +643,7 @@ class MissionBoard(BoardCore):
                                    f"journal, {mine[k]!r} now); remove it or give another journal path")
         self.session = str(header["session"])
         created = header.get("created")  # (a journal written without it: this process's start)
-        if isinstance(created, (int, float)) and not isinstance(created, bool) and math.isfinite(created):
+        if finite(created):
             self.created = float(created)
         for i, rec in enumerate(records):
             try:
@@ -669,8 +667,8 @@ class MissionBoard(BoardCore):
             if kind == "start":
                 self.started = True
                 self._started_wall = ev.get("wall")
-            elif kind == "drop_agent" and _point_or_none(ev.get("pose")) is not None:
-                self.stopped_at[int(ev["robot"])] = _point_or_none(ev["pose"])
+            elif kind == "drop_agent" and (pose := _point_or_none(ev.get("pose"))) is not None:
+                self.stopped_at[int(ev["robot"])] = pose
             elif kind == "choice":
                 self.accepted.add((int(ev["robot"]), int(ev["version"])))
                 if ev.get("latency_ms") is not None:
@@ -1072,8 +1070,8 @@ class MissionBoard(BoardCore):
         cancelled = self._drop(a, reason, t)
         ev = {"type": "drop_agent", "t": t, "until": float(self.state.until), "robot": a, "reason": reason}
         if self.last_pose[a] is not None:  # where the robot itself last said it was (the plan may differ)
-            self.stopped_at[a] = (float(self.last_pose[a][0]), float(self.last_pose[a][1]))
-            ev["pose"] = list(self.stopped_at[a])
+            self.stopped_at[a] = self.last_pose[a]
+            ev["pose"] = list(self.last_pose[a])
         self._events.append(ev)
         extra = f"; cancelled task(s) {cancelled} (no longer satisfiable)" if cancelled else ""
         self.log("warning", f"robot {self.names[a]} lost ({reason}): its commitments are released{extra}")

@@ -246,20 +246,18 @@ def test_example_fixture_file(data_dir):
     assert math.isclose(inst.durations[0], 3.5)
 
 
-def test_duplicate_yaml_key_is_rejected_with_its_line(tmp_path):
-    p = tmp_path / "dup.yaml"
-    p.write_text("format: hmrta-instance/1\nrequirement_type: additive\nvelocity: 0.2\nvelocity: 0.3\nskills: 1\n"
-                 "species: [{traits: [1], count: 1, depot: [0, 0]}]\ntasks: []\n")
-    with pytest.raises(InstanceError, match=r"dup.yaml:4: .*duplicate key 'velocity' \(first on line 3\)"):
-        load_instance(p)
-
-
-def test_duplicate_json_key_is_rejected(tmp_path):
-    """An hmrta-instance/1 JSON file with a key written twice (json keeps the last silently)."""
-    p = tmp_path / "dup.json"
-    p.write_text('{"format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2, "velocity": 50, '
-                 '"skills": 1, "species": [{"traits": [1], "count": 1, "depot": [0, 0]}], "tasks": []}')
-    with pytest.raises(InstanceError, match=r"dup.json: invalid JSON \(duplicate key 'velocity'"):
+@pytest.mark.parametrize("name,text,expect", [
+    ("dup.yaml", "format: hmrta-instance/1\nrequirement_type: additive\nvelocity: 0.2\nvelocity: 0.3\nskills: 1\n"
+                 "species: [{traits: [1], count: 1, depot: [0, 0]}]\ntasks: []\n",
+     r"dup.yaml:4: .*duplicate key 'velocity' \(first on line 3\)"),  # YAML: with its line
+    ("dup.json", '{"format": "hmrta-instance/1", "requirement_type": "additive", "velocity": 0.2, "velocity": 50, '
+                 '"skills": 1, "species": [{"traits": [1], "count": 1, "depot": [0, 0]}], "tasks": []}',
+     r"dup.json: invalid JSON \(duplicate key 'velocity'"),  # JSON keeps the last one silently
+])
+def test_a_key_written_twice_is_rejected(tmp_path, name, text, expect):
+    p = tmp_path / name
+    p.write_text(text)
+    with pytest.raises(InstanceError, match=expect):
         load_instance(p)
 
 
