@@ -428,8 +428,7 @@ def _draw_map(ax, inst: Instance, sol: Solution, colors: list, changes: Changes 
         timed.append(_Timed(marks, np.array([ch.lost[a] for a in lost]), np.full(len(lost), np.inf)))
     # a tuple handle: its markers drawn over each other, labelled by the first
     labels = [(h[0] if isinstance(h, tuple) else h).get_label() for h in handles]
-    ax.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.06),
-              ncol=max(2, math.ceil(len(handles) / 5)), frameon=False)  # at most 5 rows fit below the map
+    _fit_legend(ax, handles, labels, -0.06, max(2, math.ceil(len(handles) / 5)))  # 5 rows fit in the figure's margin
     return timed
 
 
@@ -521,8 +520,41 @@ def _draw_gantt(ax, inst: Instance, sol: Solution, colors: list, timeline, chang
         ax.scatter(rel[:, 0], rel[:, 2], marker="v", s=22, color="black", zorder=6)
         ax.hlines(rel[:, 2], rel[:, 0], rel[:, 1], colors="black", linestyles=":", lw=0.8, zorder=6)
         handles.append(Line2D([], [], marker="v", ms=5, color="black", ls="", label="task released / added"))
-    ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.08), ncol=min(len(handles), 4),
-              frameon=False)
+    _fit_legend(ax, handles, [h.get_label() for h in handles], -0.08, min(len(handles), 4))
+
+
+def _fit_legend(ax, handles: list, labels: list, below: float, ncol: int):
+    """A legend under ``ax`` (its top ``below`` the axes, in axes units) in ``ncol`` columns, or in
+    fewer where that is wider than the axes (many species, long trait vectors): it never runs
+    into the next plot. :func:`_room_for_legends` then makes the figure tall enough for it."""
+    fig = ax.figure
+    renderer = fig.canvas.get_renderer()
+    ax.apply_aspect()  # the map keeps equal axes: its drawn width, not its grid cell's
+    width = ax.get_window_extent(renderer).width
+    while True:
+        leg = ax.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(0.0, below), ncol=ncol,
+                        frameon=False)
+        if ncol <= 1 or leg.get_window_extent(renderer).width <= 1.02 * width:
+            return leg
+        ncol -= 1
+
+
+def _room_for_legends(fig, margin_in: float = 0.1) -> None:
+    """Make ``fig`` taller where a legend under an axes reaches below its bottom edge, keeping
+    the axes' size and the other margins in inches."""
+    renderer = fig.canvas.get_renderer()
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+    if not legends:
+        return
+    low = min(leg.get_window_extent(renderer).y0 for leg in legends) / fig.dpi  # inches above the bottom edge
+    short = margin_in - low
+    if short <= 0:
+        return
+    w, h = fig.get_size_inches()
+    sp = fig.subplotpars
+    top_in, bottom_in = (1.0 - sp.top) * h, sp.bottom * h
+    fig.set_size_inches(w, h + short)
+    fig.subplots_adjust(top=1.0 - top_in / (h + short), bottom=(bottom_in + short) / (h + short))
 
 
 def _dark(c) -> bool:
@@ -552,10 +584,11 @@ def _figure(inst: Instance, sol: Solution, ch: Changes) -> _Figure:
     gs = fig.add_gridspec(1, 2, width_ratios=[1, 1.45], wspace=0.18)
     ax_map = fig.add_subplot(gs[0])
     ax_g = fig.add_subplot(gs[1])
+    fig.subplots_adjust(left=0.04, right=0.98, top=0.91, bottom=0.17)  # before the legends measure the axes
     timed = _draw_map(ax_map, inst, sol, colors, ch, timeline)
     _draw_gantt(ax_g, inst, sol, colors, timeline, ch)
     fig.suptitle(_title(inst, sol, ch), fontsize=11)
-    fig.subplots_adjust(left=0.04, right=0.98, top=0.91, bottom=0.17)
+    _room_for_legends(fig)
     return _Figure(fig, ax_map, ax_g, colors, timeline, timed)
 
 

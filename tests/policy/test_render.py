@@ -489,3 +489,20 @@ def test_work_at_a_task_cancelled_in_progress_is_drawn_until_the_cancellation():
         for x, y in zip(segs, segs[1:]):
             assert y["t0"] >= x["t1"] - 1e-9 and np.allclose(y["p0"], x["p1"])
     assert np.mean([sum(s["t1"] - s["t0"] for s in segs if s["kind"] == "wait") for segs in tl]) == pytest.approx(sol.awt)
+
+
+@pytest.mark.parametrize("species", [3, 20])
+def test_legends_stay_under_their_own_plot_and_inside_the_figure(species):
+    # 20 species (with the task skills, 25 entries) once drew the map's legend across the Gantt's
+    inst = ScenarioGenerator("MA-AT", species, species, 6, 5).instance(0, 0)
+    f = _figure_of(inst, solve(inst, "greedy", seed=0))
+    r = f.fig.canvas.get_renderer()
+    leg_map, leg_g = (ax.get_legend().get_window_extent(r) for ax in (f.ax_map, f.ax_g))
+    assert leg_map.x1 <= leg_g.x0 and leg_map.x1 <= f.ax_g.get_window_extent(r).x0
+    for leg in (leg_map, leg_g):
+        assert leg.y0 >= 0 and leg.x1 <= f.fig.bbox.width
+    if species == 3:  # a small team keeps the figure's size
+        assert tuple(f.fig.get_size_inches()) == (15, 7.2)
+    import matplotlib.pyplot as plt
+
+    plt.close(f.fig)
