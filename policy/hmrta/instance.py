@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -422,7 +423,8 @@ def instance_from_dict(d: Any, source: str = "<data>", task_labels: Sequence[str
 
 def text_field(v: Any, where: str) -> str:
     """A name-like field as text: numbers become their text; text that cannot be written as UTF-8
-    (lone surrogates, e.g. from a YAML escape) is an error naming the field."""
+    (lone surrogates, e.g. from a YAML escape) or that holds a control character (a newline, a
+    terminal escape: it is printed on consoles and in logs) is an error naming the field."""
     try:
         t = v if isinstance(v, str) else str(v)
     except ValueError:  # an integer too long to write out
@@ -432,4 +434,11 @@ def text_field(v: Any, where: str) -> str:
     except UnicodeEncodeError as e:
         raise _err(where, f"expected text, got an invalid character at position {e.start} "
                           f"(lone surrogate {t[e.start]!a})") from None
+    bad = _CONTROL.search(t)
+    if bad:
+        raise _err(where, f"expected text on one line, got a control character at position {bad.start()} "
+                          f"({bad.group()!a}) in {short(t)}")
     return t
+
+
+_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f]")  # C0, DEL and C1 control characters

@@ -296,6 +296,9 @@ def test_value_limits_keep_every_time_finite(valid_dict):
         (("species", 0, "count"), MAX_AGENTS + 1, f"species[0].count: expected a positive integer (at most {MAX_AGENTS})"),
         (("tasks", 1, "duration"), 10**400, "tasks[1].duration: expected a finite number, got <an integer of"),
         (("name",), "\ud800", "name: expected text, got an invalid character at position 0"),
+        # printed on consoles and in logs: a newline or a terminal escape would forge or hide a line
+        (("name",), "two\nlines", "name: expected text on one line, got a control character at position 3 ('\\n')"),
+        (("name",), "a\x1b[31m", "name: expected text on one line, got a control character at position 1 ('\\x1b')"),
     ]:
         d = yaml.safe_load(yaml.safe_dump(valid_dict))
         _set(path, value)(d)
