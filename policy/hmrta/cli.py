@@ -1184,10 +1184,12 @@ def _fanout_args(p: argparse.ArgumentParser, what: str, note: str = "") -> None:
 
 
 def _ray_address(text: str) -> str:
-    host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT (the Ray head's GCS address, e.g. 10.0.0.2:6379), "
-                                         f"got {text!r}")
+    from .fanout import split_address
+
+    try:
+        split_address(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
     return text
 
 

@@ -51,6 +51,17 @@ def _call(fn: Callable, item: Any, threads: int) -> Any:
 _H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
 
 
+def split_address(text: str) -> tuple[str, int]:
+    """``(host, port)`` of a Ray head's ``HOST:PORT`` (an IPv6 host in brackets: ``[::1]:6379``);
+    ValueError saying what was expected otherwise."""
+    host, sep, port = text.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"expected HOST:PORT (the Ray head's GCS address, e.g. 10.0.0.2:6379), got {text!r}")
+    return host, int(port)
+
+
 def _reachable(address: str, timeout: float = 10.0) -> None:
     """A one-line user error, within about ``timeout`` seconds, when nothing listens at HOST:PORT
     or what listens there does not speak gRPC as Ray's GCS does (Ray itself would wait for the
@@ -59,11 +70,10 @@ def _reachable(address: str, timeout: float = 10.0) -> None:
 
     from .errors import MethodError
 
-    host, _, port = address.rpartition(":")
     try:
-        sock = socket.create_connection((host or "127.0.0.1", int(port)), timeout=timeout)
-    except ValueError:
-        raise MethodError(f"--ray-address: expected HOST:PORT, got {address!r}") from None
+        sock = socket.create_connection(split_address(address), timeout=timeout)
+    except ValueError as e:
+        raise MethodError(f"--ray-address: {e}") from None
     except OSError as e:
         raise MethodError(f"--ray-address {address}: no Ray cluster reachable within {timeout:g} s ({e})") from None
     if os.environ.get("RAY_USE_TLS", "").strip().lower() in ("1", "true", "yes"):

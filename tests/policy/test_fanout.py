@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import functools
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -91,6 +92,28 @@ def test_a_ray_address_that_is_not_a_ray_cluster_is_a_user_error_within_the_time
             raise ConnectionError("Failed to connect to Ray cluster") from cause
     except ConnectionError as e:
         assert "RAY_AUTH_MODE=token" in str(_join_error("h:6379", e))
+
+
+@pytest.mark.parametrize("text,expect", [("10.0.0.2:6379", ("10.0.0.2", 6379)), ("head:1", ("head", 1)),
+                                         ("[::1]:6379", ("::1", 6379)), ("nohost", None), (":6379", None),
+                                         ("h:0", None), ("h:65536", None), ("h:63a", None), ("h:", None)])
+def test_a_ray_address_is_read_by_one_rule_for_the_command_line_and_the_connection(text, expect):
+    import argparse
+
+    from hmrta.cli import _ray_address
+    from hmrta.errors import MethodError
+    from hmrta.fanout import _reachable, split_address
+
+    if expect is not None:
+        assert split_address(text) == expect and _ray_address(text) == text
+        return
+    with pytest.raises(ValueError, match=re.escape(f"expected HOST:PORT (the Ray head's GCS address, e.g. "
+                                                   f"10.0.0.2:6379), got {text!r}")):
+        split_address(text)
+    with pytest.raises(argparse.ArgumentTypeError, match="expected HOST:PORT"):
+        _ray_address(text)
+    with pytest.raises(MethodError, match="--ray-address: expected HOST:PORT"):
+        _reachable(text, timeout=1.0)
 
 
 def test_bench_on_two_ray_workers_matches_serial(tmp_path):
