@@ -17,7 +17,7 @@ from hmrta.generators import ScenarioGenerator
 from hmrta.sim import simulate
 
 rclpy = pytest.importorskip("rclpy")
-from geometry_msgs.msg import PoseStamped  # noqa: E402
+from geometry_msgs.msg import PoseStamped, PoseWithCovariance, PoseWithCovarianceStamped  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
@@ -35,7 +35,8 @@ class FakeDriver:
     stopping ``short`` mission units before it (``ignore``: never moves), publishing its pose at
     20 Hz; records every goal and, at each stop, the mission clock and the planned arrival."""
 
-    def __init__(self, graph, name: str, speed: float, short: float = 0.0, ignore: bool = False):
+    def __init__(self, graph, name: str, speed: float, short: float = 0.0, ignore: bool = False,
+                 pose_type: str = "PoseStamped"):
         self.node = graph.node(f"driver_{name}")
         a = ROBOTS.index(name)
         self.pos = (float(INST.depots[a, 0]), float(INST.depots[a, 1]))
@@ -45,8 +46,10 @@ class FakeDriver:
         self.clock = 0.0
         self.goals: list[tuple[float, float, float]] = []
         self.stops: list[tuple[float, float]] = []  # (mission clock, planned arrival) at each stop
-        self.pub = self.node.create_publisher(PoseStamped, topics.robot_topic(name, topics.POSE),
-                                              qos_profile_sensor_data)
+        self.amcl = pose_type == "PoseWithCovarianceStamped"  # as Nav2's amcl: amcl_pose, latched
+        self.pub = self.node.create_publisher(PoseWithCovarianceStamped, topics.robot_topic(name, "amcl_pose"),
+                                              topics.AMCL_POSE_SUB_QOS) if self.amcl else \
+            self.node.create_publisher(PoseStamped, topics.robot_topic(name, topics.POSE), qos_profile_sensor_data)
         self.node.create_subscription(PoseStamped, topics.robot_topic(name, topics.GOAL), self.on_goal, 10)
         self.node.create_subscription(Clock, topics.CLOCK, self.on_clock, topics.CLOCK_QOS)
         self.node.create_timer(0.05, self.step)
@@ -73,14 +76,22 @@ class FakeDriver:
                 self.stops.append((self.clock, self.planned))
             else:
                 self.pos = (self.pos[0] + dx / d * s, self.pos[1] + dy / d * s)
-        self.pub.publish(C.pose_to_msg(self.pos, self.clock, "map", SCALE))
+        msg = C.pose_to_msg(self.pos, self.clock, "map", SCALE)
+        if self.amcl:
+            msg = PoseWithCovarianceStamped(header=msg.header, pose=PoseWithCovariance(pose=msg.pose))
+        self.pub.publish(msg)
 
 
 def run(tmp_path, graph, mission_procs, board: dict, time_scale: float = 0.0, **driver) -> tuple[dict, FakeDriver]:
+    amcl = {}
+    if driver.get("pose_type") == "PoseWithCovarianceStamped":  # the board and the robot's agent read amcl_pose
+        amcl = {"board_ros_args": ["-r", f"/{EXT}/pose:=/{EXT}/amcl_pose"],
+                "agent_ros_args": {EXT: ["-r", "pose:=amcl_pose", "-p", "pose_type:=PoseWithCovarianceStamped"]}}
+        board = {**board, "pose_types": [f"{EXT}:PoseWithCovarianceStamped"]}
     procs = mission_procs(save_instance(INST, tmp_path / "inst.yaml"), ROBOTS, seed=SEED, external=[EXT],
                           agents_per_process=6, time_scale=time_scale,
                           board_params={"scale": SCALE, "progress_period": 0.0, "real_time_departures": True,
-                                        **board})
+                                        **board}, **amcl)
     fake = FakeDriver(graph, EXT, **driver)
     graph.spin_until(lambda: procs.board.proc.poll() is not None, 90, "the task board to finish the mission")
     assert procs.board.proc.returncode == 0, procs.board.log.read_text()[-3000:]
@@ -102,9 +113,13 @@ def test_a_robot_that_stops_0_2_m_short_has_arrived(tmp_path, graph, mission_pro
     assert len(fake.stops) >= 2  # it drove its route (and home), always 0.2 m short
 
 
-def test_a_robot_that_never_arrives_is_dropped_as_stuck_and_the_rest_finish(tmp_path, graph, mission_procs):
+@pytest.mark.parametrize("pose_type", ["PoseStamped", "PoseWithCovarianceStamped"])
+def test_a_robot_that_never_arrives_is_dropped_as_stuck_and_the_rest_finish(tmp_path, graph, mission_procs,
+                                                                            pose_type):
+    """... and its agent stops it where it is, reading its pose as the board does (a Nav2 robot's
+    amcl_pose too: once, its agent followed only a PoseStamped on pose and sent no stop)."""
     result, fake = run(tmp_path, graph, mission_procs, {"leg_timeout_factor": 1.0, "leg_timeout_floor": 2.0},
-                       speed=2.0, ignore=True)
+                       speed=2.0, ignore=True, pose_type=pose_type)
     assert result["lost_robots"] == [EXT]
     reason = result["lost_reasons"][EXT]
     assert reason.startswith("stuck: no arrival at task ") and "np.float64" not in reason

@@ -24,7 +24,7 @@ EXECUTABLES = {("hmrta_coordinator", "task_board"): "task_board", ("hmrta_coordi
 LAUNCH_ONLY = {
     MISSION: {"fleet": "fleet file", "remaps": "board remappings"},
     FLEET: {"fleet": "fleet file", "board": "start the board", "remaps": "board remappings"},
-    AGENT: {"goal_topic": "goal remapping"},
+    AGENT: {"goal_topic": "goal remapping", "pose_topic": "pose remapping"},
 }
 # launch defaults that differ from the node's on purpose
 OWN_DEFAULTS = {MISSION: {"output": "mission.json"}, FLEET: {"output": "mission.json"}, AGENT: {"robot": "robot_0"}}
@@ -202,12 +202,35 @@ def test_fleet_launch_one_agent_per_robot(launch_file):
                                                        if r.pose_topic != f"/{r.name}/pose")
 
 
+def test_a_fleet_robot_agent_reads_its_pose_as_the_board_does(launch_file, tmp_path):
+    """The agent stops a dropped robot at its pose: it subscribes the fleet file's pose topic and
+    type, as the board does (the pose_type argument where the fleet file has none)."""
+    fleet = tmp_path / "fleet.yaml"
+    fleet.write_text("robots:\n  - {name: robot_1, namespace: /tb3_1, pose_topic: /tb3_1/amcl_pose,"
+                     " pose_type: PoseWithCovarianceStamped, goal_topic: /tb3_1/goal_pose}\n"
+                     "  - {name: robot_2, namespace: /tb3_2, pose_topic: /tb3_2/pose}\n"
+                     "  - {name: robot_3, namespace: /tb3_3, pose_topic: /tb3_3/odom, pose_type: Odometry}\n")
+    _, nodes = launch_file(FLEET, fleet=str(fleet), board="true")
+    board, a1, a2, a3 = nodes
+    assert params_of(a1)["pose_type"] == "PoseWithCovarianceStamped" and params_of(a3)["pose_type"] == "Odometry"
+    assert params_of(a2)["pose_type"] == "PoseStamped"
+    assert a1.kw["remappings"] == [("goal_pose", "/tb3_1/goal_pose"), ("pose", "/tb3_1/amcl_pose")]
+    assert a2.kw["remappings"] == [] and a3.kw["remappings"] == [("pose", "/tb3_3/odom")]
+    assert sorted(params_of(board)["pose_types"]) == ["robot_1:PoseWithCovarianceStamped", "robot_3:Odometry"]
+    _, nodes = launch_file(FLEET, fleet=str(fleet), board="true", pose_type="Odometry")
+    assert [params_of(n)["pose_type"] for n in nodes[1:]] == ["PoseWithCovarianceStamped", "Odometry", "Odometry"]
+    assert params_of(nodes[0])["pose_type"] == "Odometry"
+
+
 def test_agent_launch(launch_file):
     _, nodes = launch_file(AGENT, robot="robot_3", goal_topic="/tb3_3/goal_pose", keystore="/k")
     (n,) = nodes
     assert n.kw["namespace"] == "/robot_3" and n.kw["remappings"] == [("goal_pose", "/tb3_3/goal_pose")]
     assert params_of(n)["robot"] == "robot_3" and params_of(n)["keystore"] == "/k"
     assert set(params_of(n)) <= set(DECLARED["agent_node"])
+    _, (n,) = launch_file(AGENT, robot="robot_3", pose_topic="/tb3_3/amcl_pose", pose_type="PoseWithCovarianceStamped")
+    assert n.kw["remappings"] == [("goal_pose", "goal_pose"), ("pose", "/tb3_3/amcl_pose")]
+    assert params_of(n)["pose_type"] == "PoseWithCovarianceStamped"
     _, (n,) = launch_file(AGENT, robot="robot_3", mission_namespace="/fleet1/")
     assert n.kw["namespace"] == "/fleet1/robot_3" and params_of(n)["mission_namespace"] == "/fleet1/"
 

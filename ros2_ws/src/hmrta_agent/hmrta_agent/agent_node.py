@@ -25,6 +25,11 @@ board to add it (at its driver's reported pose, else its species' depot); the bo
 the mission with it and it takes part in the next decisions. An agent not in the mission and
 without a species waits until the board adds its robot (a scenario's ``add_robot`` event).
 
+The agent reads its robot's pose (``pose`` in its namespace, of type ``pose_type``: remap it to
+the driver's, e.g. ``-r pose:=amcl_pose -p pose_type:=PoseWithCovarianceStamped``) to report
+where a joining robot is and, when the board drops the robot, to stop it where it is: a goal at
+its latest pose replaces the goal it may still be driving to.
+
 One robot per process::
 
     agent_node --ros-args -r __ns:=/robot_3 -p method:=greedy -p seed:=1
@@ -64,9 +69,10 @@ from hmrta.keys import KeystoreError, Signer, load_key_file, load_keystore
 from hmrta.methods import MethodError, decider
 from hmrta.replica import Replica
 from hmrta_msgs_py import topics
-from hmrta_msgs_py.codec import (Choice, DecodeError, Join, KeyframeRequest, Mission, Status, board_from_msg,
-                                 choice_to_msg, clock_from_msg, keyframe_request_to_msg, mission_from_msg,
-                                 pose_from_msg, pose_to_msg, rejection_from_msg, status_to_msg)
+from hmrta_msgs_py.codec import (POSE_TYPES, Choice, DecodeError, Join, KeyframeRequest, Mission, Status,
+                                 board_from_msg, choice_to_msg, clock_from_msg, keyframe_request_to_msg,
+                                 mission_from_msg, pose_from_msg, pose_to_msg, pose_type, rejection_from_msg,
+                                 status_to_msg)
 from hmrta_msgs_py.runtime import (BoardSilence, LEAN_NODE, declare_method_parameters, mission_namespaces, spin_nodes,
                                    starting)
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
@@ -454,6 +460,10 @@ class AgentNode(Node):
         if not (self.board_silence_warning >= 0 and math.isfinite(self.board_silence_warning)):
             raise ValueError(f"board_silence_warning: expected a number of seconds >= 0 (0: never), "
                              f"got {self.board_silence_warning!r}")
+        try:
+            self.pose_type = pose_type(self.declare_parameter("pose_type", "PoseStamped").value)
+        except ValueError as e:
+            raise ValueError(f"pose_type: {e}") from None
         if keystore or key_file:
             host.add_key(self.robot, keystore, key_file)
 
@@ -475,11 +485,17 @@ class AgentNode(Node):
         self._stop_sent = False  # lost: its stop goal went out
         self.choice_pub = host.choice_publisher(self)
         self.goal_pub = self.create_publisher(PoseStamped, topics.GOAL, topics.GOAL_QOS)
-        self._pose: PoseStamped | None = None  # its driver's latest pose (a robot asking to join reports it)
+        self._pose = None  # its driver's latest pose, of pose_type (a robot asking to join reports it)
         if self.species_param >= 0:
-            self.create_subscription(PoseStamped, topics.POSE, self._on_pose, topics.POSE_SUB_QOS)
+            self._follow_pose()
 
-    def _on_pose(self, msg: PoseStamped) -> None:
+    def _follow_pose(self) -> None:
+        """Subscribe the robot's pose (``pose`` in its namespace) as the board does: its message
+        type and that type's QoS (amcl_pose is latched)."""
+        self.create_subscription(POSE_TYPES[self.pose_type], topics.POSE, self._on_pose,
+                                 topics.POSE_SUB_QOS_BY_TYPE[self.pose_type])
+
+    def _on_pose(self, msg) -> None:
         self._pose = msg
 
     def position(self) -> tuple[float, float] | None:
@@ -709,7 +725,7 @@ class AgentNode(Node):
         self._stopping = time.monotonic()
         self.pending = []  # no queued leg goes out after the stop
         if self._pose is None and self.species_param < 0:  # not yet following its pose: from now on
-            self.create_subscription(PoseStamped, topics.POSE, self._on_pose, topics.POSE_SUB_QOS)
+            self._follow_pose()
         self._stop_timer = self.create_timer(0.1, self._try_stop)
         self._try_stop()
 

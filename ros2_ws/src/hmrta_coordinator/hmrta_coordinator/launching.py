@@ -161,7 +161,9 @@ def board_pose_types(fleet: list[FleetRobot], given: list[str]) -> list[str]:
 
 
 def agent_node(robot: FleetRobot, common: dict[str, Any], output: str = "screen"):
-    """The agent of one robot, in its namespace, goals remapped to the robot's goal topic."""
+    """The agent of one robot, in its namespace, goals remapped to the robot's goal topic and its
+    pose read as the board reads it (the fleet file's pose topic and type; the type of the
+    ``pose_type`` argument where the fleet file has the default, as :func:`board_pose_types`)."""
     from launch_ros.actions import Node
 
     params = {"robot": robot.name, **common}
@@ -169,7 +171,11 @@ def agent_node(robot: FleetRobot, common: dict[str, Any], output: str = "screen"
         params["species"] = robot.species
     if robot.key_file:
         params["key_file"] = robot.key_file
+    if robot.pose_type != "PoseStamped":
+        params["pose_type"] = robot.pose_type
     remaps = [("goal_pose", robot.goal_topic)] if robot.goal_topic != "goal_pose" else []
+    if robot.pose_topic != robot.namespace.rstrip("/") + "/pose":
+        remaps.append(("pose", robot.pose_topic))
     return Node(package="hmrta_agent", executable="agent_node", name="agent", namespace=robot.namespace,
                 output=output, parameters=[params], remappings=remaps)
 

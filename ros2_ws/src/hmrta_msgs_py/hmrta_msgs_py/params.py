@@ -120,6 +120,10 @@ AGENT_NODE: tuple[Param, ...] = (
           "<mission_namespace>/hmrta/clock)"),
     Param("board_silence_warning", DOUBLE, 10.0,
           "wall seconds without hearing the task board before a warning (repeated every 3 x as long; 0: never)"),
+    Param("pose_type", STRING, "PoseStamped",
+          "message type of the robot's pose topic (pose in the node's namespace: remap it to the driver's), read "
+          "to stop a robot the board drops and to place a robot that joins: PoseStamped, PoseWithCovarianceStamped "
+          "(amcl_pose) or Odometry (the board's pose_type for this robot)"),
 )
 
 RECORDER: tuple[Param, ...] = (
