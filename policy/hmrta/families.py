@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .generators import MAX_DRAWS, index_str, index_width
+from .generators import MAX_DRAWS, draw_traits, index_str, index_width
 from .instance import DEFAULT_VELOCITY, Instance, Species, Task
 
 FAMILIES_TABLE = "Families"  # the table name in ``hmrta bench --suite families``
@@ -127,11 +127,7 @@ class FamilyGenerator:
         if self.traits == "one-hot":
             return np.eye(K)[np.arange(S) % K]
         hi = self.trait_max + 1
-        distinct = S <= hi**K - 1  # enough non-zero vectors for every species to differ
-        while True:
-            t = rng.integers(0, hi, size=(S, K))
-            if t.sum(1).min() > 0 and (not distinct or len({tuple(r) for r in t}) == S):
-                return t.astype(np.float64)
+        return draw_traits(rng, S, K, hi, distinct=S <= hi**K - 1)  # distinct where there are enough vectors
 
     def _requirements(self, rng: np.random.Generator) -> np.ndarray:  # [tasks, skills]
         lo, hi = (self.req_min, self.req_max + 1) if self.additive else (0, 2)

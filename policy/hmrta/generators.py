@@ -25,6 +25,30 @@ PAPER_ROWS: dict[str, list[tuple[int, int, int, int]]] = {
 
 
 MAX_DRAWS = 10_000  # redraws of (traits, requirements) before giving up (paper rows need <= 3)
+MIN_TRAIT_ODDS = 1e-4  # below this chance of a whole draw of traits being valid, draw them directly
+
+
+def draw_traits(rng: np.random.Generator, species: int, skills: int, values: int, distinct: bool) -> np.ndarray:
+    """Species traits [species, skills] with entries in 0..values-1, no row all zero and, with
+    ``distinct``, no two rows equal. Whole matrices are drawn until one is valid; where a draw is
+    valid with a chance below MIN_TRAIT_ODDS (e.g. 25 species among the 31 non-zero vectors of 5
+    skills: 3e-7, minutes of redraws), the rows are drawn directly from the non-zero vectors
+    instead, which gives the same distribution (every valid matrix alike) from another random
+    stream. Every mission whose draw was valid with a chance above that is drawn as before."""
+    n = values ** skills  # vectors, the zero vector included
+    odds = 1.0
+    for i in range(species):  # the chance that a whole draw is valid
+        odds *= ((n - 1 - i) if distinct else (n - 1)) / n
+        if odds < MIN_TRAIT_ODDS:
+            break
+    if odds >= MIN_TRAIT_ODDS:
+        while True:
+            t = rng.integers(0, values, size=(species, skills))
+            if t.sum(1).min() > 0 and (not distinct or len({tuple(r) for r in t}) == species):
+                return t.astype(np.float64)
+    codes = rng.choice(n - 1, size=species, replace=not distinct) + 1  # [species] non-zero vectors by number
+    digits = values ** np.arange(skills)[::-1]  # [skills] place value of each skill
+    return ((codes[:, None] // digits) % values).astype(np.float64)  # [species, skills]
 
 
 def row_name(scenario: str, agents: int, species: int, tasks: int, skills: int) -> str:
@@ -80,10 +104,7 @@ class ScenarioGenerator:
     def _traits(self, rng: np.random.Generator) -> np.ndarray:  # [species, skills]
         if not self.multi_skill:
             return np.eye(self.skills)[np.arange(self.species) % self.skills]
-        while True:
-            t = rng.integers(0, 2, size=(self.species, self.skills))
-            if t.sum(1).min() > 0 and len({tuple(r) for r in t}) == self.species:
-                return t.astype(np.float64)
+        return draw_traits(rng, self.species, self.skills, 2, distinct=True)
 
     def _requirements(self, rng: np.random.Generator) -> np.ndarray:  # [tasks, skills]
         hi = 3 if self.additive else 2

@@ -146,6 +146,23 @@ def test_hopeless_rows_fail_instead_of_looping():
         ScenarioGenerator("MA-AT", 2, 2, 30, 3).instance(seed=0, index=0)
 
 
+@pytest.mark.parametrize("species,skills,values,distinct", [(30, 5, 2, True), (31, 5, 2, True), (15, 4, 2, True),
+                                                        (60, 3, 4, True), (20, 1, 2, False), (12, 2, 2, False)])
+def test_teams_of_almost_every_trait_vector_are_drawn_at_once(species, skills, values, distinct):
+    """Whole draws of 30 distinct species of 5 skills are valid once in 1.7e11 tries: `hmrta
+    generate --species 30 --skills 5` ran for minutes. Such teams are drawn directly, valid."""
+    from hmrta.generators import draw_traits
+
+    for seed in range(5):
+        t = draw_traits(np.random.default_rng(seed), species, skills, values, distinct)
+        assert t.shape == (species, skills) and t.min() >= 0 and t.max() <= values - 1
+        assert (t.sum(1) > 0).all() and np.array_equal(t, np.round(t))
+        if distinct:
+            assert len({tuple(r) for r in t}) == species
+    inst = ScenarioGenerator("MA-AT", 60, 30, 150, 5).instance(seed=0, index=0)
+    assert len({s.traits for s in inst.species}) == 30
+
+
 def test_negative_seeds_are_refused_by_name():
     gen = ScenarioGenerator("MA-AT", 6, 2, 6, 3)
     for call in (lambda: gen.generate(1, -1), lambda: gen.instance(-1, 0)):
