@@ -568,6 +568,7 @@ class MissionBoard(BoardCore):
         self.auth_rejected: dict[str, Counter[str]] = {"choice": Counter(), "status": Counter()}
         self.finished = False
         self.restarts = 0  # times this mission's board was restarted on its journal
+        self.replayed = 0  # board versions replayed from the journal (0: the mission starts afresh)
         self._started_wall: float | None = None  # a replayed mission: the wall clock (epoch) at its start
         self._final_wall: float | None = None  # wall seconds from start to end, fixed when the mission is done
         self._key: tuple | None = None
@@ -651,6 +652,7 @@ class MissionBoard(BoardCore):
             except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as e:
                 raise JournalError(f"{path}: line {i + 2} cannot be replayed ({e})") from None
         self.restarts += 1
+        self.replayed = len(records)
         self.seen_status = [None] * len(self.names)  # no agent heard by this process yet (robots that joined too)
         self.journal = Journal(path, keep)
         self._events.append({"type": "resume", "t": float(self.state.clock)})
@@ -892,6 +894,24 @@ class MissionBoard(BoardCore):
             self._beyond = max(self._beyond, t)
             t = self.allowed
         return self._to_clock(t)
+
+    def foreign_clock(self, t: float) -> str | None:
+        """Why ``t``, the first mission clock this board process hears, cannot be its own mission's
+        (None where it can): a board that starts its mission afresh (nothing replayed from a
+        journal) has released no time beyond ``allowed`` (0 before the start), and its own
+        simulated robots never take the clock past that. A clock already beyond it is another
+        mission's: a sim_robot still following the board of an earlier run (it keeps the mission
+        it started with, so this one's robots would never move), a second mission on this ROS
+        domain, a recording played back. Followed up to the horizons (as :meth:`set_clock` does
+        with a stray clock mid-mission), it would run this mission on their time and hold it
+        forever at an arrival nobody drives to."""
+        if self.replayed or t <= self.allowed + EPS:
+            return None
+        return (f"the mission clock is at {t:.3f} s before this board released any time (horizon "
+                f"{self.allowed:.3f} s): it is another mission's clock; a sim_robot still following an earlier board "
+                f"(it keeps its first mission): restart this board on that board's journal (-p journal:=FILE) to "
+                f"resume its mission, or restart sim_robot for a new one; or another mission on this ROS domain "
+                f"(give each its own mission_namespace or ROS_DOMAIN_ID)")
 
     def _to_clock(self, t: float) -> bool:
         """Move the clock (and the state, held there) to ``t`` if it is later; whether it moved."""

@@ -761,6 +761,25 @@ def test_a_stray_clock_past_the_horizon_is_followed_only_up_to_the_horizons_the_
     assert b2.allowed == pytest.approx(b.allowed)
 
 
+def test_a_new_board_that_first_hears_a_clock_it_never_released_knows_it_for_another_missions(tmp_path):
+    """A board restarted without its journal (a sim_robot still following its predecessor's
+    mission at t=4) used to follow that clock up to its own horizons and then wait forever for
+    arrivals nobody drove to. Its first clock past what it released is named another mission's;
+    a board resumed on its journal takes the clock as its own."""
+    j = tmp_path / "j.jsonl"
+    b = MissionBoard(INST, seed=SEED, rules=RULES, journal=tmp_path / "other.jsonl")
+    assert b.foreign_clock(0.0) is None  # its own sim_robot, before the start
+    why = b.foreign_clock(4.081)
+    assert why.startswith("the mission clock is at 4.081 s before this board released any time (horizon 0.000 s)")
+    assert "-p journal:=FILE" in why and "restart sim_robot" in why and "mission_namespace" in why
+    b = started_board(journal=j)
+    drive(b, steps=5)
+    b.poll()
+    assert b.foreign_clock(b.allowed) is None and b.foreign_clock(b.allowed + 1.0) is not None
+    b2 = started_board(journal=j)  # restarted on its journal: the clock runs on from where it was
+    assert b2.replayed > 0 and b2.foreign_clock(b.allowed + 1000.0) is None
+
+
 def test_a_clock_heard_past_the_horizon_is_followed_as_new_horizons_allow():
     """A clock that ran ahead of what this board process has published (it lost the line of its
     latest horizon) is not lost: the board catches up as its horizons grow, and finishes."""

@@ -98,3 +98,36 @@ def test_incident_time_falls_back_to_the_journal(tmp_path):
     assert journal_clock(p) == 3.5
     p.write_text(json.dumps(lines[0]) + "\n")
     assert math.isnan(journal_clock(p))  # a header only
+
+
+def test_a_board_restarted_without_its_journal_stops_on_the_running_missions_clock(tmp_path, graph, mission_procs):
+    """SIGKILL a board that has no journal mid-mission and start it again: sim_robot keeps the
+    mission it started with and its clock runs on, so the new board's mission could never move (it
+    followed that clock and waited forever for arrivals nobody drove to). The new board names the
+    clock another mission's, says how to resume or restart, and exits 2 at once."""
+    import subprocess
+    from pathlib import Path
+
+    import hmrta
+    from hmrta.formats import load_instance
+    from test_mission import BoardWatch, robots_of
+
+    example = Path(hmrta.__file__).resolve().parent / "data" / "example.yaml"
+    procs = mission_procs(example, robots_of(load_instance(example)), time_scale=2.0, agents_per_process=5,
+                          board_params={"progress_period": 0.0, "heartbeat_timeout": 30.0})
+    watch = BoardWatch(graph.node("restart_watch"))
+    graph.spin_until(lambda: watch.board is not None and watch.board.n_done >= 2, 90, "two tasks done")
+    procs.board.proc.kill()
+    procs.board.proc.wait()
+    with open(tmp_path / "board_again.log", "w") as log:
+        again = subprocess.Popen(procs.board.cmd, stdout=log, stderr=subprocess.STDOUT, env=procs.env)
+        try:
+            rc = again.wait(timeout=60)
+        finally:
+            if again.poll() is None:
+                again.kill()
+                again.wait()
+    text = (tmp_path / "board_again.log").read_text()
+    assert rc == 2, text[-3000:]
+    assert "it is another mission's clock" in text and "-p journal:=FILE" in text, text[-3000:]
+    assert "stopping (exit status 2)" in text

@@ -203,6 +203,7 @@ class TaskBoard(Node):
         self._marker_key = None
         self._last_progress = 0.0
         self._published_at = self._clock_at = self._clock_heard = time.monotonic()
+        self._clock_seen = False  # a mission clock heard yet (the first is checked: foreign_clock)
         self.clock_topic = clock_topic
         self._streamed = 0  # the latest version published
 
@@ -415,8 +416,16 @@ class TaskBoard(Node):
             self._flush()
 
     def on_clock(self, msg: Clock) -> None:
+        if self.refusal is not None:
+            return
+        t = clock_from_msg(msg)
         self._clock_heard = time.monotonic()
-        if self.board.set_clock(clock_from_msg(msg)):
+        why = self.board.foreign_clock(t) if not self._clock_seen else None
+        self._clock_seen = True
+        if why is not None:
+            self._refuse(f"{self.clock_topic}: {why}")
+            return
+        if self.board.set_clock(t):
             self._clock_at = time.monotonic()
             self._flush()
 
@@ -491,11 +500,20 @@ class TaskBoard(Node):
 
     def exit_status(self) -> int:
         """0; 3 when the mission finished and failed (as ``hmrta solve`` and ``hmrta-mission``); 2
-        when it stopped at start, another mission being in its mission namespace."""
+        when it stopped at start, another mission being in its mission namespace or on its clock."""
         return 2 if self.refusal is not None else 3 if self.failure is not None else 0
 
     # a board that hears an older mission in its namespace within this many seconds of its start stops
     NEWCOMER = 10.0
+
+    def _refuse(self, why: str) -> None:
+        """Stop at start, with exit status 2 and ``why`` logged: this board cannot run its mission here."""
+        self.refusal = why
+        self.get_logger().error(f"{why}; stopping (exit status 2)")
+        self.board.close()
+        for f in (self.done, self.refused):
+            if not f.done():
+                f.set_result(True)
 
     def on_other_mission(self, msg: String) -> None:
         """A mission message of another session on this board's mission topic: a second mission in
@@ -518,12 +536,7 @@ class TaskBoard(Node):
                 f"robots answer both boards); give each mission its own mission_namespace or ROS_DOMAIN_ID")
         now = time.monotonic()
         if self.mission.newer_than(other) and now - self.t_created <= self.NEWCOMER:
-            self.refusal = text + "; that mission was created earlier: this board gives way"
-            self.get_logger().error(f"{self.refusal}; stopping (exit status 2)")
-            self.board.close()
-            for f in (self.done, self.refused):
-                if not f.done():
-                    f.set_result(True)
+            self._refuse(text + "; that mission was created earlier: this board gives way")
         elif now - self._other_warned >= 10.0:
             self._other_warned = now
             self.get_logger().warning(text)
