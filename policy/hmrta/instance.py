@@ -242,11 +242,11 @@ class Instance:
             for k, q in enumerate(t.requirements):
                 if self.additive and q - team[k] > self.cover_tol:  # (short by no more: met)
                     return (
-                        f"task {name} is infeasible: it needs {_num(q)} of skill {k} "
+                        f"task {name} is infeasible: it needs {_num(q)} of skill {k} (skills count from 0) "
                         f"but the whole team has {_num(team[k])}"
                     )
                 if not self.additive and q > 0 and team[k] <= 0:
-                    return f"task {name} is infeasible: it needs skill {k}, which no species has"
+                    return f"task {name} is infeasible: it needs skill {k} (skills count from 0), which no species has"
         return None
 
 
