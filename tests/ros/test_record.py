@@ -120,6 +120,17 @@ def test_recorder_executable_gets_latched_topics_and_finishes_on_sigterm(tmp_pat
         s = make_reader(f).get_summary()
     counts = {c.topic: s.statistics.channel_message_counts.get(i, 0) for i, c in s.channels.items()}
     assert counts == {topics.MISSION: 1, topics.CHOICE: 5, "/bot_a/pose": 5}, counts
+    # beside it, the recorded topics' QoS as rosbag2's overrides: a playback offers the latched
+    # mission transient local, as the board does (else the nodes' latched subscribers never match)
+    import yaml
+
+    qos = yaml.safe_load((tmp_path / "rec" / "run.qos.yaml").read_text())
+    assert set(qos) == set(counts)
+    assert qos[topics.MISSION] == {"history": "keep_last", "depth": 1, "reliability": "reliable",
+                                   "durability": "transient_local"}
+    assert qos[topics.CHOICE]["durability"] == "volatile" and qos[topics.CHOICE]["reliability"] == "reliable"
+    assert qos["/bot_a/pose"]["reliability"] == "best_effort"
+    assert "run.qos.yaml" in text and not list((tmp_path / "rec").glob("*.part"))
 
 
 def test_recorder_help_and_bad_compression(tmp_path, domain):

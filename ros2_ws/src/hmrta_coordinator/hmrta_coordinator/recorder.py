@@ -17,6 +17,11 @@ local for the latched ones) and whenever a matching topic appears (every ``disco
 seconds), with a QoS compatible with its publishers. The file is written as ``OUTPUT.part`` and
 renamed to ``OUTPUT`` when the recorder stops (Ctrl-C, SIGTERM): a recording that is complete is
 never half-written; a ``.part`` left by a killed recorder holds the chunks written so far.
+
+Beside it, ``OUTPUT`` with the suffix ``.qos.yaml`` holds the QoS each recorded topic is published
+with, in the form of rosbag2's QoS overrides (``ros2 bag play OUTPUT --qos-profile-overrides-path
+OUTPUT.qos.yaml``): played back without it, the latched topics (mission, keyframe, result, clock)
+would be republished volatile, and the product's own transient-local subscribers would never match.
 """
 from __future__ import annotations
 
@@ -146,6 +151,19 @@ def known_topics(markers: bool, clock_topic: str = topics.CLOCK,
     return out
 
 
+def offered_qos(markers: bool, clock_topic: str = topics.CLOCK,
+                T: topics.MissionTopics = topics.MissionTopics()) -> dict[str, QoSProfile]:
+    """The QoS the mission's nodes publish its topics with (what a playback should offer)."""
+    out = {T.mission: topics.MISSION_QOS, T.board: topics.BOARD_QOS, T.keyframe: topics.KEYFRAME_QOS,
+           T.keyframe_requests: topics.KEYFRAME_REQUEST_QOS, T.result: topics.RESULT_QOS,
+           T.choice: topics.CHOICE_QOS, T.status: topics.STATUS_QOS, T.rejections: topics.REJECTION_QOS,
+           T.task_requests: topics.TASK_REQUEST_QOS, T.task_events: topics.TASK_EVENT_QOS,
+           clock_topic: topics.CLOCK_QOS}
+    if markers:
+        out[T.markers] = topics.MARKER_QOS
+    return out
+
+
 def robot_topics(robot: str, namespace: str = topics.ROOT) -> dict[str, tuple[str, QoSProfile]]:
     """A robot's goal (reliable, as agents publish it) and pose (best effort: any driver's QoS)."""
     P = "geometry_msgs/msg/PoseStamped"
@@ -189,11 +207,13 @@ class Recorder(Node):
         self.counts: dict[str, int] = {}
         self.types: dict[str, str] = {}  # topic -> type
         self.subs: dict[str, Any] = {}
+        self.qos: dict[str, QoSProfile] = {}  # topic -> the QoS it is recorded with (its publishers')
         self.skipped: set[str] = set()
         self.session: str | None = None
         self.heard = False  # the mission message has been received (the board's latched topics are matched)
         self.closed = False
         known = known_topics(self.markers, self.clock_topic, self.topics)
+        self.offered = offered_qos(self.markers, self.clock_topic, self.topics)  # (others: as subscribed)
         self.known = set(known)  # this mission's topics: exactly these names (another mission may be in <ns>/hmrta)
         for name, (typ, qos) in known.items():
             self._subscribe(name, typ, qos)
@@ -220,6 +240,7 @@ class Recorder(Node):
         self.counts.setdefault(name, 0)
         self.subs[name] = self.create_subscription(cls, name, lambda data, info, n=name: self._on(n, data, info),
                                                    qos, raw=True)
+        self.qos[name] = self.offered.get(name, qos)
 
     def _wanted(self, name: str) -> bool:
         if name in self.extra:
@@ -290,9 +311,30 @@ class Recorder(Node):
         os.fsync(self._fh.fileno())
         self._fh.close()
         self.part.replace(self.output)
+        qos_file = qos_path(self.output)
+        recorded = {n: self.qos[n] for n in sorted(self.counts) if self.counts[n] and n in self.qos}
+        tmp = qos_file.with_name(qos_file.name + ".part")
+        tmp.write_text(qos_overrides(recorded))
+        tmp.replace(qos_file)
         total = sum(self.counts.values())
         print(f"recorder: wrote {self.output} ({total} messages on {sum(1 for c in self.counts.values() if c)} topics, "
-              f"{self.output.stat().st_size} bytes)", flush=True)
+              f"{self.output.stat().st_size} bytes) and its topics' QoS {qos_file.name}", flush=True)
+
+
+def qos_path(output: Path) -> Path:
+    """Where the recorded topics' QoS is written: ``run.mcap`` -> ``run.qos.yaml``."""
+    return output.with_suffix(".qos.yaml")
+
+
+def qos_overrides(qos: dict[str, QoSProfile]) -> str:
+    """rosbag2's QoS overrides YAML (``ros2 bag play --qos-profile-overrides-path``) of ``qos``:
+    per topic its history, depth, reliability and durability, as their publishers offer them."""
+    lines = ["# the QoS of each recorded topic: ros2 bag play RECORDING.mcap --qos-profile-overrides-path THIS_FILE"]
+    for name, q in qos.items():
+        lines += [f"{name}:", "  history: keep_last", f"  depth: {int(q.depth)}",
+                  f"  reliability: {'reliable' if q.reliability == ReliabilityPolicy.RELIABLE else 'best_effort'}",
+                  f"  durability: {'transient_local' if q.durability == DurabilityPolicy.TRANSIENT_LOCAL else 'volatile'}"]
+    return "\n".join(lines) + "\n"
 
 
 def part_path(output: Path) -> Path:
