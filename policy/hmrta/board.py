@@ -1583,6 +1583,20 @@ class _Replay(BoardCore):
         self.rev, self.lost = 0, {}
 
 
+def replay_journal(inst: Instance, path: str | os.PathLike, seed: int, rules: Rules) -> tuple[BoardCore, int, float]:
+    """The state machine a board's journal leaves (``inst``, ``seed``, ``rules``: what the board
+    was started with), its last version and that version's mission clock (0, 0.0 for a journal
+    with no version yet), without writing to the journal. Raises JournalError for a journal that
+    cannot be read and ValueError for one that does not fit the mission."""
+    _, records, _, _ = read_journal(path)
+    core = _Replay(inst, seed, rules)
+    for rec in records:
+        for ev in rec.get("ev", ()):
+            core.apply_event(ev)
+    last = records[-1] if records else {}
+    return core, int(last.get("v", 0)), float(last.get("clock", 0.0))
+
+
 def check_journal_decisions(inst: Instance, path: str | os.PathLike, decide: Callable[[MissionState], int],
                             seed: int, rules: Rules) -> tuple[int, str | None]:
     """Replay a board's journal from the mission's initial state (``inst``, ``seed``, ``rules``:

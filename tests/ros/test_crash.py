@@ -210,20 +210,18 @@ def test_killed_board_ends_the_launcher_with_a_partial_result(tmp_path, domain, 
     assert ended < 15
 
 
-def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_version_1(tmp_path):
-    """The launcher's keyframe subscription may match after the board died (DDS discovery): with
-    the stream from version 1 it rebuilds the board's state from the mission's initial state, so
-    the partial result still says what was done. No processes: the board's own test drivers play
-    the mission, every version goes through the ROS codec."""
-    from types import SimpleNamespace
-
-    from hmrta.core import IN_PROGRESS
-    from hmrta.methods import rules
-    from hmrta_coordinator.mission import partial_result
-    from hmrta_msgs_py.codec import Board, board_to_msg
-
+def _test_board():
+    """tests/policy/test_board.py: the board's own test drivers."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "policy"))
-    import test_board as tb
+    import test_board
+
+    return test_board
+
+
+def _streamed(tb, b, clock: float) -> list[str]:
+    """Drive board ``b`` with the test drivers of ``tb`` up to ``clock``; every version it
+    published, as the ROS codec writes it on the stream."""
+    from hmrta_msgs_py.codec import Board, board_to_msg
 
     tail: list[str] = []
     pump = tb.pump
@@ -236,12 +234,28 @@ def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_v
                                            digest=v.digest)).data)
         return v
 
-    b = tb.started_board()
     tb.pump = streamed
     try:
-        tb.drive(b, clock=10.0)
+        tb.drive(b, clock=clock)
     finally:
         tb.pump = pump
+    return tail
+
+
+def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_version_1(tmp_path):
+    """The launcher's keyframe subscription may match after the board died (DDS discovery): with
+    the stream from version 1 it rebuilds the board's state from the mission's initial state, so
+    the partial result still says what was done. No processes: the board's own test drivers play
+    the mission, every version goes through the ROS codec."""
+    from types import SimpleNamespace
+
+    from hmrta.core import IN_PROGRESS
+    from hmrta.methods import rules
+    from hmrta_coordinator.mission import partial_result
+
+    tb = _test_board()
+    b = tb.started_board()
+    tail = _streamed(tb, b, 10.0)
     assert 0 < b.state.n_done < tb.INST.n_tasks and tb.RULES == rules("greedy")
     procs = SimpleNamespace(last_board=None, board_tail=tail, method="greedy", method_options={},
                             robots=b.names, incidents=[], journal=tmp_path / "journal.jsonl")
@@ -261,3 +275,33 @@ def test_a_partial_result_without_any_keyframe_is_rebuilt_from_the_stream_from_v
     procs.board_tail = tail[1:]
     d = partial_result(tb.INST, procs, "greedy", tb.SEED, 1.0, "board process died (SIGKILL)").to_dict()
     assert d["board_version"] is None and d["tasks_done"] == 0
+
+
+def test_a_partial_result_follows_the_boards_journal_where_the_launcher_heard_less(tmp_path):
+    """Stopped at once, the board's last versions may still be on their way to the launcher (an
+    interrupted mission reported 1/5 tasks done while the board's log and journal said 2/5): the
+    partial result takes the journal's state where the journal goes further."""
+    from types import SimpleNamespace
+
+    from hmrta_coordinator.mission import partial_result
+
+    tb = _test_board()
+    journal = tmp_path / "journal.jsonl"
+    b = tb.started_board(journal=journal)
+    tail = _streamed(tb, b, 25.0)
+    b.close()
+    from std_msgs.msg import String
+
+    from hmrta_msgs_py.codec import board_from_msg
+
+    done = [board_from_msg(String(data=text), legs=False, state=False).n_done for text in tail]  # per version
+    first_done = done.index(1)  # the launcher heard up to the version of the first completion
+    procs = SimpleNamespace(last_board=None, board_tail=tail[:first_done + 1], method="greedy", method_options={},
+                            robots=b.names, incidents=[], journal=journal)
+    d = partial_result(tb.INST, procs, "greedy", tb.SEED, 1.0, "interrupted").to_dict()
+    assert d["board_version"] == b.version and d["tasks_done"] == b.state.n_done > 1
+    last = board_from_msg(String(data=tail[-1]), legs=False, state=False)  # the clock of the last version
+    assert d["routes"] == [list(r) for r in b.state.routes] and d["board_clock"] == pytest.approx(last.clock)
+    procs.journal = tmp_path / "none.jsonl"  # without the journal: what the launcher heard
+    d = partial_result(tb.INST, procs, "greedy", tb.SEED, 1.0, "interrupted").to_dict()
+    assert d["board_version"] == first_done + 1 and d["tasks_done"] == 1

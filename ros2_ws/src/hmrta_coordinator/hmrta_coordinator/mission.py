@@ -454,7 +454,7 @@ def run_monitor(procs: MissionProcesses, n_tasks: int, timeout: float, quiet: bo
 def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: float, reason: str):
     """The ``hmrta-solution/1`` of a mission that did not complete: ``success`` false, the
     ``failure`` reason, and what was done according to the latest board seen (routes committed,
-    tasks completed with their times)."""
+    tasks completed with their times), or to the board's journal where it holds later versions."""
     from std_msgs.msg import String
 
     from hmrta.core import MissionState
@@ -480,6 +480,18 @@ def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: 
             state, b = MissionState.from_snapshot(inst, kf.state), kf
     except (DecodeError, KeyError, TypeError, ValueError):  # (MethodError is a ValueError)
         state, b = None, None
+    lost = list(b.lost) if b is not None else []
+    version, clock = (b.version, b.clock) if b is not None else (None, None)
+    if procs.journal is not None and procs.journal.exists():  # the board's own record, where it went further
+        # than what the launcher heard (it stops the board at once: the last versions may still be on the way)
+        from hmrta.board import JournalError, replay_journal
+
+        try:
+            core, v, t = replay_journal(inst, procs.journal, seed, methods.rules(procs.method, **procs.method_options))
+        except (JournalError, KeyError, TypeError, ValueError, IndexError):
+            v = 0
+        if v > (version or 0):
+            state, lost, version, clock = core.state, sorted(core.lost), v, t
     if state is None:  # no board seen: nothing was done
         state = MissionState(inst, seed=seed)
     sol = solution_from_state(state, method, seed, 0.0)  # the agents' compute is the board's to know
@@ -496,9 +508,9 @@ def partial_result(inst, procs: MissionProcesses, method: str, seed: int, wall: 
         "tasks_done": n_done,
         "undone_tasks": [m for m, t in enumerate(sol.tasks) if t["finish"] != t["finish"]],
         "lost_robots": [(procs.robots + procs.added)[a] if a < len(procs.robots) + len(procs.added) else f"robot_{a}"
-                        for a in b.lost] if b is not None else [],
-        "board_version": b.version if b is not None else None,
-        "board_clock": b.clock if b is not None else None,
+                        for a in lost],
+        "board_version": version,
+        "board_clock": clock,
         "incidents": list(procs.incidents),
         "mission_wall_seconds": round(wall, 3),
         # a task_board started with -p journal:=<it> (and the same instance, seed and method) resumes it
