@@ -175,7 +175,7 @@ def test_unknown_parameters_are_warned_with_the_closest_name(tmp_path, start):
                   "-p", 'pose_types:=["robot_99:Odometry", "robot_1:Odometry"]', "--params-file", str(params),
                   "-p", "real_time_departures:=true")  # real robots on the default 1 m x 1 m area
     agent = start("agent_node", "--ros-args", "-p", "robot:=robot_0", "-p", "temprature:=0.2",
-                  "-p", "instance:=x.yaml")
+                  "-p", "instance:=x.yaml", "-p", "use_sim_time:=true")
     board.wait_for("unknown parameter 'progres_period'", 60)
     agent.wait_for("unknown parameter 'temprature'", 60)
     assert board.stop(signal.SIGTERM) == 0 and agent.stop(signal.SIGINT) == 0
@@ -188,6 +188,8 @@ def test_unknown_parameters_are_warned_with_the_closest_name(tmp_path, start):
     assert "stopped by SIGTERM before the mission finished: t=0.000, 0/20 tasks done" in b, b
     assert "did you mean temperature?" in a and "unknown parameter 'instance' ignored" in a, a
     assert "(instance is a parameter of task_board)" in a and "stopped by SIGINT" in a, a
+    assert "use_sim_time:=true changes nothing here: the mission runs on its own clock" in a, a
+    assert "use_sim_time" not in b  # (not given to the board)
     assert "Traceback" not in a + b
 
 

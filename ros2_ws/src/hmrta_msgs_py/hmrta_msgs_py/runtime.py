@@ -366,6 +366,15 @@ def warn_unknown_parameters(nodes: list) -> None:
                                                                      if others else "")
             n.get_logger().warning(f"unknown parameter {name!r} ignored: {n.get_fully_qualified_name()} has no such "
                                    f"parameter{hint} (see {Path(sys.argv[0]).stem or n.get_name()} --help)")
+    for n in nodes[:1]:  # every rclpy node has it; said once per process
+        try:
+            sim_time = n.get_parameter("use_sim_time").value
+        except Exception:  # noqa: BLE001 - a node without it (rclpy declares it on every node)
+            sim_time = False
+        if sim_time is True:
+            n.get_logger().warning("use_sim_time:=true changes nothing here: the mission runs on its own clock "
+                                   "(clock_topic, default <mission_namespace>/hmrta/clock, published by sim_robot) "
+                                   "and timeouts on wall time; a simulator's /clock moves nothing (docs/ros.md, Time)")
 
 
 def mission_namespaces(node) -> list[str]:
