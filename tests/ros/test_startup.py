@@ -229,19 +229,27 @@ def test_no_board_heard_and_a_board_gone_silent_are_warned(tmp_path, start):
     sim = start("sim_robot", "--ros-args", "-p", "board_silence_warning:=1.0")
     for p in (agent, sim):
         p.wait_for("no task board heard for 1 s", 60)
+        assert "a task board is heard" not in p.text()
     assert "ROS_DOMAIN_ID" in agent.text() and "ROS_AUTOMATIC_DISCOVERY_RANGE (LOCALHOST)" in agent.text()
     assert "nothing on /hmrta/mission or /hmrta/board" in agent.text() and "mission_namespace (/)" in agent.text()
     assert "A mission that is over has no board" in agent.text()  # a robot joining a mission that ended
     board = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "wait_for_robots:=true")
     agent.wait_for("robot_0: agent 0 (species 0) of mission example", 60)
     sim.wait_for("simulating 15 robot(s)", 60)
+    for p in (agent, sim):  # the silence warned of ends, and they say so
+        p.wait_for("a task board is heard, after ", 30)
     time.sleep(2.0)  # heard all along: no warning
     for p in (agent, sim):
         assert "has not been heard" not in p.text(), p.text()
     board.kill()  # as if it crashed
     for p in (agent, sim):
         p.wait_for("the task board has not been heard for ", 30)
+        assert "heard again" not in p.text()
+    board = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "wait_for_robots:=true")
+    for p in (agent, sim):  # (a board without the journal: what they hear is another session)
+        p.wait_for("the task board is heard again after ", 60)
         assert p.stop() == 0 and "Traceback" not in p.text()
+    board.kill()
 
 
 def test_a_node_in_another_mission_namespace_than_the_board_is_told_where_the_board_is(tmp_path, start):

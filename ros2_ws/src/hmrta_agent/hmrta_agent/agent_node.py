@@ -172,7 +172,9 @@ class Host:
 
     def _heard(self) -> None:
         if self.silence is not None:
-            self.silence.heard()
+            again = self.silence.heard()
+            if again is not None:
+                self._node.get_logger().info(again)
 
     def _mission_over(self) -> bool:
         h = self.replica.head

@@ -148,6 +148,11 @@ class SimRobot(Node):
             self.create_timer(1.0 / rate, self.on_tick)
 
     # ------------------------------------------------------------------------------------------
+    def _heard(self) -> None:
+        again = self.silence.heard()
+        if again is not None:
+            self.get_logger().info(again)
+
     def on_silence(self) -> None:
         if not self.done.done():
             text = self.silence.check(self._version, lambda: mission_namespaces(self))
@@ -155,7 +160,7 @@ class SimRobot(Node):
                 self.get_logger().warning(text)
 
     def on_mission(self, msg: String) -> None:
-        self.silence.heard()
+        self._heard()
         try:
             m = mission_from_msg(msg)
         except DecodeError as e:
@@ -231,7 +236,7 @@ class SimRobot(Node):
     def on_board(self, msg: String) -> None:
         """A version of the board stream: its horizon moves the clock; before the node is in sync
         its events go to the replica."""
-        self.silence.heard()
+        self._heard()
         if self.mission is None:
             self._early.append((msg, False))
             del self._early[:-1000]
@@ -248,7 +253,7 @@ class SimRobot(Node):
         self._follow(b)
 
     def on_keyframe(self, msg: String) -> None:
-        self.silence.heard()
+        self._heard()
         if self.mission is None:
             self._early = [e for e in self._early if not e[1]] + [(msg, True)]
             return

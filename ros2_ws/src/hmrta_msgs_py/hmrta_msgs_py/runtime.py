@@ -405,8 +405,14 @@ class BoardSilence:
         self.ever = False  # whether a board was heard at all
         self.due = after
 
-    def heard(self) -> None:
+    def heard(self) -> str | None:
+        """A message from the board: the silence ends. Where it was warned of, the line to log."""
+        quiet, warned, ever = self.now() - self.since, self.due > self.after, self.ever
         self.since, self.ever, self.due = self.now(), True, self.after
+        if not warned:
+            return None
+        return (f"the task board is heard again after {quiet:.0f} s" if ever else
+                f"a task board is heard, after {quiet:.0f} s")
 
     def check(self, version: int | None = None, elsewhere: Callable[[], list[str]] | None = None) -> str | None:
         """The warning to log now, or None. ``elsewhere`` (called only for the warning that no
