@@ -128,6 +128,33 @@ def test_ctrl_c_at_any_moment_of_start_up_is_one_line(exe, args, tmp_path, domai
     print(f"{exe}: exit statuses {outcomes}")
 
 
+@pytest.mark.parametrize("exe,args", [
+    ("task_board", ["--ros-args", "-p", f"instance:={EXAMPLE}"]),
+    ("agent_node", ["--ros-args", "-p", "robot:=robot_0"]),
+])
+def test_sigterm_during_start_up_is_one_line_too(exe, args, tmp_path, domain):
+    """SIGTERM (kill's default) while the node starts: one line and 143 (it ended the process
+    without a word), or once it spins, 0 and 'stopped by SIGTERM'."""
+    outcomes = []
+    for k, delay in enumerate((0.15, 0.5, 1.3)):
+        log = tmp_path / f"{exe}_{k}.log"
+        with open(log, "w") as fh:
+            p = subprocess.Popen([str(BIN / exe), *args], stdout=fh, stderr=subprocess.STDOUT,
+                                 env=_env(domain, tmp_path))
+            time.sleep(delay)
+            p.send_signal(signal.SIGTERM)
+            rc = p.wait(timeout=30)
+        out = log.read_text()
+        outcomes.append(rc)
+        assert "Traceback" not in out and "terminate called" not in out, f"SIGTERM after {delay} s:\n{out}"
+        if rc == 143:
+            assert out.splitlines()[-1] == f"{exe}: terminated during start-up (SIGTERM)", out
+        else:
+            assert rc == 0 and "stopped by SIGTERM" in out, f"SIGTERM after {delay} s: rc {rc}\n{out}"
+    assert 143 in outcomes, outcomes  # (0.15 s is within start-up on any machine)
+    print(f"{exe}: exit statuses {outcomes}")
+
+
 # ---- 2. malformed --ros-args ------------------------------------------------------------------
 @pytest.mark.parametrize("exe", NODES)
 @pytest.mark.parametrize("args,says", [

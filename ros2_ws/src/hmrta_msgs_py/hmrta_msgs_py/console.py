@@ -22,14 +22,16 @@ INTERRUPTED: list[int] = []
 
 def _noted(sig: int, frame) -> None:
     INTERRUPTED.append(sig)
-    raise KeyboardInterrupt  # as Python's own handler does
+    raise KeyboardInterrupt  # as Python's own handler does for SIGINT (SIGTERM: the same path, said apart)
 
 
 def run(prog: str, module: str, func: str = "main") -> None:
     """Import ``module`` and exit with what its ``func()`` returns (None: 0)."""
-    if threading.current_thread() is threading.main_thread() and \
-            signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, _noted)
+    if threading.current_thread() is threading.main_thread():
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _noted)
+        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:  # (else it would end the process without a word)
+            signal.signal(signal.SIGTERM, _noted)
     try:
         main = getattr(importlib.import_module(module), func)
         if INTERRUPTED:  # (swallowed while the module loaded)
@@ -49,5 +51,15 @@ def run(prog: str, module: str, func: str = "main") -> None:
 def _interrupted(prog: str):
     runtime = sys.modules.get("hmrta_msgs_py.runtime")  # (not imported here: it loads rclpy)
     late = runtime is not None and getattr(runtime, "SPUN", False)  # a second Ctrl-C while the nodes stop
-    print(f"{prog}: interrupted" + ("" if late else " during start-up"), file=sys.stderr)
+    stopped(prog, "" if late else " during start-up")
+
+
+def stopped(prog: str, when: str = " during start-up"):
+    """One line on stderr and the exit status of a process stopped by a signal before it ran:
+    Ctrl-C (SIGINT) ``interrupted``, 130; SIGTERM ``terminated``, 143 (128 + the signal, as a
+    shell reports a process the signal ended)."""
+    if INTERRUPTED and INTERRUPTED[-1] == signal.SIGTERM:
+        print(f"{prog}: terminated{when} (SIGTERM)", file=sys.stderr)
+        raise SystemExit(128 + signal.SIGTERM) from None
+    print(f"{prog}: interrupted{when}", file=sys.stderr)
     raise SystemExit(130) from None

@@ -68,8 +68,11 @@ def starting(prog: str, user_errors: tuple[type[BaseException], ...] = (ValueErr
         except NameValidationException as e:  # a bad name or namespace (rclpy validates after rcl refused it)
             raise RosArgsError(f"--ros-args: {e}") from None
     except KeyboardInterrupt:
-        print(f"{prog}: interrupted during start-up", file=sys.stderr)
         rclpy.try_shutdown()
+        console = sys.modules.get("hmrta_msgs_py.console")
+        if console is not None:
+            console.stopped(prog)  # SIGINT 130, SIGTERM 143, one line
+        print(f"{prog}: interrupted during start-up", file=sys.stderr)
         raise SystemExit(130) from None
     except (InvalidParameterTypeException, RosArgsError, *user_errors) as e:
         text = parameter_type_text(str(e)) if isinstance(e, InvalidParameterTypeException) else str(e)
