@@ -102,57 +102,42 @@ def test_a_signal_before_the_nodes_spin_leaves_the_context_valid(tmp_path, domai
     assert r.returncode == 130 and r.stderr == "some_node: interrupted during start-up\n", r.stderr
 
 
+START_UP_SIGNALS = {  # signal: (moments to send it, exit status and last line during start-up)
+    signal.SIGINT: ((0.15, 0.3, 0.4, 0.5, 0.6, 0.75, 0.9, 1.1, 1.3), 130, "interrupted during start-up"),
+    signal.SIGTERM: ((0.15, 0.5, 1.3), 143, "terminated during start-up (SIGTERM)"),
+}
+
+
+@pytest.mark.parametrize("sig", list(START_UP_SIGNALS), ids=lambda s: signal.Signals(s).name)
 @pytest.mark.parametrize("exe,args", [
     ("task_board", ["--ros-args", "-p", f"instance:={EXAMPLE}"]),
     ("agent_node", ["--ros-args", "-p", "robot:=robot_0"]),
 ])
-def test_ctrl_c_at_any_moment_of_start_up_is_one_line(exe, args, tmp_path, domain):
-    """SIGINT from 0.15 s to 1.3 s after start: while the modules load, while the node is built
-    (rc 130, one line), or once it spins (rc 0, 'stopped by SIGINT'); never a traceback or an abort."""
+def test_ctrl_c_or_sigterm_at_any_moment_of_start_up_is_one_line(exe, args, sig, tmp_path, domain):
+    """SIGINT (or SIGTERM, kill's default) from 0.15 s to 1.3 s after start: while the modules
+    load, while the node is built (130 for SIGINT, 143 for SIGTERM, one line), or once it spins (rc
+    0, 'stopped by SIGINT'); never a traceback or an abort. (SIGTERM once ended the process
+    without a word.)"""
+    delays, status, line = START_UP_SIGNALS[sig]
+    name = signal.Signals(sig).name
     outcomes = []
-    for k, delay in enumerate((0.15, 0.3, 0.4, 0.5, 0.6, 0.75, 0.9, 1.1, 1.3)):
+    for k, delay in enumerate(delays):
         log = tmp_path / f"{exe}_{k}.log"
         with open(log, "w") as fh:
             p = subprocess.Popen([str(BIN / exe), *args], stdout=fh, stderr=subprocess.STDOUT,
                                  env=_env(domain, tmp_path))
             time.sleep(delay)
-            p.send_signal(signal.SIGINT)
+            p.send_signal(sig)
             rc = p.wait(timeout=30)
         out = log.read_text()
         outcomes.append(rc)
-        assert "Traceback" not in out and "terminate called" not in out, f"SIGINT after {delay} s:\n{out}"
-        if rc == 130:
-            assert out.splitlines()[-1] == f"{exe}: interrupted during start-up", out
+        assert "Traceback" not in out and "terminate called" not in out, f"{name} after {delay} s:\n{out}"
+        if rc == status:
+            assert out.splitlines()[-1] == f"{exe}: {line}", out
         else:
-            assert rc == 0 and "stopped by SIGINT" in out, f"SIGINT after {delay} s: rc {rc}\n{out}"
-    print(f"{exe}: exit statuses {outcomes}")
-
-
-@pytest.mark.parametrize("exe,args", [
-    ("task_board", ["--ros-args", "-p", f"instance:={EXAMPLE}"]),
-    ("agent_node", ["--ros-args", "-p", "robot:=robot_0"]),
-])
-def test_sigterm_during_start_up_is_one_line_too(exe, args, tmp_path, domain):
-    """SIGTERM (kill's default) while the node starts: one line and 143 (it ended the process
-    without a word), or once it spins, 0 and 'stopped by SIGTERM'."""
-    outcomes = []
-    for k, delay in enumerate((0.15, 0.5, 1.3)):
-        log = tmp_path / f"{exe}_{k}.log"
-        with open(log, "w") as fh:
-            p = subprocess.Popen([str(BIN / exe), *args], stdout=fh, stderr=subprocess.STDOUT,
-                                 env=_env(domain, tmp_path))
-            time.sleep(delay)
-            p.send_signal(signal.SIGTERM)
-            rc = p.wait(timeout=30)
-        out = log.read_text()
-        outcomes.append(rc)
-        assert "Traceback" not in out and "terminate called" not in out, f"SIGTERM after {delay} s:\n{out}"
-        if rc == 143:
-            assert out.splitlines()[-1] == f"{exe}: terminated during start-up (SIGTERM)", out
-        else:
-            assert rc == 0 and "stopped by SIGTERM" in out, f"SIGTERM after {delay} s: rc {rc}\n{out}"
-    assert 143 in outcomes, outcomes  # (0.15 s is within start-up on any machine)
-    print(f"{exe}: exit statuses {outcomes}")
+            assert rc == 0 and f"stopped by {name}" in out, f"{name} after {delay} s: rc {rc}\n{out}"
+    assert status in outcomes, outcomes  # (0.15 s is within start-up on any machine)
+    print(f"{exe}: exit statuses after {name} {outcomes}")
 
 
 # ---- 2. malformed --ros-args ------------------------------------------------------------------
