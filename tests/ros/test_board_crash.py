@@ -104,7 +104,7 @@ def test_a_board_restarted_without_its_journal_stops_on_the_running_missions_clo
     """SIGKILL a board that has no journal mid-mission and start it again: sim_robot keeps the
     mission it started with and its clock runs on, so the new board's mission could never move (it
     followed that clock and waited forever for arrivals nobody drove to). The new board names the
-    clock another mission's, says how to resume or restart, and exits 2 at once."""
+    clock another mission's, says how to resume or restart, and exits 2 within seconds."""
     import subprocess
     from pathlib import Path
 

@@ -204,6 +204,7 @@ class TaskBoard(Node):
         self._last_progress = 0.0
         self._published_at = self._clock_at = self._clock_heard = time.monotonic()
         self._clock_seen = False  # a mission clock heard yet (the first is checked: foreign_clock)
+        self._foreign_clock: tuple[str, float] | None = None  # another mission's clock heard first: why, when
         self.clock_topic = clock_topic
         self._streamed = 0  # the latest version published
 
@@ -415,15 +416,19 @@ class TaskBoard(Node):
         if self.board.pose(a, x, y):  # a pose repeated (heartbeat) changes nothing to publish
             self._flush()
 
+    # seconds a board that first heard another mission's clock waits (following no clock) before
+    # it stops: that mission's own message, if it is in this namespace, names it better
+    FOREIGN_CLOCK_WAIT = 2.0
+
     def on_clock(self, msg: Clock) -> None:
-        if self.refusal is not None:
+        if self.refusal is not None or self._foreign_clock is not None:
             return
         t = clock_from_msg(msg)
         self._clock_heard = time.monotonic()
         why = self.board.foreign_clock(t) if not self._clock_seen else None
         self._clock_seen = True
         if why is not None:
-            self._refuse(f"{self.clock_topic}: {why}")
+            self._foreign_clock = (f"{self.clock_topic}: {why}", time.monotonic())
             return
         if self.board.set_clock(t):
             self._clock_at = time.monotonic()
@@ -434,6 +439,10 @@ class TaskBoard(Node):
         if b.finished:
             return
         now = time.monotonic()
+        if self._foreign_clock is not None and self.refusal is None and \
+                now - self._foreign_clock[1] >= self.FOREIGN_CLOCK_WAIT:
+            self._refuse(self._foreign_clock[0])
+            return
         if not b.started and now - self.t_created > 5.0:
             agents = [n for a, n in enumerate(self.names) if b.seen_status[a] is None]
             poses = [n for a, n in enumerate(self.names) if b.seen_pose[a] is None]
@@ -506,14 +515,31 @@ class TaskBoard(Node):
     # a board that hears an older mission in its namespace within this many seconds of its start stops
     NEWCOMER = 10.0
 
+    # seconds a board that refused its mission stays for the others to get its mission message
+    LEAVE_WITHIN = 3.0
+
     def _refuse(self, why: str) -> None:
-        """Stop at start, with exit status 2 and ``why`` logged: this board cannot run its mission here."""
+        """Stop at start, with exit status 2 and ``why`` logged: this board cannot run its mission
+        here. It leaves once the other nodes on its mission topic have its mission message (so the
+        earlier mission's board can warn of it), within LEAVE_WITHIN s."""
         self.refusal = why
         self.get_logger().error(f"{why}; stopping (exit status 2)")
         self.board.close()
-        for f in (self.done, self.refused):
-            if not f.done():
-                f.set_result(True)
+        self._refused_at = time.monotonic()
+        self.create_timer(0.1, self._leave)
+        self._leave()
+
+    def _leave(self) -> None:
+        if self.refused.done():
+            return
+        from rclpy.duration import Duration
+
+        others = self.pub_mission.get_subscription_count() > 1  # (its own subscription is one)
+        if (others and self.pub_mission.wait_for_all_acked(Duration(seconds=0))) or \
+                time.monotonic() - self._refused_at >= self.LEAVE_WITHIN:
+            for f in (self.done, self.refused):
+                if not f.done():
+                    f.set_result(True)
 
     def on_other_mission(self, msg: String) -> None:
         """A mission message of another session on this board's mission topic: a second mission in
