@@ -136,3 +136,24 @@ def test_check_offline_replays_the_journal_of_a_mission_an_operator_changed(tmp_
     assert "offline replay of the journal (greedy; the mission changed while it ran: 1 add_task)" in so, so
     assert "decisions the method's on the same state: yes" in so
     assert json.loads(out.read_text())["live_events"] == {"add_task": 1}
+
+
+def test_list_says_what_each_task_is_doing_at_the_mission_clock():
+    """The board's state runs ahead of the mission clock (a coalition formed now starts when its
+    last member arrives): `list` says so in words, not with the bare status."""
+    from hmrta.core import MissionState
+    from hmrta.generators import ScenarioGenerator
+    from hmrta.methods import decider
+    from hmrta_coordinator.task_cli import task_words
+
+    decide, rules = decider("greedy")
+    st = MissionState(ScenarioGenerator("MA-AT", 6, 3, 6, 3).instance(0, 0), seed=0, rules=rules)
+    while not st.done and not (st.status == 2).any():  # until a coalition is formed
+        st.step(decide(st))
+    t = st.snapshot()["tasks"]
+    words = [task_words(t, m, 0.0) for m in range(len(t["status"]))]
+    m = t["status"].index("in_progress")
+    assert words[m].startswith(f"coalition of {len(t['members'][m])} on its way: starts t={t['start'][m]:.3f}")
+    assert task_words(t, m, t["start"][m] + 1e-3).startswith("under way since t=")
+    assert all(w == "no robot committed yet" for w, s in zip(words, t["status"]) if s == "empty")
+    assert all(w.startswith("coalition forming: ") for w, s in zip(words, t["status"]) if s == "open")

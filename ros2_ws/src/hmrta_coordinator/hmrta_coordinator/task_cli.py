@@ -47,6 +47,34 @@ def _point(text: str) -> list[float]:
     return v
 
 
+def task_words(tasks: dict, m: int, clock: float | None) -> str:
+    """What task ``m`` of a board state's ``tasks`` (hmrta-state/1) is doing, in words, at the
+    mission clock ``clock`` (None: not heard): the state runs ahead of the clock (a coalition
+    formed now starts when its last member arrives), so its times say more than its status."""
+    status, start, finish = tasks["status"][m], tasks["start"][m], tasks["finish"][m]
+    n = len(tasks["members"][m])
+
+    def at(x) -> str:
+        return "?" if x is None else f"{x:.3f}"
+
+    if status == "empty":
+        return "no robot committed yet"
+    if status == "unreleased":
+        return f"not known before t={at(tasks['release'][m])}"
+    if status == "open":
+        return f"coalition forming: {n} robot(s) committed"
+    if status == "in_progress":
+        if clock is not None and start is not None and clock < start:
+            return f"coalition of {n} on its way: starts t={at(start)}, finishes t={at(finish)}"
+        return f"under way since t={at(start)} ({n} robots), finishes t={at(finish)}"
+    if status == "done":
+        return f"finished t={at(finish)}"
+    if status == "cancelled":
+        return "cancelled by the operator" if tasks["cancelled_by_operator"][m] else \
+            "cancelled: no robot left can do it"
+    return ""
+
+
 def main(argv: list[str] | None = None) -> int:
     from hmrta.cli import Parser  # bad arguments: one line
     from hmrta.instance import MAX_VALUE
@@ -151,11 +179,10 @@ def main(argv: list[str] | None = None) -> int:
             while not now and time.monotonic() < deadline:  # the latched clock, if not heard yet (discovery)
                 rclpy.spin_once(node, timeout_sec=0.05)
             clock = f"mission clock {now[-1]:.3f}" if now else "mission clock not heard"
-            print(f"board {b.version}, phase {b.phase}, state at t={b.clock:.3f}, {clock}: "
+            print(f"board {b.version}, phase {b.phase}, state at t={b.clock:.3f} (its last event), {clock}: "
                   f"{b.n_done}/{b.n_tasks} tasks done")
             for m, status in enumerate(t["status"]):
-                when = f" finish {t['finish'][m]:.3f}" if t["finish"][m] is not None else ""
-                print(f"  {m:4d} {names[m] or '-':>16} {status}{when}")
+                print(f"  {m:4d} {names[m] or '-':>16} {status:<11} {task_words(t, m, now[-1] if now else None)}")
             return 0
         rid = args.id if args.cmd == "cancel" or args.id is not None else f"task-{uuid.uuid4().hex[:8]}"
         task = None
