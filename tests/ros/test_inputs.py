@@ -212,3 +212,56 @@ def test_a_stray_clock_on_the_mission_clock_topic_cannot_run_the_mission_ahead(t
     assert_same_as_offline(result, inst, seed)
     assert result["lost_robots"] == [] and result["makespan"] < 1000.0
     assert "past the board's horizon" in procs.board.log.read_text()
+
+
+def test_a_stray_clock_heard_before_the_missions_own_is_held_to_the_horizons(tmp_path, graph):
+    """A latched stray clock (t = 100000) is the first clock the board hears: it waits for its own
+    mission's clock rather than stop (as it does where none comes: test_board_crash.py), takes
+    sim_robot's when it comes, and the mission equals the offline rollout. The board starts alone,
+    so the order is sure."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from hmrta_coordinator.mission import ros_params
+
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(4, 0)
+    path, out, seed = save_instance(inst, tmp_path / "inst.yaml"), tmp_path / "result.json", 3
+    node = graph.node("stray_clock")
+    clock = node.create_publisher(Clock, topics.CLOCK, topics.CLOCK_QOS)
+    node.create_timer(0.2, lambda: clock.publish(C.clock_to_msg(100000.0)))
+    env = {**os.environ, "ROS_DOMAIN_ID": str(graph.domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+           "ROS_LOG_DIR": str(tmp_path / "ros")}
+    bin_ = Path(sys.executable).parent
+    logs, procs = {}, {}
+
+    def spawn(name: str, cmd: list[str]) -> None:
+        logs[name] = open(tmp_path / f"{name}.log", "w")
+        procs[name] = subprocess.Popen(cmd, stdout=logs[name], stderr=subprocess.STDOUT, env=env)
+
+    def text(name: str) -> str:
+        return (tmp_path / f"{name}.log").read_text()
+
+    try:
+        spawn("board", [str(bin_ / "task_board"), "--ros-args",
+                        *ros_params({"instance": str(path), "seed": seed, "output": str(out), "progress_period": 0.0})])
+        graph.spin_until(lambda: "another publisher's; waiting up to" in text("board") or procs["board"].poll() is not None,
+                         60, "the board to hear the stray clock first")
+        spawn("sim", [str(bin_ / "sim_robot"), "--ros-args", *ros_params({"time_scale": 8.0})])
+        spawn("agents", [str(bin_ / "agent_node"), "--robots", ",".join(robots_of(inst)), "--ros-args",
+                         *ros_params({"seed": seed})])
+        graph.spin_until(lambda: procs["board"].poll() is not None, 150, "the board to finish the mission")
+        assert procs["board"].returncode == 0, text("board")[-3000:]
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+        for f in logs.values():
+            f.close()
+    log = text("board")
+    assert "heard: this mission's own" in log and "past the board's horizon" in log, log[-3000:]
+    result = json.loads(out.read_text())
+    assert_same_as_offline(result, inst, seed)
+    assert result["lost_robots"] == [] and result["makespan"] < 1000.0

@@ -204,7 +204,8 @@ class TaskBoard(Node):
         self._last_progress = 0.0
         self._published_at = self._clock_at = self._clock_heard = time.monotonic()
         self._clock_seen = False  # a mission clock heard yet (the first is checked: foreign_clock)
-        self._foreign_clock: tuple[str, float] | None = None  # another mission's clock heard first: why, when
+        self._foreign_clock: tuple[str, float, float] | None = None  # another mission's clock heard first:
+        # why, when, its value
         self.clock_topic = clock_topic
         self._streamed = 0  # the latest version published
 
@@ -417,19 +418,31 @@ class TaskBoard(Node):
             self._flush()
 
     # seconds a board that first heard another mission's clock waits (following no clock) before
-    # it stops: that mission's own message, if it is in this namespace, names it better
-    FOREIGN_CLOCK_WAIT = 2.0
+    # it stops: its own sim_robot's clock may still come (the other was then a stray publisher
+    # beside it, which set_clock holds to the horizons), or the other mission's own message, if
+    # it is in this namespace, which names it better
+    FOREIGN_CLOCK_WAIT = 10.0
 
     def on_clock(self, msg: Clock) -> None:
-        if self.refusal is not None or self._foreign_clock is not None:
+        if self.refusal is not None:
             return
         t = clock_from_msg(msg)
         self._clock_heard = time.monotonic()
-        why = self.board.foreign_clock(t) if not self._clock_seen else None
-        self._clock_seen = True
-        if why is not None:
-            self._foreign_clock = (f"{self.clock_topic}: {why}", time.monotonic())
-            return
+        if self._foreign_clock is not None:
+            if t >= self._foreign_clock[2] - 1e-9:
+                return  # only the other clock so far
+            self._foreign_clock = None  # a clock from further back: this mission's own; the first was stray
+            self.get_logger().info(f"mission clock {t:.3f} s heard: this mission's own; the other publisher's "
+                                   f"is followed only up to the board's horizons")
+        elif not self._clock_seen:
+            self._clock_seen = True
+            why = self.board.foreign_clock(t)
+            if why is not None:
+                self._foreign_clock = (f"{self.clock_topic}: {why}", time.monotonic(), t)
+                self.get_logger().warning(f"mission clock {t:.3f} s on {self.clock_topic} before this board released "
+                                          f"any time: another publisher's; waiting up to {self.FOREIGN_CLOCK_WAIT:g} s "
+                                          f"for this mission's own (sim_robot's, from 0)")
+                return
         if self.board.set_clock(t):
             self._clock_at = time.monotonic()
             self._flush()
