@@ -246,7 +246,7 @@ def test_a_stray_clock_heard_before_the_missions_own_is_held_to_the_horizons(tmp
     try:
         spawn("board", [str(bin_ / "task_board"), "--ros-args",
                         *ros_params({"instance": str(path), "seed": seed, "output": str(out), "progress_period": 0.0})])
-        graph.spin_until(lambda: "another publisher's; waiting up to" in text("board") or procs["board"].poll() is not None,
+        graph.spin_until(lambda: "another publisher's; waiting for this mission's own" in text("board") or procs["board"].poll() is not None,
                          60, "the board to hear the stray clock first")
         spawn("sim", [str(bin_ / "sim_robot"), "--ros-args", *ros_params({"time_scale": 8.0})])
         spawn("agents", [str(bin_ / "agent_node"), "--robots", ",".join(robots_of(inst)), "--ros-args",

@@ -206,6 +206,7 @@ class TaskBoard(Node):
         self._clock_seen = False  # a mission clock heard yet (the first is checked: foreign_clock)
         self._foreign_clock: tuple[str, float, float] | None = None  # another mission's clock heard first:
         # why, when, its value
+        self._started_at: float | None = None  # when this process saw its mission started (monotonic)
         self.clock_topic = clock_topic
         self._streamed = 0  # the latest version published
 
@@ -417,10 +418,11 @@ class TaskBoard(Node):
         if self.board.pose(a, x, y):  # a pose repeated (heartbeat) changes nothing to publish
             self._flush()
 
-    # seconds a board that first heard another mission's clock waits (following no clock) before
-    # it stops: its own sim_robot's clock may still come (the other was then a stray publisher
-    # beside it, which set_clock holds to the horizons), or the other mission's own message, if
-    # it is in this namespace, which names it better
+    # seconds a board that first heard another mission's clock waits (following no clock), once
+    # its mission has started, before it stops: its own sim_robot's clock may still come (the
+    # other was then a stray publisher beside it, which set_clock holds to the horizons; sim_robot
+    # publishes its clock with the poses the start waits for), or the other mission's own message,
+    # if it is in this namespace, which names it better
     FOREIGN_CLOCK_WAIT = 10.0
 
     def on_clock(self, msg: Clock) -> None:
@@ -440,8 +442,8 @@ class TaskBoard(Node):
             if why is not None:
                 self._foreign_clock = (f"{self.clock_topic}: {why}", time.monotonic(), t)
                 self.get_logger().warning(f"mission clock {t:.3f} s on {self.clock_topic} before this board released "
-                                          f"any time: another publisher's; waiting up to {self.FOREIGN_CLOCK_WAIT:g} s "
-                                          f"for this mission's own (sim_robot's, from 0)")
+                                          f"any time: another publisher's; waiting for this mission's own "
+                                          f"(sim_robot's, from 0: up to {self.FOREIGN_CLOCK_WAIT:g} s after the start)")
                 return
         if self.board.set_clock(t):
             self._clock_at = time.monotonic()
@@ -452,8 +454,10 @@ class TaskBoard(Node):
         if b.finished:
             return
         now = time.monotonic()
-        if self._foreign_clock is not None and self.refusal is None and \
-                now - self._foreign_clock[1] >= self.FOREIGN_CLOCK_WAIT:
+        if b.started and self._started_at is None:
+            self._started_at = now
+        if self._foreign_clock is not None and self.refusal is None and self._started_at is not None and \
+                now - max(self._foreign_clock[1], self._started_at) >= self.FOREIGN_CLOCK_WAIT:
             self._refuse(self._foreign_clock[0])
             return
         if not b.started and now - self.t_created > 5.0:
