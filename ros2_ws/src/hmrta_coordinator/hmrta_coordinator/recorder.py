@@ -127,41 +127,41 @@ def _qos(depth: int, reliable: bool, latched: bool) -> QoSProfile:
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
+_S = "std_msgs/msg/String"
+# the mission-wide topics: MissionTopics attribute (None: the clock topic), message type, the
+# recorder's receive depth, and the QoS the mission's nodes publish it with
+_MISSION_TOPICS = (
+    ("mission", _S, 1, topics.MISSION_QOS), ("board", _S, 1000, topics.BOARD_QOS),
+    ("keyframe", _S, 10, topics.KEYFRAME_QOS), ("keyframe_requests", _S, 1000, topics.KEYFRAME_REQUEST_QOS),
+    ("result", _S, 1, topics.RESULT_QOS), ("choice", _S, 1000, topics.CHOICE_QOS),
+    ("status", _S, 1000, topics.STATUS_QOS), ("rejections", _S, 1000, topics.REJECTION_QOS),
+    ("task_requests", _S, 1000, topics.TASK_REQUEST_QOS), ("task_events", _S, 100, topics.TASK_EVENT_QOS),
+    (None, "rosgraph_msgs/msg/Clock", 100, topics.CLOCK_QOS),
+)
+_MARKERS = ("markers", "visualization_msgs/msg/MarkerArray", 10, topics.MARKER_QOS)
+
+
+def _mission_topics(markers: bool, clock_topic: str, T: topics.MissionTopics) -> dict[str, tuple[str, int, QoSProfile]]:
+    """name -> (type, receive depth, offered QoS) of the mission-wide topics of ``T``'s namespace."""
+    rows = _MISSION_TOPICS + ((_MARKERS,) if markers else ())
+    return {(clock_topic if attr is None else getattr(T, attr)): (typ, depth, offered)
+            for attr, typ, depth, offered in rows}
+
+
 def known_topics(markers: bool, clock_topic: str = topics.CLOCK,
                  T: topics.MissionTopics = topics.MissionTopics()) -> dict[str, tuple[str, QoSProfile]]:
     """The mission-wide HMRTA topics of the mission namespace of ``T``: name -> (type, a QoS
     compatible with their publishers). Latched topics are subscribed transient local (the latest
     sample arrives even when the recorder starts late); the rest reliable and deep enough for bursts."""
-    S = "std_msgs/msg/String"
-    out = {
-        T.mission: (S, _qos(1, True, True)),
-        T.board: (S, _qos(1000, True, False)),
-        T.keyframe: (S, _qos(10, True, True)),
-        T.keyframe_requests: (S, _qos(1000, True, False)),
-        T.result: (S, _qos(1, True, True)),
-        T.choice: (S, _qos(1000, True, False)),
-        T.status: (S, _qos(1000, True, False)),
-        T.rejections: (S, _qos(1000, True, False)),
-        T.task_requests: (S, _qos(1000, True, False)),
-        T.task_events: (S, _qos(100, True, True)),
-        clock_topic: ("rosgraph_msgs/msg/Clock", _qos(100, True, True)),
-    }
-    if markers:
-        out[T.markers] = ("visualization_msgs/msg/MarkerArray", _qos(10, True, True))
-    return out
+    return {name: (typ, _qos(depth, offered.reliability == ReliabilityPolicy.RELIABLE,
+                             offered.durability == DurabilityPolicy.TRANSIENT_LOCAL))
+            for name, (typ, depth, offered) in _mission_topics(markers, clock_topic, T).items()}
 
 
 def offered_qos(markers: bool, clock_topic: str = topics.CLOCK,
                 T: topics.MissionTopics = topics.MissionTopics()) -> dict[str, QoSProfile]:
     """The QoS the mission's nodes publish its topics with (what a playback should offer)."""
-    out = {T.mission: topics.MISSION_QOS, T.board: topics.BOARD_QOS, T.keyframe: topics.KEYFRAME_QOS,
-           T.keyframe_requests: topics.KEYFRAME_REQUEST_QOS, T.result: topics.RESULT_QOS,
-           T.choice: topics.CHOICE_QOS, T.status: topics.STATUS_QOS, T.rejections: topics.REJECTION_QOS,
-           T.task_requests: topics.TASK_REQUEST_QOS, T.task_events: topics.TASK_EVENT_QOS,
-           clock_topic: topics.CLOCK_QOS}
-    if markers:
-        out[T.markers] = topics.MARKER_QOS
-    return out
+    return {name: offered for name, (_, _, offered) in _mission_topics(markers, clock_topic, T).items()}
 
 
 def robot_topics(robot: str, namespace: str = topics.ROOT) -> dict[str, tuple[str, QoSProfile]]:

@@ -71,6 +71,7 @@ import time
 from functools import partial
 from typing import Any
 
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
@@ -206,7 +207,6 @@ class TaskBoard(Node):
         self._clock_seen = False  # a mission clock heard yet (the first is checked: foreign_clock)
         self._foreign_clock: tuple[str, float, float] | None = None  # another mission's clock heard first:
         # why, when, its value
-        self._started_at: float | None = None  # when this process saw its mission started (monotonic)
         self.clock_topic = clock_topic
         self._streamed = 0  # the latest version published
 
@@ -454,10 +454,8 @@ class TaskBoard(Node):
         if b.finished:
             return
         now = time.monotonic()
-        if b.started and self._started_at is None:
-            self._started_at = now
-        if self._foreign_clock is not None and self.refusal is None and self._started_at is not None and \
-                now - max(self._foreign_clock[1], self._started_at) >= self.FOREIGN_CLOCK_WAIT:
+        if self._foreign_clock is not None and self.refusal is None and b.t_start is not None and \
+                now - max(self._foreign_clock[1], b.t_start) >= self.FOREIGN_CLOCK_WAIT:  # (b.now: monotonic)
             self._refuse(self._foreign_clock[0])
             return
         if not b.started and now - self.t_created > 5.0:
@@ -549,8 +547,6 @@ class TaskBoard(Node):
     def _leave(self) -> None:
         if self.refused.done():
             return
-        from rclpy.duration import Duration
-
         others = self.pub_mission.get_subscription_count() > 1  # (its own subscription is one)
         if (others and self.pub_mission.wait_for_all_acked(Duration(seconds=0))) or \
                 time.monotonic() - self._refused_at >= self.LEAVE_WITHIN:
