@@ -240,16 +240,21 @@ def paired_comparison(a: list[dict], b: list[dict], name_a: str = "a", name_b: s
     An instance one method solved and the other did not is a win for the one that solved it; both
     failing is a tie; otherwise makespans within a relative :data:`TIE_TOLERANCE` tie. The mean
     difference ``a - b`` (negative: ``a`` shorter) and its 95% t-interval are over the instances
-    both solved (``n_paired``); ``relative`` is that mean over the mean makespan of ``b`` there."""
+    both solved (``n_paired``); ``relative`` is that mean over the mean makespan of ``b`` there,
+    which long missions dominate in a mixed set; ``ratio`` weighs every mission alike: the geometric
+    mean of the per-mission ratios ``a / b`` over the pairs with both makespans positive (None when
+    there is none)."""
     if len(a) != len(b):
         raise ValueError(f"paired comparison needs the same instances ({len(a)} vs {len(b)} results)")
     wins = ties = losses = 0
-    diffs, base = [], []
+    diffs, base, logs = [], [], []
     for ra, rb in zip(a, b):
         if ra["success"] and rb["success"]:
             d = float(ra["makespan"]) - float(rb["makespan"])
             diffs.append(d)
             base.append(float(rb["makespan"]))
+            if float(ra["makespan"]) > 0 and float(rb["makespan"]) > 0:
+                logs.append(math.log(float(ra["makespan"]) / float(rb["makespan"])))
             if abs(d) <= TIE_TOLERANCE * max(1.0, abs(float(rb["makespan"]))):
                 ties += 1
             elif d < 0:
@@ -271,7 +276,8 @@ def paired_comparison(a: list[dict], b: list[dict], name_a: str = "a", name_b: s
     mb = float(np.mean(base)) if n else math.nan
     return {"a": name_a, "b": name_b, "n": len(a), "wins": wins, "ties": ties, "losses": losses,
             "n_paired": n, "mean_diff": mean, "ci95": ci,
-            "relative": mean / mb if n and mb > 0 else math.nan}
+            "relative": mean / mb if n and mb > 0 else math.nan,
+            "ratio": math.exp(float(np.mean(logs))) if logs else None}
 
 
 def comparison_pairs(methods: list[str], pairs: Iterable[tuple[str, str]] | None) -> list[tuple[str, str]]:
@@ -734,9 +740,11 @@ def comparisons_markdown(rows: list[dict], paper: bool = False) -> list[str]:
     if not comps:
         return []
     out = ["Paired comparisons per instance (makespan of A minus B; a win is a shorter makespan, or A "
-           "solved an instance B failed; interval: 95% t-interval of the mean difference):", "",
-           "| row | A vs B | wins / ties / losses | mean difference | 95% interval | relative |",
-           "|---|---|---|---|---|---|"]
+           "solved an instance B failed; interval: 95% t-interval of the mean difference; relative: the "
+           "mean difference over B's mean makespan, which long missions dominate; ratio: the geometric "
+           "mean of A / B over the missions, each weighing alike):", "",
+           "| row | A vs B | wins / ties / losses | mean difference | 95% interval | relative | ratio |",
+           "|---|---|---|---|---|---|---|"]
     for r, c in comps:
         ci = c.get("ci95")
         rel = c.get("relative")
@@ -744,7 +752,7 @@ def comparisons_markdown(rows: list[dict], paper: bool = False) -> list[str]:
                    f"{c['wins']} / {c['ties']} / {c['losses']} | {_signed(c['mean_diff'])} | "
                    + (f"[{ci[0]:+.2f}, {ci[1]:+.2f}]" if ci and ci[0] is not None else "—") + " | "
                    + ("—" if rel is None or (isinstance(rel, float) and math.isnan(rel)) else f"{rel * 100:+.1f}%")
-                   + " |")
+                   + " | " + ("—" if c.get("ratio") is None else f"{c['ratio']:.3f}") + " |")
     return out + [""]
 
 

@@ -95,11 +95,17 @@ def test_paired_comparison_by_hand():
     half = 3.182446305 * math.sqrt(2.0) / 2.0  # t(0.975, 3) * sd / sqrt(n)
     assert c["ci95"] == pytest.approx([-half, half], abs=1e-6)
     assert c["relative"] == pytest.approx(0.0)
+    assert c["ratio"] == pytest.approx((10 / 11 * 1.0 * 9 / 10 * 15 / 13) ** 0.25)  # each mission alike
     d = paired_comparison(_res([10.0, 11.0]), _res([12.0, 12.0]))
     assert d["mean_diff"] == pytest.approx(-1.5) and d["relative"] == pytest.approx(-1.5 / 12.0)
     # differences -2, -1: sample sd sqrt(0.5), half width t(0.975, 1) * sqrt(0.5) / sqrt(2) = 12.7062 / 2
     assert d["ci95"] == pytest.approx([-1.5 - 6.3531, -1.5 + 6.3531], abs=1e-3)
     assert paired_comparison(_res([1.0]), _res([2.0]))["ci95"] is None  # one pair: no interval
+    # a long mission dominates the relative difference, not the ratio: 10% worse on a short one,
+    # 1% better on a long one
+    e = paired_comparison(_res([1.1, 99.0]), _res([1.0, 100.0]))
+    assert e["relative"] < 0 < math.log(e["ratio"]) and e["ratio"] == pytest.approx((1.1 * 0.99) ** 0.5)
+    assert paired_comparison(_res([None]), _res([2.0]))["ratio"] is None  # no pair
 
 
 def test_default_and_explicit_comparison_pairs():
