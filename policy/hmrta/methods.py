@@ -359,11 +359,46 @@ def resolve(inst, method: str, seed: int = 0, progress: Callable | None = None,
     if m.choose is None:
         raise MethodError(f"method {name} has no per-decision form (live missions run: "
                           f"{', '.join(mission_methods())})")
+    chosen, opts, scores = choose_live(inst, method, seed, progress, **options)
+    return (*live_spec(chosen, opts), scores)
+
+
+def choose_live(inst, method: str, seed: int = 0, progress: Callable | None = None,
+                **options: Any) -> tuple[str, dict[str, Any], dict[str, float]]:
+    """For a method that chooses per mission (portfolio): ``(the chosen candidate's spec, e.g.
+    'rl@coalition-team', the chooser's own options, {candidate: makespan})``. The live method is
+    ``live_spec(spec, options)``; the spec is what a task board publishes as the mission's method,
+    so that agents started with the chooser run the one chosen (:func:`adopt`)."""
+    name, implied = parse(method)
+    m = get(name)
+    if m.choose is None:
+        raise MethodError(f"method {name} does not choose per mission")
     opts = m.check(_merge(m, implied, options))
     _needs(m)
     choose = _resolve(m.choose)
     chosen, scores = choose(inst, seed=seed, **opts, **_progress_for(choose, progress))
-    return (*live_spec(chosen, opts), scores)
+    return chosen, opts, scores
+
+
+def chooses(method: str) -> bool:
+    """Whether ``method`` (a spec) chooses a live method per mission (portfolio) instead of
+    having a per-decision form of its own."""
+    return get(parse(method)[0]).choose is not None
+
+
+def adopt(spec: str, options: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """The live (name, options) an agent started with a chooser (portfolio) runs once its board
+    names the chosen candidate ``spec`` (the mission's method): the spec's own checkpoint
+    (``rl@broad``) wins; the agent's other options that the chosen method takes apply (its
+    ``checkpoint``, as the board's applied to the candidates); the rest are the chooser's and are
+    dropped. MethodError for a spec that is no live method."""
+    name, implied = parse(spec)
+    m = get(name)
+    if m.decide is None:
+        raise MethodError(f"the mission's method {spec} has no per-decision form (live methods: "
+                          f"{', '.join(live_methods())})")
+    taken = {k: v for k, v in options.items() if m.option(k) is not None and m.option(k).live}
+    return live_spec(spec, taken)
 
 
 def live_spec(spec: str, shared: dict[str, Any]) -> tuple[str, dict[str, Any]]:
@@ -383,6 +418,17 @@ def live_options() -> dict[str, Option]:
             for o in m.options:
                 if o.live:
                     out.setdefault(o.name, o)
+    return out
+
+
+def node_options() -> dict[str, Option]:
+    """Every option of a method a ROS node takes (``method`` parameter): the live options, then
+    those of the methods that choose per mission (portfolio's ``candidates``)."""
+    out = live_options()
+    for m in METHODS.values():
+        if m.choose is not None:
+            for o in m.options:
+                out.setdefault(o.name, o)
     return out
 
 

@@ -40,3 +40,27 @@ def test_agent_joins_a_mission_under_its_rules_and_refuses_other_rules(graph):
     assert rand.rules == RANDOM_RULES != GREEDY_RULES
     rand.join(_mission(GREEDY_RULES))
     assert rand.mission is None and rand.index is None  # refused: not taking part
+
+
+def test_an_agent_started_with_portfolio_runs_the_method_its_board_chose(graph):
+    """method:=portfolio on an agent: it has no decider of its own until the mission names the
+    board's choice, then runs that (its own checkpoint option applies; a candidate's own, as in
+    rl@broad, wins) under that method's rules; a mission whose method it cannot run is refused."""
+    from hmrta.methods import rules as method_rules
+
+    def mission(method: str, rules) -> Mission:
+        return mission_from_msg(mission_to_msg(dataclasses.replace(_mission(rules), method=method)))
+
+    agent = _agent(graph, "portfolio")
+    assert agent.decide is None and agent.chooser == "portfolio"
+    agent.join(mission("greedy-coalition", method_rules("greedy-coalition")))
+    assert agent.mission is not None and agent.method == "greedy-coalition" and agent.refusal is None
+    assert agent.rules == method_rules("greedy-coalition") and agent.decide is not None
+
+    ck = _agent(graph, "portfolio")
+    ck.join(mission("rl@broad", method_rules("rl", checkpoint="broad")))
+    assert ck.mission is not None and ck.method == "rl@broad" and ck.rules == method_rules("rl", checkpoint="broad")
+
+    other = _agent(graph, "portfolio")
+    other.join(mission("cpsat", GREEDY_RULES))  # offline only: no per-decision form
+    assert other.mission is None and "cpsat" in other.refusal and "per-decision" in other.refusal

@@ -229,6 +229,44 @@ def test_a_second_board_in_the_namespace_gives_way_and_the_running_mission_is_no
     assert_same_as_offline(result, inst, 3)
 
 
+def test_a_board_started_with_portfolio_chooses_and_agents_started_with_it_run_the_choice(tmp_path, graph,
+                                                                                          mission_procs):
+    """method:=portfolio on every node (as fleet.launch.py passes one method to all): the board
+    simulates the candidates on its mission, publishes the chosen one as the mission's method
+    (here rl@broad, a candidate with its own checkpoint), and the agents run it. SIGKILLed
+    mid-mission and restarted on its journal with other candidates, the board keeps the method its
+    mission started with. The mission equals the offline portfolio on the same mission."""
+    inst = ScenarioGenerator("MA-AT", 6, 3, 10, 3).instance(3, 0)
+    path = save_instance(inst, tmp_path / "inst.yaml")
+    ref = solve(inst, "portfolio", 3, candidates="rl@broad,greedy")
+    assert ref.extra["portfolio"]["chosen"] == "rl@broad"  # (greedy: the nodes' default, 20% longer here)
+    procs = mission_procs(path, robots_of(inst), seed=3, agents_per_process=3, time_scale=3.0, method="portfolio",
+                          method_options={"candidates": "rl@broad,greedy"}, journal=tmp_path / "journal.jsonl",
+                          board_params={"progress_period": 0.0, "heartbeat_timeout": 30.0})
+    watch = BoardWatch(graph.node("portfolio_watch"))
+    graph.spin_until(lambda: watch.board is not None and watch.board.n_done >= 2, 90, "two tasks done")
+    board_log = procs.board.log.read_text()
+    assert "method portfolio: chose rl@broad" in board_log, board_log[-2000:]
+    procs.board.proc.kill()
+    procs.board.proc.wait()
+    with open(tmp_path / "board_again.log", "w") as log:  # greedy alone would be chosen now
+        again = subprocess.Popen(procs.board.cmd + ["-p", "candidates:=greedy"], stdout=log,
+                                 stderr=subprocess.STDOUT, env=procs.env)
+        try:
+            assert again.wait(timeout=120) == 0, (tmp_path / "board_again.log").read_text()[-3000:]
+        finally:
+            if again.poll() is None:
+                again.kill()
+                again.wait()
+    text = (tmp_path / "board_again.log").read_text()
+    assert "method portfolio: rl@broad, as chosen when the mission started" in text, text[-3000:]
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert result["method"] == "rl@broad" and result["lost_robots"] == [] and result["board_restarts"] == 1
+    assert_same_as_offline(result, inst, 3, ref=ref)
+    agent_logs = "".join(a.log.read_text() for a in procs.agents)
+    assert agent_logs.count("running rl@broad, the board's choice") == inst.n_agents, agent_logs[-2000:]
+
+
 def test_mission_namespace_errors():
     """A bad namespace is a one-line user error of hmrta-mission and hmrta-task (exit 2), before
     anything starts."""

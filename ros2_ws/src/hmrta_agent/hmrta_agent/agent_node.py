@@ -66,7 +66,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
 from hmrta.keys import KeystoreError, Signer, load_key_file, load_keystore
-from hmrta.methods import MethodError, decider
+from hmrta.methods import MethodError, adopt, chooses, decider
 from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (POSE_TYPES, Choice, DecodeError, Join, KeyframeRequest, Mission, Status,
@@ -445,10 +445,13 @@ class AgentNode(Node):
             raise ValueError("set the robot name (-p robot:=NAME or a namespace, -r __ns:=/NAME)")
         self.index_param = self.declare_parameter("index", -1).value
         self.species_param = self.declare_parameter("species", -1).value
-        self.method, options = declare_method_parameters(self)
+        self.method, self.options = declare_method_parameters(self)
         self.seed = self.declare_parameter("seed", 0).value
         self.exit_on_done = self.declare_parameter("exit_on_done", True).value
-        self.decide, self.rules = host.decider(self.method, self.seed, options)
+        # a method that chooses per mission (portfolio) runs the one its board chose and names as the
+        # mission's method: the decider is made when the mission is heard (_adopt)
+        self.chooser = self.method if chooses(self.method) else None
+        self.decide, self.rules = (None, None) if self.chooser else host.decider(self.method, self.seed, self.options)
         keystore = self.declare_parameter("keystore", "").value
         key_file = self.declare_parameter("key_file", "").value
         self.topics = topics.mission_topics(self.declare_parameter("mission_namespace", "/").value)
@@ -620,9 +623,28 @@ class AgentNode(Node):
         self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "
                                f"{mission.instance.name}, method {self.method}")
 
+    def _adopt(self, mission: Mission) -> str | None:
+        """An agent started with a method that chooses per mission (portfolio): run the mission's
+        method (the board's choice, e.g. ``rl@coalition-team``) with this agent's options that it
+        takes (its checkpoint); why it cannot, or None."""
+        try:
+            name, options = adopt(mission.method, self.options)
+            self.decide, self.rules = self.host.decider(name, self.seed, options)
+        except MethodError as e:
+            return (f"{self.robot}: method {self.chooser}: mission {mission.instance.name} runs {mission.method} "
+                    f"(the board's choice), which this agent cannot run: {e}; not taking part")
+        if self.method != mission.method:
+            self.method = mission.method
+            self.get_logger().info(f"{self.robot}: method {self.chooser}: running {mission.method}, the board's choice")
+        return None
+
     def _mismatch(self, mission: Mission) -> str | None:
         """Why this robot's method cannot run under the mission's rules, or None (checked once, on
         joining). The board decides ``backdate`` (real-time departures); everything else must match."""
+        if self.chooser is not None:
+            why = self._adopt(mission)
+            if why is not None:
+                return why
         theirs, mine = mission.rules.to_dict(), self.rules.to_dict()  # the codec requires and checks them
         theirs.pop("backdate", None), mine.pop("backdate", None)
         if theirs == mine:

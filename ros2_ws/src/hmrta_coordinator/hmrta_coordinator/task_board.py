@@ -80,12 +80,12 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from hmrta.board import BoardState, JournalError, MissionBoard, TokenBucket, View  # noqa: F401  (BoardState: re-exported)
+from hmrta.board import BoardState, JournalError, MissionBoard, TokenBucket, View, read_journal  # noqa: F401  (BoardState: re-exported)
 from hmrta.core import STATUS_NAMES
 from hmrta.formats import load_instance
 from hmrta.instance import InstanceError
 from hmrta.keys import Verifier, load_keystore
-from hmrta.methods import MethodError
+from hmrta.methods import MethodError, adopt, choose_live, chooses
 from hmrta.methods import rules as method_rules
 from hmrta.reading import short
 from hmrta_msgs_py import topics
@@ -159,6 +159,11 @@ class TaskBoard(Node):
         if not frame_id:
             raise ValueError("frame_id: expected the frame of the mission's coordinates (e.g. map), got ''")
         self.inst = inst = load_instance(path)
+        if chooses(self.method):  # portfolio: the live method the mission runs, chosen here; the
+            # mission names the chosen candidate's spec (e.g. rl@coalition-team)
+            spec, (self.method, method_opts) = self._choose(inst, method_opts, journal)
+        else:
+            spec = self.method
         rules = method_rules(self.method, **method_opts)  # from the checkpoint's config: no torch here
         if real_time:
             rules = dataclasses.replace(rules, backdate=False)
@@ -184,14 +189,14 @@ class TaskBoard(Node):
             verifier = Verifier(load_keystore(keystore))
         else:
             verifier = None
-        self.board = MissionBoard(inst, names, seed=self.seed, rules=rules, method=self.method, verifier=verifier,
+        self.board = MissionBoard(inst, names, seed=self.seed, rules=rules, method=spec, verifier=verifier,
                                   tolerance=tolerance / scale, scale=scale, leg_timeout_factor=leg_timeout_factor,
                                   leg_timeout_floor=leg_timeout_floor, heartbeat_timeout=heartbeat_timeout,
                                   decision_timeout=decision_timeout, startup_timeout=startup_timeout,
                                   wait_for_robots=wait_for_robots, journal=journal or None,
                                   keyframe_period=keyframe_period, log=self._log)
         self.names = self.board.names  # the board's list: robots that join are appended to it
-        self.mission = Mission(self.board.session, inst, tuple(names), self.seed, self.method, frame_id, scale,
+        self.mission = Mission(self.board.session, inst, tuple(names), self.seed, spec, frame_id, scale,
                                rules=rules, created=self.board.created)
 
         self.t_created = time.monotonic()
@@ -237,7 +242,7 @@ class TaskBoard(Node):
         self.pub_mission.publish(mission_to_msg(self.mission))
         b = self.board
         self.get_logger().info(
-            f"mission {inst.name}: {A} robots, {inst.n_tasks} tasks, method {self.method}, seed {self.seed}; "
+            f"mission {inst.name}: {A} robots, {inst.n_tasks} tasks, method {b.method}, seed {self.seed}; "
             + ("resumed from its journal" if b.restarts else
                "waiting for every robot's agent and pose" if wait_for_robots else "starting"))
         self._flush()
@@ -417,6 +422,25 @@ class TaskBoard(Node):
             return self._reject("malformed", f"malformed pose of {self.names[a]}: {e}", self.names[a], every=5.0)
         if self.board.pose(a, x, y):  # a pose repeated (heartbeat) changes nothing to publish
             self._flush()
+
+    def _choose(self, inst, options: dict[str, Any], journal: str) -> tuple[str, tuple[str, dict[str, Any]]]:
+        """(the chosen candidate's spec, e.g. ``rl@coalition-team``, (the live method, its options))
+        of a board started with a method that chooses per mission (portfolio). The spec is published
+        as the mission's method, so that agents started with the same method run it. A board
+        restarted on its journal takes the method its mission ran (never a new choice mid-mission)."""
+        asked = self.method
+        header = read_journal(journal)[0] if journal else None
+        if header is not None and isinstance(header.get("method"), str):
+            spec = header["method"]
+            self.get_logger().info(f"method {asked}: {spec}, as chosen when the mission started (journal {journal})")
+        else:
+            self.get_logger().info(f"method {asked}: simulating the candidates on mission {inst.name} ...")
+            t0 = time.monotonic()
+            spec, _, scores = choose_live(inst, asked, self.seed, **options)
+            self.get_logger().info(
+                f"method {asked}: chose {spec} in {time.monotonic() - t0:.1f} s (makespans: "
+                + ", ".join(f"{c} {v:.2f}" for c, v in scores.items()) + ")")
+        return spec, adopt(spec, options)
 
     # seconds a board that first heard another mission's clock waits (following no clock), once
     # its mission has started, before it stops: its own sim_robot's clock may still come (the

@@ -2,7 +2,7 @@
 
 ``--help`` of each executable prints its table, the launch files expose one launch argument per
 entry, and the tests check each table against the parameters its node really declares. The
-method parameters (``method`` and every live method option) come from the method table
+method parameters (``method`` and every option of a method a node runs) come from the method table
 :data:`hmrta.methods.METHODS`. Importing this module needs neither rclpy nor launch.
 """
 from __future__ import annotations
@@ -149,10 +149,12 @@ _TYPES = {str: STRING, int: INTEGER, float: DOUBLE, bool: BOOL}
 def method_parameters() -> tuple[Param, ...]:
     """``method`` and every live method option, as declared by
     :func:`hmrta_msgs_py.runtime.declare_method_parameters` (ROS has no None: '' / 0)."""
-    from hmrta.methods import help_text, live_methods, live_options
+    from hmrta.methods import help_text, mission_methods, node_options
 
-    out = [Param("method", STRING, "greedy", help_text(live_methods()) + "; rl-sN = rl-sample with N samples")]
-    for o in live_options().values():
+    out = [Param("method", STRING, "greedy", help_text(mission_methods()) + "; rl-sN = rl-sample with N samples; "
+                 "portfolio: the task board chooses at the start and publishes the one chosen, which agents "
+                 "started with portfolio run")]
+    for o in node_options().values():
         default = o.default if o.default is not None else {str: "", int: 0, float: 0.0}[o.type]
         out.append(Param(o.name, _TYPES[o.type], default, o.help))
     return tuple(out)

@@ -213,15 +213,14 @@ def parameter_type_text(text: str) -> str:
 
 
 def declare_method_parameters(node) -> tuple[str, dict]:
-    """Declare ``method`` and every live method option (the table
+    """Declare ``method`` and every option of a method a node runs (the table
     :func:`hmrta_msgs_py.params.method_parameters`, generated from :data:`hmrta.methods.METHODS`)
-    on ``node``; return the method and the options given (unset ones omitted). Raises MethodError
-    for an unknown method or an option it does not take."""
-    from hmrta.methods import live_spec
+    on ``node``; return the live method and the options given that it takes (unset ones omitted),
+    or, for a method that chooses per mission (portfolio), that method and every option given.
+    Raises MethodError for an unknown method or an option it does not take."""
+    from hmrta.methods import MethodError, chooses, live_spec, node_options
 
     from .params import method_parameters
-
-    from hmrta.methods import MethodError, live_options
 
     method_param, *option_params = method_parameters()
     method = node.declare_parameter(method_param.name, method_param.default).value
@@ -231,11 +230,13 @@ def declare_method_parameters(node) -> tuple[str, dict]:
         if value != p.default:  # ROS has no None: the default stands for "not given"
             # checked even when the method does not take it, so that every node refuses the same values
             try:
-                opts[p.name] = live_options()[p.name].coerce(method, value)
+                opts[p.name] = node_options()[p.name].coerce(method, value)
             except MethodError as e:
                 raise MethodError(str(e).replace(f"{method}: option ", "", 1)) from None
+    if chooses(method):  # portfolio: its options as given (the board chooses, agents adopt: hmrta.methods.adopt)
+        return method, opts
     # the spec's shorthand and own checkpoint (rl-s5: sampled decisions, live one per turn; rl@broad)
-    name, options = live_spec(method, opts)
+    name, options = live_spec(method, opts)  # (of the options given, those the method takes)
     return name, options
 
 
