@@ -1014,7 +1014,9 @@ def _read_solution(path: str):
 
 def _solution_or_routes(inst, path: str):
     """An ``hmrta-solution/1`` file, or a routes file as ``hmrta evaluate`` takes it (then
-    re-simulated on ``inst``); the error is the solution reader's when it is neither."""
+    re-simulated on ``inst``); when it is neither, the error is the routes reader's for a file
+    that looks like a routes file (an object with ``routes`` and no ``format``), else the
+    solution reader's."""
     from .solution import RouteError, SolutionError, read_routes
 
     try:
@@ -1022,12 +1024,23 @@ def _solution_or_routes(inst, path: str):
     except SolutionError as e:
         try:
             routes = read_routes(inst, path)
-        except RouteError:
-            raise e from None
+        except RouteError as r:
+            raise (r if _looks_like_routes(path) else e) from None
     if inst.dynamic or bool((inst.releases > 0).any()):
         raise UserError(f"{path}: routes are re-simulated without release times or events (as hmrta evaluate "
                         f"does), which this mission has: give its solution file (hmrta solve --out)")
     return _evaluated(inst, routes, path)
+
+
+def _looks_like_routes(path: str) -> bool:
+    """A JSON object with ``routes`` and no ``format``: a routes file (``hmrta evaluate``'s input)."""
+    from .reading import InputError, read_json
+
+    try:
+        d = read_json(path)
+    except InputError:  # unreadable or not JSON: the solution reader's error says so
+        return False
+    return isinstance(d, dict) and "routes" in d and "format" not in d
 
 
 def cmd_render_recording(args) -> int:
@@ -1076,7 +1089,7 @@ def cmd_render(args) -> int:
         raise UserError(f"--{e}") from None
     writable("--out", args.out, inputs=(args.instance, args.solution))
     inst = _load(args.instance)
-    sol = _read_solution(args.solution)
+    sol = _solution_or_routes(inst, args.solution)  # (routes: re-simulated, as hmrta evaluate and bound take them)
     check_planned_for(inst, sol, args.solution)
     animated = args.gif or Path(args.out).suffix.lower() == ".gif"
     if animated and _progress_on(args):  # a GIF: 0.05 to 0.3 s per frame
@@ -1408,7 +1421,9 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="draw the routes map and a Gantt chart of a solution", formatter_class=F)
     r.add_argument("instance", nargs="?", default=None,
                    help="instance file (with --from: optional, checked against the recorded mission)")
-    r.add_argument("solution", nargs="?", default=None, help="hmrta-solution/1 JSON")
+    r.add_argument("solution", nargs="?", default=None,
+                   help="hmrta-solution/1 JSON, or a routes file as hmrta evaluate takes it ({\"routes\": ...}: "
+                        "re-simulated)")
     r.add_argument("--from", dest="from_", default=None, metavar="FILE.mcap",
                    help="draw a recorded mission (hmrta-mission --record): planned vs actual arrival times")
     r.add_argument("--out", required=True, help="output image (.png, or any format matplotlib writes: .svg, .pdf, ...); an --out ending in .gif writes "

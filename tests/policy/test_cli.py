@@ -199,6 +199,27 @@ def test_deadlocking_routes_are_named_by_their_file_in_evaluate_and_bound(tmp_pa
         assert line.startswith(f"hmrta: error: {routes}: deadlock"), line
 
 
+def test_routes_files_are_read_alike_by_evaluate_bound_and_render(tmp_path, capsys):
+    """A routes file (``{"routes": ...}``, as ``hmrta evaluate`` takes it): ``bound`` and ``render``
+    take it too, and a bad one gets the routes reader's error in all three (not the solution
+    reader's "missing key 'format'")."""
+    pytest.importorskip("matplotlib")
+    inst = load_instance(EXAMPLE)
+    good = tmp_path / "routes.json"
+    from hmrta.methods import solve
+
+    good.write_text(json.dumps({"routes": solve(inst, "greedy").routes}))
+    assert main(["render", str(EXAMPLE), str(good), "--out", str(tmp_path / "r.png"), "--no-progress"]) == 0
+    assert (tmp_path / "r.png").stat().st_size > 0
+    capsys.readouterr()
+    bad = tmp_path / "short.json"
+    bad.write_text('{"routes": [[0]]}')
+    for cmd in (["evaluate"], ["bound"], ["render", "--out", str(tmp_path / "b.png")]):
+        assert main([cmd[0], str(EXAMPLE), str(bad), *cmd[1:]]) == 2, cmd
+        line = _one_error_line(capsys)
+        assert f"{bad}: routes: expected a list of {inst.n_agents} routes" in line, (cmd, line)
+
+
 # ---------------------------------------------------------------------------------------------
 # missing optional dependencies
 # ---------------------------------------------------------------------------------------------
