@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import time
-from typing import Callable, Protocol
+from typing import Protocol
 
 from .core import MissionState, Rules
 from .instance import Instance
@@ -13,12 +13,10 @@ class Policy(Protocol):
     """A decision function: given the state (current decider ``state.agent``, admissible nodes
     ``state.mask()``), return a node (0 = depot, 1 + m = task m)."""
 
-    name: str
-
     def __call__(self, state: MissionState) -> int: ...
 
 
-def run(inst: Instance, policy: Callable[[MissionState], int], seed: int = 0, rules: Rules = Rules()) -> MissionState:
+def run(inst: Instance, policy: Policy, seed: int = 0, rules: Rules = Rules()) -> MissionState:
     """Roll out one episode; returns the finished state."""
     state = MissionState(inst, seed=seed, rules=rules)
     while not state.done:
@@ -26,7 +24,7 @@ def run(inst: Instance, policy: Callable[[MissionState], int], seed: int = 0, ru
     return state
 
 
-def simulate(inst: Instance, policy: Callable[[MissionState], int], seed: int = 0, rules: Rules = Rules(),
+def simulate(inst: Instance, policy: Policy, seed: int = 0, rules: Rules = Rules(),
              method: str | None = None) -> Solution:
     """Roll out one episode and return its Solution (compute_seconds = wall time of the rollout)."""
     t0 = time.perf_counter()

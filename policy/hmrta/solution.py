@@ -115,10 +115,6 @@ def _f(v: float) -> float | None:
     return None if v is None or (isinstance(v, float) and not math.isfinite(v)) else float(v)
 
 
-def _nan(v: Any) -> float:
-    return math.nan if v is None else float(v)
-
-
 # ---------------------------------------------------------------------------------------------
 # reading and checking solution files
 # ---------------------------------------------------------------------------------------------

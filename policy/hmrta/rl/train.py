@@ -336,9 +336,6 @@ class Trainer:
             out.append((inst, routes))
         return out
 
-    def _lr(self) -> float:
-        return self.reinforce.lr()
-
     def _task_range(self) -> tuple[int, int]:
         t = self.cfg.train
         for stage in t.curriculum:
