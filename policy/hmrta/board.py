@@ -337,8 +337,10 @@ def _r(v: float | None) -> float | None:
 
 
 def instance_digest(inst: Instance) -> str:
-    """sha256 of the instance's canonical JSON: a journal is replayed only on its own mission."""
-    return hashlib.sha256(json.dumps(inst.to_dict(), sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+    """The mission's ``instance_sha256``, as a solution records it (:attr:`Instance.fingerprint`:
+    the mission, its timed events and the robots they add): a journal is replayed only on its own
+    mission."""
+    return inst.fingerprint
 
 
 # ---------------------------------------------------------------------------------------------
