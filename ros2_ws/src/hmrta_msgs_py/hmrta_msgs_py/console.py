@@ -48,6 +48,23 @@ def run(prog: str, module: str, func: str = "main") -> None:
     raise SystemExit(code)
 
 
+def quiet_half_built_loggers() -> None:
+    """A signal that interrupts rclpy while it builds a logger (``RcutilsLogger.__init__``)
+    leaves one without its attributes, whose ``__del__`` then fails when the process exits,
+    printing "Exception ignored in ... Traceback" after the one line that says the process was
+    stopped. Such failures of rclpy's logger finalizer are not reported; every other unraisable
+    exception is, as before."""
+    default = sys.unraisablehook
+
+    def hook(u) -> None:
+        if getattr(u.object, "__qualname__", "") == "RcutilsLogger.__del__" and isinstance(u.exc_value, AttributeError):
+            return
+        default(u)
+
+    if getattr(sys.unraisablehook, "__name__", "") != "hook" or sys.unraisablehook.__module__ != __name__:
+        sys.unraisablehook = hook
+
+
 def _interrupted(prog: str):
     runtime = sys.modules.get("hmrta_msgs_py.runtime")  # (not imported here: it loads rclpy)
     late = runtime is not None and getattr(runtime, "SPUN", False)  # a second Ctrl-C while the nodes stop
@@ -58,6 +75,7 @@ def stopped(prog: str, when: str = " during start-up"):
     """One line on stderr and the exit status of a process stopped by a signal before it ran:
     Ctrl-C (SIGINT) ``interrupted``, 130; SIGTERM ``terminated``, 143 (128 + the signal, as a
     shell reports a process the signal ended)."""
+    quiet_half_built_loggers()
     if INTERRUPTED and INTERRUPTED[-1] == signal.SIGTERM:
         print(f"{prog}: terminated{when} (SIGTERM)", file=sys.stderr)
         raise SystemExit(128 + signal.SIGTERM) from None
