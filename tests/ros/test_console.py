@@ -113,3 +113,21 @@ def test_a_logger_half_built_when_the_signal_came_says_nothing_at_exit():
     for mode, loggers in (("running", 1), ("stopped", 0)):
         err = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True, timeout=60).stderr
         assert err.count("RcutilsLogger.__del__") == loggers and err.count("Other.__del__") == 1, (mode, err)
+
+
+def test_a_start_up_signal_inside_a_deferred_block_is_raised_when_it_ends():
+    """console.signals_deferred (around torch's import, which a KeyboardInterrupt raised inside
+    aborts in C++): the signal is noted, the block finishes, then KeyboardInterrupt is raised."""
+    code = ("import os, signal\n"
+            "from hmrta_msgs_py import console\n"
+            "signal.signal(signal.SIGTERM, console._noted)\n"
+            "signal.signal(signal.SIGINT, console._noted)\n"
+            "try:\n"
+            "    with console.signals_deferred():\n"
+            "        os.kill(os.getpid(), signal.SIGTERM)\n"
+            "        print('block finished', flush=True)\n"
+            "    print('not reached', flush=True)\n"
+            "except KeyboardInterrupt:\n"
+            "    print('interrupted after the block', console.INTERRUPTED == [signal.SIGTERM], flush=True)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stdout
+    assert out.splitlines() == ["block finished", "interrupted after the block True"], out

@@ -75,7 +75,7 @@ def test_declared_parameters_sees_every_kind():
     """The AST reader finds literal, aliased, array and method declarations."""
     board = declared_parameters(NODE_SOURCES["task_board"])
     assert board["robot_names"] == (P.STRING_ARRAY, []) and board["scale"] == (P.DOUBLE, 1.0)
-    assert board["method"] == (P.STRING, "greedy") and "checkpoint" in board
+    assert board["method"] == (P.STRING, "portfolio") and "checkpoint" in board
     assert declared_parameters(NODE_SOURCES["agent_node"])["robot"] == (P.STRING, "")
     assert "method" not in declared_parameters(NODE_SOURCES["sim_robot"])
 

@@ -30,6 +30,10 @@ the driver's, e.g. ``-r pose:=amcl_pose -p pose_type:=PoseWithCovarianceStamped`
 where a joining robot is and, when the board drops the robot, to stop it where it is: a goal at
 its latest pose replaces the goal it may still be driving to.
 
+Method: by default (``method:=portfolio``) the agent runs the mission's method, whatever its board
+runs (a board started with ``portfolio`` chooses one at the start and names it in the mission);
+``-p method:=greedy`` (or any live method) runs that one, which must run under the mission's rules.
+
 One robot per process::
 
     agent_node --ros-args -r __ns:=/robot_3 -p method:=greedy -p seed:=1
@@ -69,6 +73,7 @@ from hmrta.keys import KeystoreError, Signer, load_key_file, load_keystore
 from hmrta.methods import MethodError, adopt, chooses, decider
 from hmrta.replica import Replica
 from hmrta_msgs_py import topics
+from hmrta_msgs_py.console import signals_deferred
 from hmrta_msgs_py.codec import (POSE_TYPES, Choice, DecodeError, Join, KeyframeRequest, Mission, Status,
                                  board_from_msg, choice_to_msg, clock_from_msg, keyframe_request_to_msg,
                                  mission_from_msg, pose_from_msg, pose_to_msg, pose_type, rejection_from_msg,
@@ -94,6 +99,7 @@ class Host:
         self._node: Node | None = None  # the node the process's subscriptions live on (attach)
         self.replica = Replica()
         self._deciders: dict[tuple, Any] = {}
+        self.torch_threads = 1  # torch's threads once a decider loaded it (--torch-threads)
         self._mission_text: str | None = None
         self.mission: Mission | None = None
         self.agents: list["AgentNode"] = []
@@ -149,6 +155,7 @@ class Host:
         key = (method, seed, tuple(sorted(options.items())))
         if key not in self._deciders:
             self._deciders[key] = decider(method, seed, **options)
+            _set_torch_threads(self.torch_threads)  # (a portfolio agent builds its decider once the mission comes)
         return self._deciders[key]
 
     def attach(self, node: Node, period: float) -> None:
@@ -157,7 +164,7 @@ class Host:
         node of the process."""
         self._node = node
         T = self.topics
-        node.create_subscription(String, T.mission, self._on_mission, topics.MISSION_QOS)
+        node.create_subscription(String, T.mission, self._on_mission, topics.MISSION_SUB_QOS)
         node.create_subscription(String, T.board, self._on_board, topics.BOARD_QOS)
         node.create_subscription(String, T.keyframe, self._on_keyframe, topics.KEYFRAME_QOS)
         node.create_subscription(Clock, getattr(node, "clock_topic", T.clock), self._on_clock, topics.CLOCK_QOS)
@@ -451,7 +458,9 @@ class AgentNode(Node):
         # a method that chooses per mission (portfolio) runs the one its board chose and names as the
         # mission's method: the decider is made when the mission is heard (_adopt)
         self.chooser = self.method if chooses(self.method) else None
-        self.decide, self.rules = (None, None) if self.chooser else host.decider(self.method, self.seed, self.options)
+        with signals_deferred():  # loading torch (learned methods): a signal inside it would abort in C++
+            self.decide, self.rules = (None, None) if self.chooser else host.decider(self.method, self.seed,
+                                                                                      self.options)
         keystore = self.declare_parameter("keystore", "").value
         key_file = self.declare_parameter("key_file", "").value
         self.topics = topics.mission_topics(self.declare_parameter("mission_namespace", "/").value)
@@ -848,6 +857,7 @@ def main(args: list[str] | None = None) -> int:
     if not 0 < cli.heartbeat_period < float("inf"):
         p.error(f"--heartbeat-period: expected a number of seconds > 0, got {cli.heartbeat_period}")
     host = Host()
+    host.torch_threads = cli.torch_threads
     host.ignore.update(cli.ignore_board_version)
     with starting("agent_node", (MethodError, ValueError), args=argv):  # bad policy / checkpoint: a user error
         if cli.robots:

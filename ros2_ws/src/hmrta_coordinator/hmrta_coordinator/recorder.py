@@ -131,7 +131,7 @@ _S = "std_msgs/msg/String"
 # the mission-wide topics: MissionTopics attribute (None: the clock topic), message type, the
 # recorder's receive depth, and the QoS the mission's nodes publish it with
 _MISSION_TOPICS = (
-    ("mission", _S, 1, topics.MISSION_QOS), ("board", _S, 1000, topics.BOARD_QOS),
+    ("mission", _S, 10, topics.MISSION_QOS), ("board", _S, 1000, topics.BOARD_QOS),
     ("keyframe", _S, 10, topics.KEYFRAME_QOS), ("keyframe_requests", _S, 1000, topics.KEYFRAME_REQUEST_QOS),
     ("result", _S, 1, topics.RESULT_QOS), ("choice", _S, 1000, topics.CHOICE_QOS),
     ("status", _S, 1000, topics.STATUS_QOS), ("rejections", _S, 1000, topics.REJECTION_QOS),

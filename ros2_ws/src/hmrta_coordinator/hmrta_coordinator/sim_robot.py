@@ -136,7 +136,7 @@ class SimRobot(Node):
         self.silence = BoardSilence(silence, mission=T)
         self._version: int | None = None  # the latest board version heard
         self.pub_clock = self.create_publisher(Clock, clock_topic, topics.CLOCK_QOS)
-        self.create_subscription(String, T.mission, self.on_mission, topics.MISSION_QOS)
+        self.create_subscription(String, T.mission, self.on_mission, topics.MISSION_SUB_QOS)
         self.create_subscription(String, T.board, self.on_board, topics.BOARD_SIM_QOS)
         self.create_subscription(String, T.keyframe, self.on_keyframe, topics.KEYFRAME_QOS)
         self.pub_request = self.create_publisher(String, T.keyframe_requests, topics.KEYFRAME_REQUEST_QOS)

@@ -16,6 +16,11 @@ The board validates every message (schema, known and live robot, version, turn, 
 applies valid choices with ``MissionState.step``; anything else is rejected with a logged reason
 (also published on ``/hmrta/rejections``) and never changes the board.
 
+Method: the mission's method (``method``) fixes the state machine's rules. With ``portfolio`` (the
+default) the board simulates the candidates on its mission at the start and runs the one of the
+shortest makespan (:func:`hmrta.methods.choose_live`), named in the mission (e.g.
+``rl@coalition-team``) for the agents; restarted on its journal, it keeps the journal's method.
+
 Time: the board follows the mission clock (``clock_topic``, default ``/hmrta/clock``, driven by
 ``sim_robot``: as fast as possible, or paced by the system clock for real robots; another node's
 ``/clock`` moves nothing). It releases a decision only when
@@ -66,6 +71,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 import time
 from functools import partial
@@ -82,6 +88,7 @@ from visualization_msgs.msg import MarkerArray
 
 from hmrta.board import BoardState, JournalError, MissionBoard, TokenBucket, View, read_journal  # noqa: F401  (BoardState: re-exported)
 from hmrta.core import STATUS_NAMES
+from hmrta.deps import MissingDependency, require
 from hmrta.formats import load_instance
 from hmrta.instance import InstanceError
 from hmrta.keys import Verifier, load_keystore
@@ -94,6 +101,7 @@ from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mis
                                  choice_from_msg, clock_from_msg, keyframe_request_from_msg, markers_to_msg,
                                  mission_to_msg, pose_from_msg, rejection_to_msg, request_id_of, result_to_msg,
                                  status_from_msg, task_event_to_msg, task_request_from_msg)
+from hmrta_msgs_py.console import signals_deferred
 from hmrta_msgs_py.runtime import closest, declare_method_parameters, spin_nodes, starting
 
 
@@ -159,14 +167,6 @@ class TaskBoard(Node):
         if not frame_id:
             raise ValueError("frame_id: expected the frame of the mission's coordinates (e.g. map), got ''")
         self.inst = inst = load_instance(path)
-        if chooses(self.method):  # portfolio: the live method the mission runs, chosen here; the
-            # mission names the chosen candidate's spec (e.g. rl@coalition-team)
-            spec, (self.method, method_opts) = self._choose(inst, method_opts, journal)
-        else:
-            spec = self.method
-        rules = method_rules(self.method, **method_opts)  # from the checkpoint's config: no torch here
-        if real_time:
-            rules = dataclasses.replace(rules, backdate=False)
         A = inst.n_agents
         names = names or [f"robot_{a}" for a in range(A)]
         if len(names) != A:
@@ -189,6 +189,14 @@ class TaskBoard(Node):
             verifier = Verifier(load_keystore(keystore))
         else:
             verifier = None
+        if chooses(self.method):  # portfolio: the live method the mission runs, chosen here (once every
+            # parameter is checked); the mission names the chosen candidate's spec (e.g. rl@coalition-team)
+            spec, (self.method, method_opts) = self._choose(inst, method_opts, journal)
+        else:
+            spec = self.method
+        rules = method_rules(self.method, **method_opts)  # from the checkpoint's config: no torch here
+        if real_time:
+            rules = dataclasses.replace(rules, backdate=False)
         self.board = MissionBoard(inst, names, seed=self.seed, rules=rules, method=spec, verifier=verifier,
                                   tolerance=tolerance / scale, scale=scale, leg_timeout_factor=leg_timeout_factor,
                                   leg_timeout_floor=leg_timeout_floor, heartbeat_timeout=heartbeat_timeout,
@@ -229,7 +237,7 @@ class TaskBoard(Node):
         self.create_subscription(String, T.status, self.on_status, _deeper(topics.STATUS_QOS, queue_depth))
         self.create_subscription(Clock, clock_topic, self.on_clock, topics.CLOCK_QOS)
         # another board's mission in this namespace (its latched message): two missions would mix
-        self.create_subscription(String, T.mission, self.on_other_mission, topics.MISSION_QOS)
+        self.create_subscription(String, T.mission, self.on_other_mission, topics.MISSION_SUB_QOS)
         self.refusal: str | None = None  # why this board stopped at start (another mission in its namespace)
         self.refused = Future()  # done when it stopped so (whatever exit_on_done says)
         self._other_warned = -math.inf
@@ -434,6 +442,14 @@ class TaskBoard(Node):
             spec = header["method"]
             self.get_logger().info(f"method {asked}: {spec}, as chosen when the mission started (journal {journal})")
         else:
+            # the learned candidates' rollouts on one thread (torch's own choice, a thread per core,
+            # collapses on a busy CPU): torch reads it when the first candidate loads it
+            os.environ.setdefault("OMP_NUM_THREADS", "1")
+            with signals_deferred():  # torch's import, if installed: a signal inside it would abort in C++
+                try:
+                    require("torch", "the portfolio's learned candidates")
+                except MissingDependency:  # the portfolio leaves them out, and says why
+                    pass
             self.get_logger().info(f"method {asked}: simulating the candidates on mission {inst.name} ...")
             t0 = time.monotonic()
             spec, _, scores = choose_live(inst, asked, self.seed, **options)

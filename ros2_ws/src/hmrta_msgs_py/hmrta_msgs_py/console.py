@@ -9,10 +9,12 @@ while a node loads its mission or policy (:func:`hmrta_msgs_py.runtime.starting`
 is running handles Ctrl-C itself (:func:`hmrta_msgs_py.runtime.spin_nodes`)."""
 from __future__ import annotations
 
+import contextlib
 import importlib
 import signal
 import sys
 import threading
+from typing import Iterator
 
 # the Ctrl-Cs received since start-up began: a library that catches what an import raises (an
 # optional C extension's ImportError, a bare except) may swallow the KeyboardInterrupt of one,
@@ -20,9 +22,29 @@ import threading
 INTERRUPTED: list[int] = []
 
 
+_DEFERRED = [0]  # open signals_deferred() blocks
+
+
 def _noted(sig: int, frame) -> None:
     INTERRUPTED.append(sig)
+    if _DEFERRED[0]:
+        return  # raised when the block ends (signals_deferred)
     raise KeyboardInterrupt  # as Python's own handler does for SIGINT (SIGTERM: the same path, said apart)
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Within it, a start-up signal (Ctrl-C, SIGTERM) is noted and raised as KeyboardInterrupt
+    only when the block ends: for work a KeyboardInterrupt must not cut short, such as torch's
+    import, which aborts the whole process in C++ ("terminate called after throwing ...") when
+    one is raised inside it. Keep such blocks short: the signal waits for them."""
+    _DEFERRED[0] += 1
+    try:
+        yield
+    finally:
+        _DEFERRED[0] -= 1
+    if INTERRUPTED and not _DEFERRED[0] and signal.getsignal(signal.SIGINT) is _noted:
+        raise KeyboardInterrupt
 
 
 def run(prog: str, module: str, func: str = "main") -> None:

@@ -151,9 +151,10 @@ def method_parameters() -> tuple[Param, ...]:
     :func:`hmrta_msgs_py.runtime.declare_method_parameters` (ROS has no None: '' / 0)."""
     from hmrta.methods import help_text, mission_methods, node_options
 
-    out = [Param("method", STRING, "greedy", help_text(mission_methods()) + "; rl-sN = rl-sample with N samples; "
-                 "portfolio: the task board chooses at the start and publishes the one chosen, which agents "
-                 "started with portfolio run")]
+    out = [Param("method", STRING, "portfolio", help_text(mission_methods()) + "; rl-sN = rl-sample with N samples; "
+                 "on a node, portfolio (the default): the task board chooses at the start and publishes the one "
+                 "chosen as the mission's method; an agent started with portfolio runs the mission's method, "
+                 "whatever it is")]
     for o in node_options().values():
         default = o.default if o.default is not None else {str: "", int: 0, float: 0.0}[o.type]
         out.append(Param(o.name, _TYPES[o.type], default, o.help))

@@ -128,6 +128,11 @@ def _qos(depth: int, reliable: bool = True, latched: bool = False) -> QoSProfile
 # keyframe, mission and result: reliable + transient local, depth 1 (late joiners get the latest)
 LATCHED_QOS = _qos(1, latched=True)
 KEYFRAME_QOS = MISSION_QOS = RESULT_QOS = LATCHED_QOS
+# a mission reader keeps every mission message that arrives before it runs: two boards' latched
+# missions in one mission namespace (the later-created one gives way: both must be heard), or
+# another board's and its own, which reach a board that matched the other's publisher while it
+# was still starting (a portfolio's simulation) at the same moment; depth 1 kept only the last
+MISSION_SUB_QOS = _qos(10, latched=True)
 # the board stream: every version in order, reliable with a deep history, so that a reader that
 # falls behind for a while loses nothing (a version it still misses is a gap: it asks for a
 # keyframe). Volatile: a late reader gets no history it could mistake for the present; it starts
