@@ -642,6 +642,12 @@ class MissionBoard(BoardCore):
         mine = self._mission_header()
         for k in ("instance_sha256", "robots", "seed", "method", "rules"):
             if header.get(k) != mine[k]:
+                if k in ("method", "rules"):  # the same mission, another method: resume it under its own
+                    raise JournalError(
+                        f"{path}: the mission ran method {header.get('method')!r} and its journal resumes it only "
+                        f"under that method ({k} differs: {header.get(k)!r} in the journal, {mine[k]!r} now): "
+                        f"restart the board with -p method:=portfolio (the default: it takes the journal's method) "
+                        f"or -p method:={header.get('method')}; a new mission needs another journal path")
                 raise JournalError(f"{path}: written for another mission ({k} differs: {header.get(k)!r} in the "
                                    f"journal, {mine[k]!r} now); remove it or give another journal path")
         self.session = str(header["session"])
@@ -1569,7 +1575,8 @@ class MissionBoard(BoardCore):
                 f"{sol.extra.get('failure') or 'the mission did not succeed'}; {len(never)} of {st.A} robot(s) "
                 f"never reported within the start-up timeout ({self.startup_timeout:g} s): "
                 f"{', '.join(never[:5])}{', ...' if len(never) > 5 else ''} (is sim_robot or the robots' driver "
-                f"running, and an agent for each robot, on this ROS domain?)")
+                f"running, and an agent for each robot, on this ROS domain? An agent that refuses the mission's method "
+                f"exits 2 and says why in its log)")
         return sol
 
     def close(self) -> None:

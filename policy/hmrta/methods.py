@@ -380,6 +380,14 @@ def choose_live(inst, method: str, seed: int = 0, progress: Callable | None = No
     return chosen, opts, scores
 
 
+def live_label(name: str, options: dict[str, Any]) -> str:
+    """How a live method is named in a mission (the board's ``method``): its name, with
+    ``@CHECKPOINT`` when a checkpoint is given (``rl@broad``, ``rl@/path/x.pt``), so that agents
+    can tell that they run the mission's method and network (:func:`adopt` reads it back)."""
+    ck = options.get("checkpoint")
+    return f"{name}@{ck}" if ck else name
+
+
 def chooses(method: str) -> bool:
     """Whether ``method`` (a spec) chooses a live method per mission (portfolio) instead of
     having a per-decision form of its own."""

@@ -50,6 +50,10 @@ def candidate_methods(candidates: str | None) -> list[str]:
         try:
             name, _ = methods.parse(c)
         except MethodError as e:
+            if "unknown method" in str(e):  # (the candidates are the live methods, not every method)
+                raise MethodError(f"portfolio: option candidates: unknown method {c.partition('@')[0]!r} (expected "
+                                  f"one of {', '.join(methods.live_methods())}, or rl-sN; METHOD@CHECKPOINT for "
+                                  f"an rl method with a checkpoint of its own)") from None
             raise MethodError(f"portfolio: option candidates: {e}") from None
         if methods.get(name).decide is None:
             raise MethodError(f"portfolio: option candidates: {c} cannot be a candidate (it has no per-decision "
@@ -111,9 +115,18 @@ def choose(results: dict[str, Solution]) -> str:
 
 def select(inst: Instance, seed: int = 0, checkpoint: str | None = None, candidates: str | None = None,
            progress: Callable[..., None] | None = None) -> tuple[str, dict[str, float]]:
-    """(the method to run the mission with, makespan of every candidate on the initial view). With
-    no task known at time 0 every candidate's makespan is 0 and the first listed that can run is
-    chosen. Default candidates left out are logged as a warning (a live mission has no summary)."""
+    """(the method to run a live mission with, makespan of every candidate on the initial view).
+    A candidate whose live form is not the one simulated (rl-sN: live, one sampled decision per
+    turn) is refused. With no task known at time 0 every candidate's makespan is 0 and the first
+    listed that can run is chosen. Default candidates left out are logged as a warning (a live
+    mission has no summary)."""
+    from . import methods
+
+    for c in candidate_methods(candidates):  # what the choice simulates is what runs live
+        if methods.parse(c)[0] == "rl-sample":
+            raise MethodError(f"portfolio: option candidates: {c} cannot be a candidate of a live mission: live, "
+                              f"rl-sample decodes one sampled decision per turn, not the best of several rollouts "
+                              f"that the choice would simulate (rl, its greedy decoding, can)")
     left_out: dict[str, str] = {}
     results = evaluate(inst, seed, checkpoint, candidates, left_out, progress)
     for c, why in left_out.items():

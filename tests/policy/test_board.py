@@ -502,6 +502,17 @@ def test_a_journal_of_another_mission_is_refused(tmp_path):
         started_board(journal=j)
 
 
+def test_a_journal_resumed_under_another_method_says_how_to_resume_it(tmp_path):
+    """The same mission restarted with another method: the journal is not another mission's (the
+    old text said to remove it, losing the mission); the error says which method resumes it."""
+    j = tmp_path / "journal.jsonl"
+    started_board(journal=j, method="greedy").poll()
+    with pytest.raises(JournalError) as e:
+        MissionBoard(INST, seed=SEED, rules=RULES, method="greedy-coalition", wait_for_robots=False, journal=j)
+    assert "-p method:=portfolio" in str(e.value) and "-p method:=greedy;" in str(e.value)
+    assert "another mission" not in str(e.value) and "remove it" not in str(e.value)
+
+
 def test_journal_lines_validate_against_the_schema(tmp_path):
     from test_schemas import assert_valid
 

@@ -249,6 +249,15 @@ def test_portfolio_is_the_best_candidate_and_resolves_to_a_live_method():
         methods.solve(inst, "portfolio", candidates="greedy,portfolio")
     with pytest.raises(MethodError, match="method cpsat has no per-decision form"):
         methods.resolve(inst, "cpsat")
+    # live, rl-sN makes one sampled decision per turn, not the best of N rollouts the choice would
+    # simulate: offline it is a candidate, live it is refused
+    assert methods.solve(inst, "portfolio", candidates="rl-s2,greedy").extra["portfolio"]["chosen"]
+    with pytest.raises(MethodError, match="rl-s2 cannot be a candidate of a live mission"):
+        methods.choose_live(inst, "portfolio", candidates="rl-s2,greedy")
+    with pytest.raises(MethodError) as e:  # an unknown candidate: the expected values are live methods
+        methods.choose_live(inst, "portfolio", candidates="greedy,bogus")
+    assert "unknown method 'bogus'" in str(e.value) and "cpsat" not in str(e.value) and "rl-lookahead" in str(e.value)
+    assert (methods.live_label("rl", {"checkpoint": "broad"}), methods.live_label("greedy", {})) == ("rl@broad", "greedy")
 
 
 def test_portfolio_compute_time_leaves_out_model_loading(monkeypatch, tmp_path):

@@ -64,3 +64,28 @@ def test_an_agent_started_with_portfolio_runs_the_method_its_board_chose(graph):
     other = _agent(graph, "portfolio")
     other.join(mission("cpsat", GREEDY_RULES))  # offline only: no per-decision form
     assert other.mission is None and "cpsat" in other.refusal and "per-decision" in other.refusal
+
+
+def test_an_agent_with_its_own_method_refuses_a_mission_of_another_method_under_the_same_rules(graph):
+    """greedy-coalition runs under the rules of rl with the coalition-team checkpoint: the rules
+    check let such an agent run greedy-coalition in an rl@coalition-team mission, unnoticed (the
+    result named rl@coalition-team). The agent compares the method and its checkpoint file too."""
+    from hmrta.methods import rules as method_rules
+
+    team = method_rules("rl", checkpoint="coalition-team")
+    assert method_rules("greedy-coalition") == team  # (what let it through)
+
+    def mission(method: str) -> Mission:
+        return mission_from_msg(mission_to_msg(dataclasses.replace(_mission(team), method=method)))
+
+    gc = _agent(graph, "greedy-coalition")
+    gc.join(mission("rl@coalition-team"))
+    assert gc.mission is None and "runs rl@coalition-team" in gc.refusal and "method:=portfolio" in gc.refusal
+    same = _agent(graph, "greedy-coalition")
+    same.join(mission("greedy-coalition"))
+    assert same.mission is not None and same.refusal is None
+    from hmrta.rl.checkpoint_info import checkpoint_path
+
+    by_path = _agent(graph, "rl@coalition-team")  # the board names it by path: the same file
+    by_path.join(mission(f"rl@{checkpoint_path('coalition-team')}"))
+    assert by_path.mission is not None and by_path.refusal is None

@@ -263,6 +263,8 @@ def test_a_board_started_with_portfolio_chooses_and_agents_started_with_it_run_t
     result = json.loads((tmp_path / "result.json").read_text())
     assert result["method"] == "rl@broad" and result["lost_robots"] == [] and result["board_restarts"] == 1
     assert_same_as_offline(result, inst, 3, ref=ref)
+    # what was chosen and the network that ran, as offline (the restarted board: from its journal)
+    assert result["checkpoint"]["sha256"] == ref.extra["checkpoint"]["sha256"]
     agent_logs = "".join(a.log.read_text() for a in procs.agents)
     assert agent_logs.count("running rl@broad, the board's choice") == inst.n_agents, agent_logs[-2000:]
 

@@ -226,7 +226,8 @@ def test_agents_that_refuse_to_take_part_exit_2(tmp_path, start):
                                "-p", "method:=random", name="joining"),
               "index": start("agent_node", "--ros-args", "-p", "robot:=robot_3", "-p", "index:=5", name="index")}
     says = {"species": "robot 'robot_0' is species 1 but the mission lists it as species 0: not taking part",
-            "rules": "robot_1: method random runs under rules", "joining": "robot_new: method random runs under",
+            "rules": "robot_1: method random but mission example runs rl@coalition-team",  # (the board's choice)
+            "joining": "robot_new: method random but mission example runs",
             "index": "robot 'robot_3' (index 5) is not in mission example"}
     for k, p in agents.items():
         assert p.proc.wait(timeout=60) == 2, (k, p.text())

@@ -70,7 +70,8 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
 from hmrta.keys import KeystoreError, Signer, load_key_file, load_keystore
-from hmrta.methods import MethodError, adopt, chooses, decider
+from hmrta.methods import MethodError, adopt, chooses, decider, live_label
+from hmrta.methods import get as get_method
 from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.console import signals_deferred
@@ -632,6 +633,26 @@ class AgentNode(Node):
         self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "
                                f"{mission.instance.name}, method {self.method}")
 
+    def _same_method(self, mission: Mission) -> bool:
+        """Whether this agent's own method is the mission's: the same method, and for a method
+        that takes a checkpoint the same checkpoint file (by content: a shipped name, a path here
+        and the board's path to a copy of it are one network)."""
+        try:
+            name, theirs = adopt(mission.method, {})
+        except MethodError:
+            return False
+        if name != self.method:
+            return False
+        a, b = theirs.get("checkpoint"), self.options.get("checkpoint")
+        if get_method(name).option("checkpoint") is None or a == b:
+            return True
+        from hmrta.rl.checkpoint_info import checkpoint_path, sha256  # (torch-free)
+
+        try:
+            return sha256(checkpoint_path(a)) == sha256(checkpoint_path(b))
+        except (MethodError, OSError):  # the board's checkpoint is not a file here
+            return False
+
     def _adopt(self, mission: Mission) -> str | None:
         """An agent started with a method that chooses per mission (portfolio): run the mission's
         method (the board's choice, e.g. ``rl@coalition-team``) with this agent's options that it
@@ -654,6 +675,10 @@ class AgentNode(Node):
             why = self._adopt(mission)
             if why is not None:
                 return why
+        elif not self._same_method(mission):
+            return (f"{self.robot}: method {live_label(self.method, self.options)} but mission "
+                    f"{mission.instance.name} runs {mission.method}: not taking part; start this agent with "
+                    f"-p method:=portfolio (the default: it runs the mission's method) or -p method:={mission.method}")
         theirs, mine = mission.rules.to_dict(), self.rules.to_dict()  # the codec requires and checks them
         theirs.pop("backdate", None), mine.pop("backdate", None)
         if theirs == mine:

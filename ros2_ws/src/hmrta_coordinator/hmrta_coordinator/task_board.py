@@ -92,7 +92,7 @@ from hmrta.deps import MissingDependency, require
 from hmrta.formats import load_instance
 from hmrta.instance import InstanceError
 from hmrta.keys import Verifier, load_keystore
-from hmrta.methods import MethodError, adopt, choose_live, chooses
+from hmrta.methods import MethodError, adopt, choose_live, chooses, live_label
 from hmrta.methods import rules as method_rules
 from hmrta.reading import short
 from hmrta_msgs_py import topics
@@ -189,11 +189,14 @@ class TaskBoard(Node):
             verifier = Verifier(load_keystore(keystore))
         else:
             verifier = None
+        self.choice: dict[str, Any] | None = None  # what a portfolio chose, and its candidates' makespans
         if chooses(self.method):  # portfolio: the live method the mission runs, chosen here (once every
-            # parameter is checked); the mission names the chosen candidate's spec (e.g. rl@coalition-team)
-            spec, (self.method, method_opts) = self._choose(inst, method_opts, journal)
-        else:
-            spec = self.method
+            # parameter is checked)
+            self.method, method_opts = self._choose(inst, method_opts, journal)
+        # the mission names its method with its checkpoint (rl@coalition-team): an agent with another
+        # method or network refuses it, an agent started with portfolio runs it
+        spec = live_label(self.method, method_opts)
+        self._checkpoint = _checkpoint_of(self.method, method_opts)
         rules = method_rules(self.method, **method_opts)  # from the checkpoint's config: no torch here
         if real_time:
             rules = dataclasses.replace(rules, backdate=False)
@@ -431,10 +434,9 @@ class TaskBoard(Node):
         if self.board.pose(a, x, y):  # a pose repeated (heartbeat) changes nothing to publish
             self._flush()
 
-    def _choose(self, inst, options: dict[str, Any], journal: str) -> tuple[str, tuple[str, dict[str, Any]]]:
-        """(the chosen candidate's spec, e.g. ``rl@coalition-team``, (the live method, its options))
-        of a board started with a method that chooses per mission (portfolio). The spec is published
-        as the mission's method, so that agents started with the same method run it. A board
+    def _choose(self, inst, options: dict[str, Any], journal: str) -> tuple[str, dict[str, Any]]:
+        """(the live method, its options) of a board started with a method that chooses per mission
+        (portfolio): the candidate of the shortest makespan (``self.choice`` records it). A board
         restarted on its journal takes the method its mission ran (never a new choice mid-mission)."""
         asked = self.method
         header = read_journal(journal)[0] if journal else None
@@ -456,7 +458,8 @@ class TaskBoard(Node):
             self.get_logger().info(
                 f"method {asked}: chose {spec} in {time.monotonic() - t0:.1f} s (makespans: "
                 + ", ".join(f"{c} {v:.2f}" for c, v in scores.items()) + ")")
-        return spec, adopt(spec, options)
+            self.choice = {"chosen": spec, "candidates": scores}
+        return adopt(spec, options)
 
     # seconds a board that first heard another mission's clock waits (following no clock), once
     # its mission has started, before it stops: its own sim_robot's clock may still come (the
@@ -547,10 +550,17 @@ class TaskBoard(Node):
 
     # ------------------------------------------------------------------------------------------
     def result(self):
-        return self.board.result()
+        """The board's result, with what a portfolio chose (as offline) and the checkpoint the
+        mission's method runs (path and sha256, as offline), for a method that takes one."""
+        sol = self.board.result()
+        if self.choice is not None:
+            sol.extra["portfolio"] = dict(self.choice)
+        if self._checkpoint is not None:
+            sol.extra["checkpoint"] = dict(self._checkpoint)
+        return sol
 
     def _finish(self) -> None:
-        sol = self.board.result()
+        sol = self.result()
         self.failure = None if sol.success else str(sol.extra.get("failure") or "the mission did not succeed")
         if self.output:
             sol.save(self.output)
@@ -633,6 +643,19 @@ class TaskBoard(Node):
         self.board.close()
         if not self.done.done():
             self.done.set_result(True)
+
+
+def _checkpoint_of(method: str, options: dict[str, Any]) -> dict[str, str] | None:
+    """{path, sha256} of the checkpoint ``method`` runs (its ``checkpoint`` option, else the
+    default), as an offline solution records it; None for a method that takes none."""
+    from hmrta.methods import get
+
+    if get(method).option("checkpoint") is None:
+        return None
+    from hmrta.rl.checkpoint_info import checkpoint_path, sha256  # (torch-free)
+
+    path = checkpoint_path(options.get("checkpoint"))
+    return {"path": str(path), "sha256": sha256(path)}
 
 
 def _pose_types(items: list[str]) -> dict[str, str]:

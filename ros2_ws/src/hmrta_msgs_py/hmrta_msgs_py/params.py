@@ -155,9 +155,13 @@ def method_parameters() -> tuple[Param, ...]:
                  "on a node, portfolio (the default): the task board chooses at the start and publishes the one "
                  "chosen as the mission's method; an agent started with portfolio runs the mission's method, "
                  "whatever it is")]
+    from hmrta.methods import live_options
+
+    live = live_options()
     for o in node_options().values():
         default = o.default if o.default is not None else {str: "", int: 0, float: 0.0}[o.type]
-        out.append(Param(o.name, _TYPES[o.type], default, o.help))
+        note = "" if o.name in live else " (task_board only: an agent runs the method its board chose)"
+        out.append(Param(o.name, _TYPES[o.type], default, o.help + note))
     return tuple(out)
 
 

@@ -205,6 +205,9 @@ def parameter_type_text(text: str) -> str:
     out = f"{name}: expected {wanted}, got {value} ({_PARAM_TYPES.get(got, got.lower())})"
     if want == "DOUBLE" and got == "INTEGER":  # ROS reads 10 as an integer
         out += f"; write it with a decimal point: -p {name}:={value}.0"
+    elif want == "STRING" and got.endswith("_ARRAY"):  # a YAML list for a text parameter
+        items = [x.strip().strip("'\"") for x in value.strip("[]").split(",") if x.strip()]
+        out += f"; a list here is comma-separated text: -p {name}:={','.join(items)}"
     elif want == "STRING":  # YAML typed it
         out += f"; quote it to pass it as text: -p '{name}:=\"{value}\"'"
     elif want == "STRING_ARRAY" and got.endswith("_ARRAY"):
