@@ -684,8 +684,9 @@ class AgentNode(Node):
         if theirs == mine:
             return None
         return (f"{self.robot}: method {self.method} runs under rules {mine} but mission {mission.instance.name} "
-                f"runs under {theirs} (method {mission.method}): not taking part; start this agent with the "
-                "mission's method and checkpoint")
+                f"runs under {theirs} (method {mission.method}): not taking part; start this agent with "
+                f"-p method:=portfolio (the default: it runs the mission's method) or the mission's method and "
+                f"checkpoint")
 
     def act(self, board, t_recv: float) -> None:
         """Follow the board (the header of the replica's version): queue this robot's new legs,
