@@ -383,6 +383,19 @@ def read_journal(path: str | os.PathLike) -> tuple[dict[str, Any] | None, list[d
     return header, records, good, dropped
 
 
+def journal_header(path: str | os.PathLike) -> dict[str, Any] | None:
+    """The header of the journal at ``path`` (its first line) without reading the versions after
+    it; None when there is no such file or its first line is no intact header (:func:`read_journal`,
+    which a board resuming it runs, says what is wrong)."""
+    try:
+        with open(path, "rb") as f:
+            first = f.readline()
+        header = json.loads(first) if first.endswith(b"\n") else None
+    except (OSError, ValueError):
+        return None
+    return header if isinstance(header, dict) and header.get("format") == JOURNAL_FORMAT else None
+
+
 class Journal:
     """Append-only JSON lines; :meth:`append` writes one line, flushes it and (``sync``) fsyncs."""
 

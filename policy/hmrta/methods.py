@@ -175,12 +175,16 @@ def _resolve(target: str | Callable) -> Any:
     return getattr(importlib.import_module(module), attr)
 
 
+class UnknownMethod(MethodError):
+    """A method name that is not in :data:`METHODS` (nor a shorthand of one)."""
+
+
 def get(name: str) -> Method:
-    """The record of ``name`` (not a shorthand), or MethodError listing the known names."""
+    """The record of ``name`` (not a shorthand), or UnknownMethod listing the known names."""
     try:
         return METHODS[name]
     except KeyError:
-        raise MethodError(f"unknown method {name!r} (expected one of {', '.join(METHODS)}, or rl-sN)") from None
+        raise UnknownMethod(f"unknown method {name!r} (expected one of {', '.join(METHODS)}, or rl-sN)") from None
 
 
 def parse(spec: str) -> tuple[str, dict[str, Any]]:
@@ -360,7 +364,7 @@ def resolve(inst, method: str, seed: int = 0, progress: Callable | None = None,
         raise MethodError(f"method {name} has no per-decision form (live missions run: "
                           f"{', '.join(mission_methods())})")
     chosen, opts, scores = choose_live(inst, method, seed, progress, **options)
-    return (*live_spec(chosen, opts), scores)
+    return (*adopt(chosen, opts), scores)
 
 
 def choose_live(inst, method: str, seed: int = 0, progress: Callable | None = None,
@@ -400,13 +404,22 @@ def adopt(spec: str, options: dict[str, Any]) -> tuple[str, dict[str, Any]]:
     (``rl@broad``) wins; the agent's other options that the chosen method takes apply (its
     ``checkpoint``, as the board's applied to the candidates); the rest are the chooser's and are
     dropped. MethodError for a spec that is no live method."""
-    name, implied = parse(spec)
-    m = get(name)
-    if m.decide is None:
+    if get(parse(spec)[0]).decide is None:
         raise MethodError(f"the mission's method {spec} has no per-decision form (live methods: "
                           f"{', '.join(live_methods())})")
-    taken = {k: v for k, v in options.items() if m.option(k) is not None and m.option(k).live}
-    return live_spec(spec, taken)
+    return live_spec(spec, options)  # (of the options, those the method takes)
+
+
+def checkpoint_of(name: str, options: dict[str, Any]) -> dict[str, str] | None:
+    """``{path, sha256}`` of the checkpoint live method ``name`` runs with ``options`` (its
+    ``checkpoint``, else the default), as an offline solution records it; None for a method that
+    takes none. CheckpointError (a MethodError) when it is not a file here. Torch-free."""
+    if get(name).option("checkpoint") is None:
+        return None
+    from .rl.checkpoint_info import checkpoint_path, sha256
+
+    path = checkpoint_path(options.get("checkpoint"))
+    return {"path": str(path), "sha256": sha256(path)}
 
 
 def live_spec(spec: str, shared: dict[str, Any]) -> tuple[str, dict[str, Any]]:

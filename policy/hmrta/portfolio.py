@@ -49,11 +49,11 @@ def candidate_methods(candidates: str | None) -> list[str]:
     for c in names:
         try:
             name, _ = methods.parse(c)
+        except methods.UnknownMethod:  # (the candidates are the live methods, not every method)
+            raise MethodError(f"portfolio: option candidates: unknown method {c.partition('@')[0]!r} (expected "
+                              f"one of {', '.join(methods.live_methods())}, or rl-sN; METHOD@CHECKPOINT for "
+                              f"an rl method with a checkpoint of its own)") from None
         except MethodError as e:
-            if "unknown method" in str(e):  # (the candidates are the live methods, not every method)
-                raise MethodError(f"portfolio: option candidates: unknown method {c.partition('@')[0]!r} (expected "
-                                  f"one of {', '.join(methods.live_methods())}, or rl-sN; METHOD@CHECKPOINT for "
-                                  f"an rl method with a checkpoint of its own)") from None
             raise MethodError(f"portfolio: option candidates: {e}") from None
         if methods.get(name).decide is None:
             raise MethodError(f"portfolio: option candidates: {c} cannot be a candidate (it has no per-decision "

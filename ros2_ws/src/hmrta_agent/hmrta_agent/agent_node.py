@@ -70,8 +70,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
 from hmrta.keys import KeystoreError, Signer, load_key_file, load_keystore
-from hmrta.methods import MethodError, adopt, chooses, decider, live_label
-from hmrta.methods import get as get_method
+from hmrta.methods import MethodError, adopt, checkpoint_of, chooses, decider, live_label
 from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.console import signals_deferred
@@ -639,19 +638,14 @@ class AgentNode(Node):
         and the board's path to a copy of it are one network)."""
         try:
             name, theirs = adopt(mission.method, {})
-        except MethodError:
+            if name != self.method:
+                return False
+            if theirs.get("checkpoint") == self.options.get("checkpoint"):  # (named alike: no file read)
+                return True
+            a, b = checkpoint_of(name, theirs), checkpoint_of(name, self.options)
+        except (MethodError, OSError):  # (the board's checkpoint is not a file here)
             return False
-        if name != self.method:
-            return False
-        a, b = theirs.get("checkpoint"), self.options.get("checkpoint")
-        if get_method(name).option("checkpoint") is None or a == b:
-            return True
-        from hmrta.rl.checkpoint_info import checkpoint_path, sha256  # (torch-free)
-
-        try:
-            return sha256(checkpoint_path(a)) == sha256(checkpoint_path(b))
-        except (MethodError, OSError):  # the board's checkpoint is not a file here
-            return False
+        return a is None or a["sha256"] == b["sha256"]
 
     def _adopt(self, mission: Mission) -> str | None:
         """An agent started with a method that chooses per mission (portfolio): run the mission's

@@ -71,7 +71,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import sys
 import time
 from functools import partial
@@ -86,13 +85,13 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from hmrta.board import BoardState, JournalError, MissionBoard, TokenBucket, View, read_journal  # noqa: F401  (BoardState: re-exported)
+from hmrta.board import BoardState, JournalError, MissionBoard, TokenBucket, View, journal_header  # noqa: F401  (BoardState: re-exported)
 from hmrta.core import STATUS_NAMES
 from hmrta.deps import MissingDependency, require
 from hmrta.formats import load_instance
 from hmrta.instance import InstanceError
 from hmrta.keys import Verifier, load_keystore
-from hmrta.methods import MethodError, adopt, choose_live, chooses, live_label
+from hmrta.methods import MethodError, adopt, checkpoint_of, choose_live, chooses, live_label
 from hmrta.methods import rules as method_rules
 from hmrta.reading import short
 from hmrta_msgs_py import topics
@@ -196,7 +195,7 @@ class TaskBoard(Node):
         # the mission names its method with its checkpoint (rl@coalition-team): an agent with another
         # method or network refuses it, an agent started with portfolio runs it
         spec = live_label(self.method, method_opts)
-        self._checkpoint = _checkpoint_of(self.method, method_opts)
+        self._checkpoint = checkpoint_of(self.method, method_opts)
         rules = method_rules(self.method, **method_opts)  # from the checkpoint's config: no torch here
         if real_time:
             rules = dataclasses.replace(rules, backdate=False)
@@ -439,17 +438,14 @@ class TaskBoard(Node):
         (portfolio): the candidate of the shortest makespan (``self.choice`` records it). A board
         restarted on its journal takes the method its mission ran (never a new choice mid-mission)."""
         asked = self.method
-        header = read_journal(journal)[0] if journal else None
+        header = journal_header(journal) if journal else None
         if header is not None and isinstance(header.get("method"), str):
             spec = header["method"]
             self.get_logger().info(f"method {asked}: {spec}, as chosen when the mission started (journal {journal})")
         else:
-            # the learned candidates' rollouts on one thread (torch's own choice, a thread per core,
-            # collapses on a busy CPU): torch reads it when the first candidate loads it
-            os.environ.setdefault("OMP_NUM_THREADS", "1")
             with signals_deferred():  # torch's import, if installed: a signal inside it would abort in C++
-                try:
-                    require("torch", "the portfolio's learned candidates")
+                try:  # the learned candidates' rollouts on one thread (torch's own choice collapses on a busy CPU)
+                    require("torch", "the portfolio's learned candidates").set_num_threads(1)
                 except MissingDependency:  # the portfolio leaves them out, and says why
                     pass
             self.get_logger().info(f"method {asked}: simulating the candidates on mission {inst.name} ...")
@@ -643,19 +639,6 @@ class TaskBoard(Node):
         self.board.close()
         if not self.done.done():
             self.done.set_result(True)
-
-
-def _checkpoint_of(method: str, options: dict[str, Any]) -> dict[str, str] | None:
-    """{path, sha256} of the checkpoint ``method`` runs (its ``checkpoint`` option, else the
-    default), as an offline solution records it; None for a method that takes none."""
-    from hmrta.methods import get
-
-    if get(method).option("checkpoint") is None:
-        return None
-    from hmrta.rl.checkpoint_info import checkpoint_path, sha256  # (torch-free)
-
-    path = checkpoint_path(options.get("checkpoint"))
-    return {"path": str(path), "sha256": sha256(path)}
 
 
 def _pose_types(items: list[str]) -> dict[str, str]:

@@ -76,15 +76,15 @@ def quiet_half_built_loggers() -> None:
     printing "Exception ignored in ... Traceback" after the one line that says the process was
     stopped. Such failures of rclpy's logger finalizer are not reported; every other unraisable
     exception is, as before."""
-    default = sys.unraisablehook
+    if sys.unraisablehook is not _quiet_unraisable:
+        _quiet_unraisable.previous = sys.unraisablehook
+        sys.unraisablehook = _quiet_unraisable
 
-    def hook(u) -> None:
-        if getattr(u.object, "__qualname__", "") == "RcutilsLogger.__del__" and isinstance(u.exc_value, AttributeError):
-            return
-        default(u)
 
-    if getattr(sys.unraisablehook, "__name__", "") != "hook" or sys.unraisablehook.__module__ != __name__:
-        sys.unraisablehook = hook
+def _quiet_unraisable(u) -> None:
+    if getattr(u.object, "__qualname__", "") == "RcutilsLogger.__del__" and isinstance(u.exc_value, AttributeError):
+        return
+    _quiet_unraisable.previous(u)
 
 
 def _interrupted(prog: str):

@@ -149,14 +149,12 @@ _TYPES = {str: STRING, int: INTEGER, float: DOUBLE, bool: BOOL}
 def method_parameters() -> tuple[Param, ...]:
     """``method`` and every live method option, as declared by
     :func:`hmrta_msgs_py.runtime.declare_method_parameters` (ROS has no None: '' / 0)."""
-    from hmrta.methods import help_text, mission_methods, node_options
+    from hmrta.methods import help_text, live_options, mission_methods, node_options
 
     out = [Param("method", STRING, "portfolio", help_text(mission_methods()) + "; rl-sN = rl-sample with N samples; "
                  "on a node, portfolio (the default): the task board chooses at the start and publishes the one "
                  "chosen as the mission's method; an agent started with portfolio runs the mission's method, "
                  "whatever it is")]
-    from hmrta.methods import live_options
-
     live = live_options()
     for o in node_options().values():
         default = o.default if o.default is not None else {str: "", int: 0, float: 0.0}[o.type]
