@@ -131,3 +131,30 @@ def test_a_start_up_signal_inside_a_deferred_block_is_raised_when_it_ends():
             "    print('interrupted after the block', console.INTERRUPTED == [signal.SIGTERM], flush=True)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stdout
     assert out.splitlines() == ["block finished", "interrupted after the block True"], out
+
+
+def test_a_signal_right_after_the_start_up_warnings_stops_a_running_node(tmp_path):
+    """spin_nodes warns about unknown parameters as the nodes start to spin; a supervisor (or a
+    test) that sends SIGTERM as soon as it reads that warning gets a running node's stop (the
+    stop line, exit 0), never a start-up interruption (exit 143), whatever the scheduling."""
+    (tmp_path / "warned_node.py").write_text(
+        "import os, signal\n"
+        "import rclpy\n"
+        "from hmrta_msgs_py import runtime\n"
+        "from hmrta_msgs_py.runtime import spin_nodes, starting\n"
+        "def warn(nodes):\n"  # the warnings, then the supervisor's signal at once
+        "    print('warned', flush=True)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "runtime.warn_unknown_parameters = warn\n"
+        "def main():\n"
+        "    with starting('some_node', args=['some_node']):\n"
+        "        node = rclpy.create_node('some_node', enable_rosout=False, start_parameter_services=False)\n"
+        "    sig = spin_nodes([node], stopped=lambda s: f'stopped by {s} while waiting')\n"
+        "    print('spin returned', sig, flush=True)\n"
+        "    return 0\n")
+    out = run_python("from hmrta_msgs_py.console import run; run('some_node', 'warned_node')",
+                     PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+                     ROS_DOMAIN_ID="97", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    assert out.returncode == 0, (out.returncode, out.stdout, out.stderr)
+    assert out.stdout.splitlines() == ["warned", "spin returned SIGTERM"], out.stdout
+    assert "stopped by SIGTERM while waiting" in out.stderr and "Traceback" not in out.stderr, out.stderr

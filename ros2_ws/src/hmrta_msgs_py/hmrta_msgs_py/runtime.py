@@ -292,12 +292,15 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
     executor busy-waits and ignores signals when asked to spin without a timeout."""
     global SPUN
     SPUN = True
+    # the stop handlers first: a supervisor (or a test) that signals the process as soon as it sees
+    # the warnings below must get the stop of a running node (logged, exit status 0), not a start-up
+    # interruption
+    signals = _stop_on_signals()
     warn_unknown_parameters(nodes)
     executor = make_executor()
     for n in nodes:
         executor.add_node(n)
     until = until if until is not None else Future()
-    signals = _stop_on_signals()
     try:
         while rclpy.ok() and not until.done() and "signal" not in signals:
             executor.spin_until_future_complete(until, timeout_sec=0.5)
