@@ -88,6 +88,8 @@ CHECK_GATE = False  # tests: every incremental arrival gate is compared with the
 GATE_RESCAN = 0.5  # seconds: while the arrival gate holds the mission clock, every robot is rescanned this often
 STALL_GAP = 1.0  # seconds: a watchdog tick (every 0.1 s on the node) later than this after the previous one: the board stalled
 NEVER_REPORTED = "never reported"  # why a robot silent until the start-up timeout is dropped
+REFUSED = "its agent refused the mission"  # why a robot whose agent refuses is dropped (then its reason)
+REFUSAL_CHARS = 300  # of an agent's reason, kept and logged
 LIVE_EVENTS = frozenset(("add_task", "cancel_task", "add_agent", "drop_agent"))  # journaled events from outside the mission file
 HEADER_BYTES = 330  # about the bytes of a stream header without its events (for the automatic keyframe period)
 
@@ -626,6 +628,7 @@ class MissionBoard(BoardCore):
         self._join_names: list[str] = []  # names of robots joining, given to the next added agents
         self._scenario_added = 0  # robots a scenario's add_robot events added (named robot_<A0 + k>)
         self.join_refused: dict[str, str] = {}  # robot asking to join -> why it was refused (warned once)
+        self.refusals: dict[int, str] = {}  # robot of the mission -> why its agent refuses to take part
         self._joins = TokenBucket(self.JOIN_RATE, 2 * self.JOIN_RATE, now())  # robots taken in
         self._join_slowed = False  # warned that joins come faster than JOIN_RATE
         self.robots_changed = False  # robots were added since the node last published the mission
@@ -773,11 +776,13 @@ class MissionBoard(BoardCore):
         self.rejected["malformed"] += 1
 
     def heartbeat(self, session: str, robots: Sequence[str], payload: Any = None,
-                  joining: Sequence[Any] = (), host: str = "") -> str | None:
+                  joining: Sequence[Any] = (), host: str = "", refused: Sequence[Any] = ()) -> str | None:
         """An agent heartbeat naming ``robots`` (and ``joining``: robots asking to join, objects
-        with ``robot``, ``species``, ``traits``, ``position``; see :meth:`join`) from the agent
-        process ``host``; returns a warning text when something in it is ignored, or when two
-        processes keep sending heartbeats for one robot (two agents driving it)."""
+        with ``robot``, ``species``, ``traits``, ``position``; see :meth:`join`; ``refused``:
+        robots whose agents refuse the mission, objects with ``robot`` and ``why``; see
+        :meth:`refusal`) from the agent process ``host``; returns a warning text when something
+        in it is ignored, or when two processes keep sending heartbeats for one robot (two agents
+        driving it)."""
         if session != self.session:
             return None  # agents of another mission run
         if self.verifier is not None:
@@ -796,11 +801,36 @@ class MissionBoard(BoardCore):
                 unknown.append(r)
             else:
                 self.seen_status[a] = now
+                self.refusals.pop(a, None)  # an agent that takes part after all (restarted with the right method)
                 if host:
                     warn = self._host_of(a, host, now) or warn
+        for r in refused:
+            self.refusal(r.robot, r.why)
         if not self.started:
             self._maybe_start()
         return f"heartbeat names unknown robot {unknown[0]!r}" if unknown else warn
+
+    def refusal(self, name: str, why: str) -> None:
+        """Robot ``name``'s agent refuses the mission (``why``: its reason, from its heartbeat).
+        The first reason of each robot is logged at once. Before the start, the board stops
+        waiting once the agents of every robot not lost have refused: they are dropped with their
+        reasons and the mission starts without them (and fails), instead of waiting out the
+        start-up timeout; at the timeout, a robot whose agent refused is dropped with its reason.
+        A robot whose heartbeat then lists it (an agent restarted to take part) is waited for again."""
+        a = self.index.get(name)
+        if a is None or a in self.lost or self.finished:
+            return
+        why = " ".join(str(why).split())[:REFUSAL_CHARS]  # one line, bounded (from any publisher)
+        if a not in self.refusals:
+            self.log("warning", f"robot {name!r}: its agent refuses the mission: {why}"
+                     + ("" if self.started else f" (waited for until the start-up timeout, {self.startup_timeout:g} s, "
+                                                f"for an agent that takes part)"))
+        self.refusals[a] = why
+        if not self.started and all(b in self.refusals or b in self.lost for b in range(self.state.A)):
+            self.log("warning", "the agents of every robot refuse the mission: it starts without them")
+            for b in sorted(self.refusals):
+                self.lose(b, f"{REFUSED}: {self.refusals[b]}")
+            self.start()
 
     # a robot's heartbeats going back to the process they came from before, within this many seconds
     # of the switch: both processes are alive (a restarted agent's old process has stopped)
@@ -979,7 +1009,9 @@ class MissionBoard(BoardCore):
         if not self.started:
             if self.startup_timeout > 0 and now - max(self.t_created, self._resumed) > self.startup_timeout:
                 for a in range(self.state.A):
-                    if self.seen_status[a] is None or self.seen_pose[a] is None:
+                    if a in self.refusals and self.seen_status[a] is None:
+                        self.lose(a, f"{REFUSED}: {self.refusals[a]}")
+                    elif self.seen_status[a] is None or self.seen_pose[a] is None:
                         self.lose(a, NEVER_REPORTED)
                 self.start()
             return
@@ -1582,6 +1614,12 @@ class MissionBoard(BoardCore):
             sol.extra["board_restarts"] = self.restarts
         if self.lost and alive:
             sol.extra["home_time"] = max(float(st.arrive[a]) for a in alive)
+        refused = [(self.names[a], r) for a, r in sorted(self.lost.items()) if r.startswith(REFUSED)]
+        if not sol.success and refused:  # the agents said why
+            sol.extra["failure"] = (
+                f"{sol.extra.get('failure') or 'the mission did not succeed'}; {len(refused)} of {st.A} robot(s) "
+                f"refused by their agents ({', '.join(n for n, _ in refused[:5])}{', ...' if len(refused) > 5 else ''}"
+                f"), {refused[0][0]}'s saying: {refused[0][1][len(REFUSED) + 2:]}")
         never = [self.names[a] for a, r in sorted(self.lost.items()) if r == NEVER_REPORTED]
         if not sol.success and never:  # the likely cause: processes that never came up on this domain
             sol.extra["failure"] = (

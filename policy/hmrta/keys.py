@@ -251,13 +251,19 @@ def mac(key: bytes, payload: Mapping[str, Any]) -> str:
 
 
 def claimed_robots(payload: Mapping[str, Any]) -> list[str] | None:
-    """The robots a payload speaks for: ``robot`` (a choice) or ``robots`` (a status); None if neither."""
+    """The robots a payload speaks for: ``robot`` (a choice) or ``robots`` and the robots of
+    ``refused`` (a status: the robots it reports and those whose agents refuse the mission); None
+    if none."""
     if isinstance(payload.get("robot"), str):
         return [payload["robot"]]
-    rs = payload.get("robots")
-    if isinstance(rs, list) and rs and all(isinstance(r, str) for r in rs):
-        return list(rs)
-    return None
+    rs, refused = payload.get("robots"), payload.get("refused", [])
+    if not isinstance(rs, list) or not all(isinstance(r, str) for r in rs):
+        return None
+    if not isinstance(refused, list) or not all(isinstance(r, Mapping) and isinstance(r.get("robot"), str)
+                                                  for r in refused):
+        return None
+    names = list(dict.fromkeys([*rs, *(r["robot"] for r in refused)]))
+    return names or None
 
 
 class Signer:

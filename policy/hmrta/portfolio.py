@@ -14,9 +14,10 @@ choice when no task is known at time 0 (every makespan is then 0): the default l
 of the candidates' makespans on missions that change (docs/results.md, "Missions that change"),
 so that a choice made on little or nothing falls on the method best at the unknown.
 
-The choice is made before a live mission starts (``hmrta-mission --method portfolio`` resolves it
-with :func:`select` and runs the chosen method on every robot), so the task board and the agents
-see an ordinary method and its rules; ``portfolio`` itself has no per-decision form.
+A live mission's choice is made before it starts, with :func:`select`: by the task board (whose
+``method`` defaults to ``portfolio``; it names the chosen method in the mission, and agents started
+with ``portfolio`` run that one) or by ``hmrta-mission --method portfolio``. The robots then run an
+ordinary method under its rules; ``portfolio`` itself has no per-decision form.
 """
 from __future__ import annotations
 

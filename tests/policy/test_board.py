@@ -283,6 +283,62 @@ def test_robots_that_never_report_fail_the_mission_naming_the_start_up_timeout()
     assert "on this ROS domain?" in sol.extra["failure"]
 
 
+@dataclass
+class Refusal:  # what hmrta_msgs_py.codec.status_from_msg gives the board in a status's refused
+    robot: str
+    why: str
+
+
+def test_agents_that_refuse_are_said_at_once_and_the_board_stops_waiting_when_all_have():
+    """An agent that refuses the mission says so in a last heartbeat: the board logs the reason
+    once, keeps waiting while some robot may still take part, and starts without them (the
+    mission failing, with their reasons) once every robot's agent has refused, long before the
+    start-up timeout."""
+    now, said = FakeTime(), []
+    b = MissionBoard(INST, seed=SEED, rules=RULES, now=now, startup_timeout=120.0,
+                     log=lambda level, text: said.append((level, text)))
+    b.poll()
+    why = "robot_0: method random but mission x runs greedy: not taking part"
+    b.heartbeat(b.session, [], refused=[Refusal("robot_0", why)])
+    b.heartbeat(b.session, [], refused=[Refusal("robot_0", why), Refusal("nobody", "spoofed")])  # again; a stranger
+    warned = [t for level, t in said if level == "warning" and "refuses the mission" in t]
+    assert warned == [f"robot 'robot_0': its agent refuses the mission: {why} (waited for until the start-up "
+                      f"timeout, 120 s, for an agent that takes part)"], said
+    assert b.refusals == {0: why} and not b.started
+    b.heartbeat("another-run", [], refused=[Refusal(n, "x") for n in b.names])  # another mission run: ignored
+    assert not b.started
+    for n in b.names[1:-1]:
+        b.heartbeat(b.session, [], refused=[Refusal(n, "multi-line\nreason " + "z" * 1000)])
+    assert not b.started and len(b.refusals) == INST.n_agents - 1
+    assert all(len(w) <= 300 and "\n" not in w for w in b.refusals.values())  # one line, bounded
+    b.heartbeat(b.session, [b.names[0]])  # robot_0's agent restarted with the right method: waited for again
+    assert 0 not in b.refusals
+    b.heartbeat(b.session, [], refused=[Refusal(b.names[0], why), Refusal(b.names[-1], "last")])
+    assert b.started and now.t == 100.0  # every robot refused: no start-up timeout waited out
+    assert len(b.lost) == INST.n_agents and b.lost[0] == f"its agent refused the mission: {why}"
+    drive(b, steps=2)
+    sol = b.result()
+    assert not sol.success
+    assert (f"{INST.n_agents} of {INST.n_agents} robot(s) refused by their agents (robot_0, robot_1, robot_2, "
+            f"robot_3, robot_4, ...), robot_0's saying: {why}") in sol.extra["failure"], sol.extra["failure"]
+
+
+def test_a_robot_whose_agent_refused_is_dropped_with_its_reason_at_the_start_up_timeout():
+    now = FakeTime()
+    b = MissionBoard(INST, seed=SEED, rules=RULES, now=now, startup_timeout=3.0)
+    b.poll()
+    for a in range(1, INST.n_agents):
+        b.heartbeat(b.session, [b.names[a]])
+        b.pose(a, *INST.depots[a])
+    b.heartbeat(b.session, [], refused=[Refusal("robot_0", "robot_0: wrong species")])
+    assert not b.started
+    for _ in range(40):
+        now.t += 0.1
+        b.tick()
+        b.poll()
+    assert b.started and b.lost == {0: "its agent refused the mission: robot_0: wrong species"}
+
+
 def test_silent_robot_is_lost_and_the_others_finish():
     now = FakeTime()
     b = started_board(now=now, heartbeat_timeout=5.0)

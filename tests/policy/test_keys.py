@@ -113,6 +113,22 @@ def test_status_mac_must_cover_every_robot_it_names(store):
     assert board.verify(wire(s)).startswith(K.FORGED)
 
 
+def test_a_refusal_in_a_status_is_signed_by_the_robot_that_refuses(store):
+    """A status's ``refused`` robots speak through it: each needs its own MAC, as its robots do (a
+    refusal drops a robot from a mission that has not started)."""
+    _, keys = store
+    board = K.Verifier(keys)
+    refusal = {**status(()), "refused": [{"robot": "robot_1", "why": "wrong method"}]}
+    assert K.claimed_robots(refusal) == ["robot_1"]
+    assert K.claimed_robots({**status(("robot_0", "robot_1")), "refused": refusal["refused"]}) == ["robot_0", "robot_1"]
+    assert K.claimed_robots(status(())) is None and K.claimed_robots({**status(()), "refused": ["x"]}) is None
+    s = K.Signer({"robot_1": keys["robot_1"]}, Clock()).sign(refusal)
+    assert set(s["mac"]) == {"robot_1"} and board.verify(wire(s)) is None
+    forged = K.Signer({"robot_0": keys["robot_0"]}, Clock(10**6)).sign(status(("robot_0",)))
+    forged["refused"] = [{"robot": "robot_2", "why": "spoofed"}]  # a refusal for another robot, without its key
+    assert board.verify(wire(forged)).startswith(K.UNSIGNED)
+
+
 def test_replayed_messages_are_rejected(store):
     _, keys = store
     board = K.Verifier(keys)

@@ -411,6 +411,26 @@ def test_fuzzed_payloads_decode_or_raise_decode_error(text):
             pass
 
 
+def test_statuses_carry_the_refusals_of_agents_that_stop():
+    s = C.Status((), "s1", 4, "h:1", refused=(C.Refusal("robot_2", "robot_2: method random but ..."),))
+    d = json.loads(C.status_to_msg(s).data)
+    assert_valid("hmrta-status/1", d)
+    assert C.status_from_msg(C.status_to_msg(s)) == s
+    assert "refused" not in json.loads(C.status_to_msg(C.Status(("r",), "s", 1)).data)  # written only when some
+    long = C.Status((), "s1", 5, refused=(C.Refusal("robot_2", "x" * 5000),))  # an agent's reason is cut, not refused
+    assert C.status_from_msg(C.status_to_msg(long)).refused[0].why == "x" * C.REFUSAL_WHY_MAX
+    signed = pytest.importorskip("hmrta.keys").Signer({"robot_2": bytes(32)}).sign(d)
+    assert_valid("hmrta-status/1", signed)
+    for bad, reason in [([{"robot": "x"}], "refused[0]: missing field 'why'"),
+                        ([{"robot": "", "why": "w"}], "refused[0].robot: expected a non-empty robot name"),
+                        ([{"robot": "x", "why": 3}], "refused[0].why: expected str"),
+                        ([{"robot": "x", "why": "w" * 1001}], "refused[0].why: expected at most 1000 characters"),
+                        (["x"], "refused[0]: expected an object"), ("x", "refused: expected list")]:
+        with pytest.raises(C.DecodeError, match=re.escape(reason)):
+            C.status_from_msg(_msg(json.dumps({**d, "refused": bad})))
+        assert schema_errors("hmrta-status/1", {**d, "refused": bad})  # and the published schema refuses it
+
+
 # ---------------------------------------------------------------------------------------------
 # robots joining (status.joining, a grown mission) and operator requests matched by request_id
 # ---------------------------------------------------------------------------------------------

@@ -4,6 +4,7 @@ agent, a failed mission, a stopped board) and the warning when no board is heard
 executables over real DDS, each test on its own ROS domain."""
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -232,8 +233,37 @@ def test_agents_that_refuse_to_take_part_exit_2(tmp_path, start):
     for k, p in agents.items():
         assert p.proc.wait(timeout=60) == 2, (k, p.text())
         assert says[k] in p.text() and "stopping (exit status 2)" in p.text(), (k, p.text())
+    # the robots of the mission whose agents refused: the board says why at once, and waits on for
+    # the others (robot_new is not in the mission; robot_3's agent took index 5, another robot's)
+    for k, robot in (("species", "robot_0"), ("rules", "robot_1")):
+        board.wait_for(f"robot '{robot}': its agent refuses the mission: {says[k]}", 30)
+    assert "robot 'robot_3': its agent refuses" not in board.text() and "robot_new" not in board.text()
     assert board.proc.poll() is None
     assert board.stop(signal.SIGTERM) == 0
+
+
+def test_a_board_whose_every_robot_is_refused_by_its_agent_fails_at_once(tmp_path, start):
+    """Agents that refuse the mission tell the board before they stop: once every robot's agent
+    has refused, the board starts without them and the mission fails, naming the reason, without
+    waiting out its start-up timeout (120 s here)."""
+    inst = save_instance(ScenarioGenerator("SA-AT", 2, 2, 3, 2).instance(0, 0), tmp_path / "two.yaml")
+    out = tmp_path / "result.json"
+    board = start("task_board", "--ros-args", "-p", f"instance:={inst}", "-p", "method:=greedy",
+                  "-p", f"output:={out}", "-p", "startup_timeout:=120.0")
+    agents = [start("agent_node", "--ros-args", "-p", f"robot:=robot_{a}", "-p", "method:=random", name=f"a{a}")
+              for a in range(2)]
+    t0 = time.monotonic()
+    assert board.proc.wait(timeout=90) == 3, board.text()
+    assert time.monotonic() - t0 < 90  # (not the start-up timeout)
+    for p in agents:
+        assert p.proc.wait(timeout=30) == 2, p.text()
+    text = board.text()
+    assert "the agents of every robot refuse the mission: it starts without them" in text, text
+    assert ("2 of 2 robot(s) refused by their agents (robot_0, robot_1), robot_0's saying: robot_0: method random "
+            "but mission ") in text and " runs greedy: not taking part" in text, text
+    result = json.loads(out.read_text())
+    assert result["lost_robots"] == ["robot_0", "robot_1"] and not result["success"]
+    assert result["lost_reasons"]["robot_1"].startswith("its agent refused the mission: robot_1: method random")
 
 
 # ---- 7. no board heard ------------------------------------------------------------------------

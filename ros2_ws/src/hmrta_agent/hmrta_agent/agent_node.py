@@ -74,7 +74,7 @@ from hmrta.methods import MethodError, adopt, checkpoint_of, chooses, decider, l
 from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.console import signals_deferred
-from hmrta_msgs_py.codec import (POSE_TYPES, Choice, DecodeError, Join, KeyframeRequest, Mission, Status,
+from hmrta_msgs_py.codec import (POSE_TYPES, Choice, DecodeError, Join, KeyframeRequest, Mission, Refusal, Status,
                                  board_from_msg, choice_to_msg, clock_from_msg, keyframe_request_to_msg,
                                  mission_from_msg, pose_from_msg, pose_to_msg, pose_type, rejection_from_msg,
                                  status_to_msg)
@@ -107,6 +107,10 @@ class Host:
         self._seq = 0
         self._status_pub = None
         self._request_pub = None
+        # agents that refuse the mission, told to the board before they stop: [agent, session, why,
+        # give up at (monotonic), sent at or None]
+        self._refusals: list[list] = []
+        self._refusal_timer = None
         self.clock = 0.0  # the mission clock as followed: never past the board's horizon (_on_clock)
         self.horizon = 0.0  # the latest horizon of the board's session (the clock may run up to it)
         self._horizon_session: str | None = None
@@ -437,8 +441,44 @@ class Host:
                                                    self.signer))
 
     def agent_finished(self) -> None:
-        if all(a.finished for a in self.agents) and not self.all_done.done():
+        if all(a.finished for a in self.agents) and not self._refusals and not self.all_done.done():
             self.all_done.set_result(True)
+
+    # how long an agent that refuses the mission waits for the board to hear it (its status reader
+    # matched, then the message acknowledged) before it stops all the same
+    REFUSAL_WAIT = 3.0
+
+    def report_refusal(self, agent: "AgentNode", session: str, why: str) -> None:
+        """Tell the board that ``agent``'s robot, one of the mission ``session``, does not take
+        part (``why``: the agent's reason): a status message with ``refused``, sent once the
+        board's reader is matched and waited for until acknowledged (at most REFUSAL_WAIT
+        seconds in all); the agent then counts as finished. Without it the board would wait out
+        its start-up timeout with no reason to give."""
+        self._refusals.append([agent, session, why, time.monotonic() + self.REFUSAL_WAIT, None])
+        if self._refusal_timer is None and self._node is not None:
+            self._refusal_timer = self._node.create_timer(0.05, self._send_refusals)
+        self._send_refusals()
+
+    def _send_refusals(self) -> None:
+        from rclpy.duration import Duration
+
+        pub, now, left = self._status_pub, time.monotonic(), []
+        for item in self._refusals:
+            agent, session, why, give_up, sent = item
+            if sent is None and pub is not None and pub.get_subscription_count() > 0 and rclpy.ok():
+                self._seq += 1
+                refusal = Refusal(agent.robot, why)
+                pub.publish(status_to_msg(Status((), session, self._seq, self._host, refused=(refusal,)), self.signer))
+                item[4] = sent = now
+            acked = sent is not None and (not rclpy.ok() or pub.wait_for_all_acked(Duration(seconds=0)))
+            if not acked and now < give_up:
+                left.append(item)
+        self._refusals = left
+        if not left:
+            if self._refusal_timer is not None:
+                self._refusal_timer.cancel()
+                self._refusal_timer = None
+            self.agent_finished()
 
 
 class AgentNode(Node):
@@ -534,14 +574,18 @@ class AgentNode(Node):
         """The board refused to add this robot (hmrta-rejection/1 ``join_refused``): stop asking."""
         self.refuse(f"{self.robot}: the board refuses to add this robot: {why}; not asking again")
 
-    def refuse(self, text: str) -> None:
+    def refuse(self, text: str, session: str | None = None) -> None:
         """This robot does not take part (``text``: why): log it and stop; the process exits with
-        status 2 once its other agents are done."""
+        status 2 once its other agents are done. ``session``: the mission this robot is one of,
+        whose board is told why before the agent stops (:meth:`Host.report_refusal`)."""
         if self.refusal is None:
             self.refusal = text
             self.get_logger().error(f"{text}; stopping (exit status 2)")
             self.finished = True
-            self.host.agent_finished()
+            if session is None:
+                self.host.agent_finished()
+            else:
+                self.host.report_refusal(self, session, text)
 
     def _fits(self, mission: Mission) -> bool:
         """A robot asks to join only a mission whose rules its method runs under: the board would
@@ -622,11 +666,11 @@ class AgentNode(Node):
                                f"{mission.instance.name} (robots {', '.join(mission.robots[:5])}...): not taking part")
         mismatch = self._mismatch(mission)
         if mismatch is not None:
-            return self.refuse(mismatch)
+            return self.refuse(mismatch, mission.session)
         species = int(mission.instance.agent_species[idx])
         if self.species_param >= 0 and self.species_param != species:
             return self.refuse(f"robot {self.robot!r} is species {self.species_param} but the mission lists it as "
-                               f"species {species}: not taking part")
+                               f"species {species}: not taking part", mission.session)
         self.mission, self.index = mission, idx
         self.answered, self.leg_seq, self.pending = -1, None, []
         self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "

@@ -409,7 +409,7 @@ class TaskBoard(Node):
         except DecodeError as e:
             self.board.malformed()
             return self._reject("malformed", f"malformed status: {e}")
-        warn = self.board.heartbeat(s.session, s.robots, s.payload, s.joining, s.host)
+        warn = self.board.heartbeat(s.session, s.robots, s.payload, s.joining, s.host, s.refused)
         if warn is not None and not self._recent(warn, 5.0) and self._rate_ok():  # each text at most every 5 s:
             self._note(warn)  # a warning the board gives once (two agent processes, a join refused) is kept
             self.get_logger().warning(warn)

@@ -533,6 +533,19 @@ class Status:
     # the decoded JSON object (signed messages: with ``counter`` and ``mac``), for verification
     payload: dict[str, Any] | None = field(default=None, compare=False, repr=False)
     joining: tuple[Join, ...] = ()  # robots of the process that are not in the mission yet
+    refused: tuple["Refusal", ...] = ()  # robots of the process whose agents refuse the mission
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A robot of the mission whose agent refuses to take part (its method cannot run the
+    mission's, its species or index does not match): announced once in a heartbeat before the
+    agent stops, so that the board says why at once instead of waiting out its start-up timeout."""
+    robot: str
+    why: str
+
+
+REFUSAL_WHY_MAX = 1000  # characters of a refusal's reason (an agent's one-line error)
 
 
 def _join_to_dict(j: Join) -> dict[str, Any]:
@@ -570,13 +583,25 @@ def _join_from(v: Any, where: str) -> Join:
 
 def status_to_msg(s: Status, signer: Any = None) -> String:
     """With ``signer`` (holding the key of every robot listed) the message carries ``counter``
-    and one MAC per robot. ``joining`` (robots asking to join the mission) is written only when
-    it is not empty."""
+    and one MAC per robot (those of ``robots`` and of ``refused``). ``joining`` (robots asking to
+    join the mission) and ``refused`` (robots whose agents refuse it) are written only when not
+    empty."""
     d: dict[str, Any] = {"format": STATUS_FORMAT, "robots": list(s.robots), "session": s.session, "seq": s.seq,
                          "host": s.host}
     if s.joining:
         d["joining"] = [_join_to_dict(j) for j in s.joining]
+    if s.refused:
+        d["refused"] = [{"robot": r.robot, "why": r.why[:REFUSAL_WHY_MAX]} for r in s.refused]
     return _str(_dumps(_signed(d, signer)))
+
+
+def _refusal_from(v: Any, where: str) -> Refusal:
+    if not isinstance(v, dict):
+        raise DecodeError(f"{where}: expected an object {{robot, why}}, got {_short(v)}")
+    why = _get(v, "why", str, where)
+    if len(why) > REFUSAL_WHY_MAX:
+        raise DecodeError(f"{where}.why: expected at most {REFUSAL_WHY_MAX} characters, got {len(why)}")
+    return Refusal(_name(v.get("robot"), f"{where}.robot"), why)
 
 
 def status_from_msg(msg: String) -> Status:
@@ -585,12 +610,14 @@ def status_from_msg(msg: String) -> Status:
     _check_signature_fields(d, w)
     robots = _get(d, "robots", list, w)
     joining = _get(d, "joining", list, w, optional=True, default=[])
+    refused = _get(d, "refused", list, w, optional=True, default=[])
     host = _get(d, "host", str, w, optional=True, default="")
     if len(host) > 256:
         raise DecodeError(f"{w}.host: expected a process name of at most 256 characters, got {_short(host)}")
     return Status(tuple(_name(r, f"{w}.robots[{i}]") for i, r in enumerate(robots)), _get(d, "session", str, w),
                   _get(d, "seq", int, w), host, d,
-                  tuple(_join_from(j, f"{w}.joining[{i}]") for i, j in enumerate(joining)))
+                  tuple(_join_from(j, f"{w}.joining[{i}]") for i, j in enumerate(joining)),
+                  tuple(_refusal_from(r, f"{w}.refused[{i}]") for i, r in enumerate(refused)))
 
 
 # ---------------------------------------------------------------------------------------------
