@@ -306,7 +306,7 @@ def test_progress_per_instance_whenever_there_are_several(tmp_path, monkeypatch,
     capsys.readouterr()
     assert main(["solve", str(folder), "--method", "greedy"]) == 0  # stderr is no terminal here: no bar
     assert capsys.readouterr().err == ""
-    monkeypatch.setattr(hmrta.cli, "_terminal", lambda: True)
+    monkeypatch.setattr(hmrta.cli.progress, "_terminal", lambda: True)
     assert main(["solve", str(folder), "--method", "greedy"]) == 0
     err = capsys.readouterr().err
     assert "solve" in err and "2/2" in err and "instance" in err

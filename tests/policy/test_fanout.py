@@ -100,7 +100,7 @@ def test_a_ray_address_that_is_not_a_ray_cluster_is_a_user_error_within_the_time
 def test_a_ray_address_is_read_by_one_rule_for_the_command_line_and_the_connection(text, expect):
     import argparse
 
-    from hmrta.cli import _ray_address
+    from hmrta.cli.parser import _ray_address
     from hmrta.errors import MethodError
     from hmrta.fanout import _reachable, split_address
 
