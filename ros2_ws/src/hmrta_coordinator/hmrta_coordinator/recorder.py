@@ -37,7 +37,7 @@ from typing import Any
 from mcap.writer import CompressionType, Writer
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.runtime import spin_nodes, starting
@@ -121,12 +121,6 @@ def message_class(type_name: str):
     return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
 
 
-def _qos(depth: int, reliable: bool, latched: bool) -> QoSProfile:
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
-
-
 _S = "std_msgs/msg/String"
 # the mission-wide topics: MissionTopics attribute (None: the clock topic), message type, the
 # recorder's receive depth, and the QoS the mission's nodes publish it with
@@ -153,7 +147,7 @@ def known_topics(markers: bool, clock_topic: str = topics.CLOCK,
     """The mission-wide HMRTA topics of the mission namespace of ``T``: name -> (type, a QoS
     compatible with their publishers). Latched topics are subscribed transient local (the latest
     sample arrives even when the recorder starts late); the rest reliable and deep enough for bursts."""
-    return {name: (typ, _qos(depth, offered.reliability == ReliabilityPolicy.RELIABLE,
+    return {name: (typ, topics.qos(depth, offered.reliability == ReliabilityPolicy.RELIABLE,
                              offered.durability == DurabilityPolicy.TRANSIENT_LOCAL))
             for name, (typ, depth, offered) in _mission_topics(markers, clock_topic, T).items()}
 
@@ -167,8 +161,8 @@ def offered_qos(markers: bool, clock_topic: str = topics.CLOCK,
 def robot_topics(robot: str, namespace: str = topics.ROOT) -> dict[str, tuple[str, QoSProfile]]:
     """A robot's goal (reliable, as agents publish it) and pose (best effort: any driver's QoS)."""
     P = "geometry_msgs/msg/PoseStamped"
-    return {topics.robot_topic(robot, topics.GOAL, namespace): (P, _qos(100, True, False)),
-            topics.robot_topic(robot, topics.POSE, namespace): (P, _qos(100, False, False))}
+    return {topics.robot_topic(robot, topics.GOAL, namespace): (P, topics.qos(100, True, False)),
+            topics.robot_topic(robot, topics.POSE, namespace): (P, topics.qos(100, False, False))}
 
 
 def string_payload(data: bytes) -> str | None:
@@ -263,7 +257,7 @@ class Recorder(Node):
                 continue
             reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in pubs)
             latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in pubs)
-            self._subscribe(name, types[0], _qos(100, reliable, latched))
+            self._subscribe(name, types[0], topics.qos(100, reliable, latched))
 
     # -- writing ----------------------------------------------------------------------------------
     def _on(self, name: str, data: bytes, info: Any) -> None:

@@ -118,7 +118,8 @@ REJECTIONS, RESULT, MARKERS = _ROOT_TOPICS.rejections, _ROOT_TOPICS.result, _ROO
 TASK_REQUESTS, TASK_EVENTS, CLOCK = _ROOT_TOPICS.task_requests, _ROOT_TOPICS.task_events, _ROOT_TOPICS.clock
 
 
-def _qos(depth: int, reliable: bool = True, latched: bool = False) -> QoSProfile:
+def qos(depth: int, reliable: bool = True, latched: bool = False) -> QoSProfile:
+    """KEEP_LAST ``depth``; reliable or best effort; transient local (``latched``) or volatile."""
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=depth,
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
@@ -126,39 +127,39 @@ def _qos(depth: int, reliable: bool = True, latched: bool = False) -> QoSProfile
 
 
 # keyframe, mission and result: reliable + transient local, depth 1 (late joiners get the latest)
-LATCHED_QOS = _qos(1, latched=True)
+LATCHED_QOS = qos(1, latched=True)
 KEYFRAME_QOS = MISSION_QOS = RESULT_QOS = LATCHED_QOS
 # a mission reader keeps every mission message that arrives before it runs: two boards' latched
 # missions in one mission namespace (the later-created one gives way: both must be heard), or
 # another board's and its own, which reach a board that matched the other's publisher while it
 # was still starting (a portfolio's simulation) at the same moment; depth 1 kept only the last
-MISSION_SUB_QOS = _qos(10, latched=True)
+MISSION_SUB_QOS = qos(10, latched=True)
 # the board stream: every version in order, reliable with a deep history, so that a reader that
 # falls behind for a while loses nothing (a version it still misses is a gap: it asks for a
 # keyframe). Volatile: a late reader gets no history it could mistake for the present; it starts
 # from the latched keyframe, and an idle board streams its latest header again every 0.25 s
-BOARD_QOS = _qos(1000)
+BOARD_QOS = qos(1000)
 # sim_robot reads the stream for the latest horizon only (it moves the clock there; once in step
 # it applies no events): best effort spares the board a reliable reader on the path of every
 # decision. A version it misses is made up by the next one, or by the repeat 0.25 s later
-BOARD_SIM_QOS = _qos(1000, reliable=False)
-KEYFRAME_REQUEST_QOS = _qos(100)
+BOARD_SIM_QOS = qos(1000, reliable=False)
+KEYFRAME_REQUEST_QOS = qos(100)
 # choices: reliable, deeper queue (a burst of agents must not lose any)
-CHOICE_QOS = _qos(100)
-STATUS_QOS = _qos(50)
-REJECTION_QOS = _qos(100)
-MARKER_QOS = _qos(1, latched=True)
-TASK_REQUEST_QOS = _qos(100)
-TASK_EVENT_QOS = _qos(100, latched=True)  # a late operator gets the latest answers
-CLOCK_QOS = _qos(1, latched=True)  # a late subscriber gets the current time at once
-GOAL_QOS = _qos(10)
+CHOICE_QOS = qos(100)
+STATUS_QOS = qos(50)
+REJECTION_QOS = qos(100)
+MARKER_QOS = qos(1, latched=True)
+TASK_REQUEST_QOS = qos(100)
+TASK_EVENT_QOS = qos(100, latched=True)  # a late operator gets the latest answers
+CLOCK_QOS = qos(1, latched=True)  # a late subscriber gets the current time at once
+GOAL_QOS = qos(10)
 # poses are published reliably; the board subscribes best effort so that any robot driver
 # (sensor-data QoS included) can feed it; poses repeat as heartbeats, so a lost sample only delays
-POSE_PUB_QOS = _qos(10)
-POSE_SUB_QOS = _qos(10, reliable=False)
+POSE_PUB_QOS = qos(10)
+POSE_SUB_QOS = qos(10, reliable=False)
 # amcl_pose (PoseWithCovarianceStamped) is published reliable + transient local and only on filter
 # updates: subscribed the same way, a robot standing still is seen at once from its latest pose
-AMCL_POSE_SUB_QOS = _qos(1, latched=True)
+AMCL_POSE_SUB_QOS = qos(1, latched=True)
 POSE_SUB_QOS_BY_TYPE = {"PoseStamped": POSE_SUB_QOS, "PoseWithCovarianceStamped": AMCL_POSE_SUB_QOS,
                         "Odometry": POSE_SUB_QOS}
 
