@@ -629,6 +629,7 @@ class MissionBoard(BoardCore):
         self._scenario_added = 0  # robots a scenario's add_robot events added (named robot_<A0 + k>)
         self.join_refused: dict[str, str] = {}  # robot asking to join -> why it was refused (warned once)
         self.refusals: dict[int, str] = {}  # robot of the mission -> why its agent refuses to take part
+        self._refusals_said: set[int] = set()  # robots whose refusal was logged (once per board process)
         self._joins = TokenBucket(self.JOIN_RATE, 2 * self.JOIN_RATE, now())  # robots taken in
         self._join_slowed = False  # warned that joins come faster than JOIN_RATE
         self.robots_changed = False  # robots were added since the node last published the mission
@@ -789,7 +790,8 @@ class MissionBoard(BoardCore):
             why = self.verifier.verify(payload)
             if why is not None:  # keeps nobody alive
                 self.auth_rejected["status"][rejection_code(why)] += 1
-                return f"ignoring heartbeat of {', '.join(robots[:4])[:200]}: {why}"
+                named = [*robots, *(r.robot for r in refused)]  # (a refusal speaks for its robot too)
+                return f"ignoring heartbeat of {', '.join(named[:4])[:200]}: {why}"
         warn = None
         now = self.now()
         for j in joining:
@@ -812,21 +814,31 @@ class MissionBoard(BoardCore):
 
     def refusal(self, name: str, why: str) -> None:
         """Robot ``name``'s agent refuses the mission (``why``: its reason, from its heartbeat).
-        The first reason of each robot is logged at once. Before the start, the board stops
-        waiting once the agents of every robot not lost have refused: they are dropped with their
-        reasons and the mission starts without them (and fails), instead of waiting out the
-        start-up timeout; at the timeout, a robot whose agent refused is dropped with its reason.
-        A robot whose heartbeat then lists it (an agent restarted to take part) is waited for again."""
+        Taken only for a robot of the mission that no agent has reported to this board process:
+        a refusal never drops a robot whose agent is heard (heartbeats and their timeouts decide
+        for those), whoever sends it. Each robot's first refusal is logged, once.
+
+        Before the start, the board stops waiting once the agents of every robot not lost have
+        refused: they are dropped with their reasons and the mission starts without them (and
+        fails), instead of waiting out the start-up timeout; at the timeout, a robot whose agent
+        refused is dropped with its reason. A robot whose heartbeat then lists it (an agent
+        restarted to take part) is waited for again. After the start, such a robot (which the
+        heartbeat timeout would drop as silent) is dropped at once, with its reason."""
         a = self.index.get(name)
-        if a is None or a in self.lost or self.finished:
+        if a is None or a in self.lost or self.finished or self.seen_status[a] is not None:
             return
         why = " ".join(str(why).split())[:REFUSAL_CHARS]  # one line, bounded (from any publisher)
-        if a not in self.refusals:
-            self.log("warning", f"robot {name!r}: its agent refuses the mission: {why}"
-                     + ("" if self.started else f" (waited for until the start-up timeout, {self.startup_timeout:g} s, "
-                                                f"for an agent that takes part)"))
+        if a not in self._refusals_said:
+            self._refusals_said.add(a)
+            T = self.startup_timeout
+            self.log("warning", f"robot {name!r}: its agent refuses the mission: {why}" + (
+                "" if self.started else f" (waiting for an agent of it that takes part "
+                                        f"{f'until the start-up timeout, {T:g} s' if T > 0 else '(no start-up timeout)'})"))
+        if self.started:
+            self.lose(a, f"{REFUSED}: {why}")
+            return
         self.refusals[a] = why
-        if not self.started and all(b in self.refusals or b in self.lost for b in range(self.state.A)):
+        if all(b in self.refusals or b in self.lost for b in range(self.state.A)):
             self.log("warning", "the agents of every robot refuse the mission: it starts without them")
             for b in sorted(self.refusals):
                 self.lose(b, f"{REFUSED}: {self.refusals[b]}")

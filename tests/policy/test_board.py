@@ -300,19 +300,17 @@ def test_agents_that_refuse_are_said_at_once_and_the_board_stops_waiting_when_al
     b.poll()
     why = "robot_0: method random but mission x runs greedy: not taking part"
     b.heartbeat(b.session, [], refused=[Refusal("robot_0", why)])
-    b.heartbeat(b.session, [], refused=[Refusal("robot_0", why), Refusal("nobody", "spoofed")])  # again; a stranger
+    b.heartbeat(b.session, [], refused=[Refusal("robot_0", why + " again"), Refusal("nobody", "spoofed")])
     warned = [t for level, t in said if level == "warning" and "refuses the mission" in t]
-    assert warned == [f"robot 'robot_0': its agent refuses the mission: {why} (waited for until the start-up "
-                      f"timeout, 120 s, for an agent that takes part)"], said
-    assert b.refusals == {0: why} and not b.started
+    assert warned == [f"robot 'robot_0': its agent refuses the mission: {why} (waiting for an agent of it that "
+                      f"takes part until the start-up timeout, 120 s)"], said  # once per robot; a stranger: nothing
+    assert not b.started
     b.heartbeat("another-run", [], refused=[Refusal(n, "x") for n in b.names])  # another mission run: ignored
     assert not b.started
     for n in b.names[1:-1]:
         b.heartbeat(b.session, [], refused=[Refusal(n, "multi-line\nreason " + "z" * 1000)])
     assert not b.started and len(b.refusals) == INST.n_agents - 1
     assert all(len(w) <= 300 and "\n" not in w for w in b.refusals.values())  # one line, bounded
-    b.heartbeat(b.session, [b.names[0]])  # robot_0's agent restarted with the right method: waited for again
-    assert 0 not in b.refusals
     b.heartbeat(b.session, [], refused=[Refusal(b.names[0], why), Refusal(b.names[-1], "last")])
     assert b.started and now.t == 100.0  # every robot refused: no start-up timeout waited out
     assert len(b.lost) == INST.n_agents and b.lost[0] == f"its agent refused the mission: {why}"
@@ -323,7 +321,31 @@ def test_agents_that_refuse_are_said_at_once_and_the_board_stops_waiting_when_al
             f"robot_3, robot_4, ...), robot_0's saying: {why}") in sol.extra["failure"], sol.extra["failure"]
 
 
-def test_a_robot_whose_agent_refused_is_dropped_with_its_reason_at_the_start_up_timeout():
+def test_a_refusal_never_drops_a_robot_whose_agent_is_heard():
+    """Whoever sends it, a refusal counts only for a robot that no agent reported: a message that
+    names every robot as refused (also alongside their heartbeats) neither drops robots that are
+    heard nor starts the mission; it is logged once per robot, however often it comes."""
+    now, said = FakeTime(), []
+    b = MissionBoard(INST, seed=SEED, rules=RULES, now=now, startup_timeout=0.0,
+                     log=lambda level, text: said.append((level, text)))
+    b.poll()
+    b.heartbeat(b.session, b.names[:-1])  # every robot but the last is heard
+    for _ in range(50):
+        b.heartbeat(b.session, b.names[:-1], refused=[Refusal(n, "spoofed") for n in b.names])
+    assert not b.started and b.lost == {} and b.refusals == {INST.n_agents - 1: "spoofed"}
+    warned = [t for _, t in said if "refuses the mission" in t]
+    assert warned == [f"robot '{b.names[-1]}': its agent refuses the mission: spoofed (waiting for an agent of "
+                      f"it that takes part (no start-up timeout))"]
+    b.heartbeat(b.session, [b.names[-1]])  # an agent that takes part after all
+    assert b.refusals == {}
+    for a in range(INST.n_agents):
+        b.pose(a, *INST.depots[a])
+    assert b.started and b.lost == {}
+    b.heartbeat(b.session, [], refused=[Refusal(n, "spoofed") for n in b.names])  # running: all heard
+    assert b.lost == {} and len([t for _, t in said if "refuses the mission" in t]) == 1
+
+
+def test_a_robot_whose_agent_refused_is_dropped_with_its_reason_at_the_start_up_timeout_or_at_once_when_running():
     now = FakeTime()
     b = MissionBoard(INST, seed=SEED, rules=RULES, now=now, startup_timeout=3.0)
     b.poll()
@@ -337,6 +359,10 @@ def test_a_robot_whose_agent_refused_is_dropped_with_its_reason_at_the_start_up_
         b.tick()
         b.poll()
     assert b.started and b.lost == {0: "its agent refused the mission: robot_0: wrong species"}
+    running = started_board(now=FakeTime())  # wait_for_robots false: started before any agent is heard
+    running.heartbeat(running.session, [running.names[1]])
+    running.heartbeat(running.session, [], refused=[Refusal(n, "wrong method") for n in running.names[:2]])
+    assert running.lost == {0: "its agent refused the mission: wrong method"}  # robot_1 is heard: kept
 
 
 def test_silent_robot_is_lost_and_the_others_finish():

@@ -107,9 +107,8 @@ class Host:
         self._seq = 0
         self._status_pub = None
         self._request_pub = None
-        # agents that refuse the mission, told to the board before they stop: [agent, session, why,
-        # give up at (monotonic), sent at or None]
-        self._refusals: list[list] = []
+        # agents that refuse the mission, told to the board before they stop (report_refusal)
+        self._refusals: list[dict[str, Any]] = []
         self._refusal_timer = None
         self.clock = 0.0  # the mission clock as followed: never past the board's horizon (_on_clock)
         self.horizon = 0.0  # the latest horizon of the board's session (the clock may run up to it)
@@ -444,17 +443,21 @@ class Host:
         if all(a.finished for a in self.agents) and not self._refusals and not self.all_done.done():
             self.all_done.set_result(True)
 
-    # how long an agent that refuses the mission waits for the board to hear it (its status reader
-    # matched, then the message acknowledged) before it stops all the same
+    # an agent that refuses the mission: how long it waits for the board to hear it (a reader of
+    # its status matched, the message acknowledged) before it stops all the same, and how long it
+    # keeps sending it to readers that match later (the recorder's may match before the board's)
     REFUSAL_WAIT = 3.0
+    REFUSAL_SETTLE = 1.0
 
     def report_refusal(self, agent: "AgentNode", session: str, why: str) -> None:
         """Tell the board that ``agent``'s robot, one of the mission ``session``, does not take
-        part (``why``: the agent's reason): a status message with ``refused``, sent once the
-        board's reader is matched and waited for until acknowledged (at most REFUSAL_WAIT
-        seconds in all); the agent then counts as finished. Without it the board would wait out
-        its start-up timeout with no reason to give."""
-        self._refusals.append([agent, session, why, time.monotonic() + self.REFUSAL_WAIT, None])
+        part (``why``: the agent's reason): a status message with ``refused``, sent to every
+        reader of the status topic as it matches, for REFUSAL_SETTLE seconds after the first and
+        then until acknowledged (REFUSAL_WAIT seconds in all at most); the agent then counts as
+        finished. Without it the board would wait out its start-up timeout with no reason to give."""
+        now = time.monotonic()
+        self._refusals.append({"agent": agent, "session": session, "why": why, "give_up": now + self.REFUSAL_WAIT,
+                               "first": None, "readers": 0})
         if self._refusal_timer is None and self._node is not None:
             self._refusal_timer = self._node.create_timer(0.05, self._send_refusals)
         self._send_refusals()
@@ -463,16 +466,23 @@ class Host:
         from rclpy.duration import Duration
 
         pub, now, left = self._status_pub, time.monotonic(), []
-        for item in self._refusals:
-            agent, session, why, give_up, sent = item
-            if sent is None and pub is not None and pub.get_subscription_count() > 0 and rclpy.ok():
+        for r in self._refusals:
+            readers = pub.get_subscription_count() if pub is not None and rclpy.ok() else 0
+            if readers > r["readers"]:  # a reader more (the board's, the recorder's): it gets the refusal too
                 self._seq += 1
-                refusal = Refusal(agent.robot, why)
-                pub.publish(status_to_msg(Status((), session, self._seq, self._host, refused=(refusal,)), self.signer))
-                item[4] = sent = now
-            acked = sent is not None and (not rclpy.ok() or pub.wait_for_all_acked(Duration(seconds=0)))
-            if not acked and now < give_up:
-                left.append(item)
+                refusal = (Refusal(r["agent"].robot, r["why"]),)
+                pub.publish(status_to_msg(Status((), r["session"], self._seq, self._host, refused=refusal), self.signer))
+                r["first"] = now if r["first"] is None else r["first"]
+            r["readers"] = max(r["readers"], readers)
+            heard = (r["first"] is not None and now - r["first"] >= self.REFUSAL_SETTLE
+                     and (not rclpy.ok() or pub.wait_for_all_acked(Duration(seconds=0))))
+            if heard:
+                continue
+            if now < r["give_up"] and rclpy.ok():
+                left.append(r)
+            elif r["first"] is None:
+                r["agent"].get_logger().warning(f"{r['agent'].robot}: no task board heard this refusal (nothing reads "
+                                                f"{self.topics.status} here); its board waits until its start-up timeout")
         self._refusals = left
         if not left:
             if self._refusal_timer is not None:

@@ -296,12 +296,13 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
     # the warnings below must get the stop of a running node (logged, exit status 0), not a start-up
     # interruption
     signals = _stop_on_signals()
-    warn_unknown_parameters(nodes)
-    executor = make_executor()
-    for n in nodes:
-        executor.add_node(n)
     until = until if until is not None else Future()
-    try:
+    executor = None
+    try:  # (a second signal raises KeyboardInterrupt at once, also while the executor is made)
+        warn_unknown_parameters(nodes)
+        executor = make_executor()
+        for n in nodes:
+            executor.add_node(n)
         while rclpy.ok() and not until.done() and "signal" not in signals:
             executor.spin_until_future_complete(until, timeout_sec=0.5)
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -315,7 +316,8 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
             on_exit()
         for n in nodes:
             n.destroy_node()
-        executor.shutdown()
+        if executor is not None:
+            executor.shutdown()
         rclpy.try_shutdown()
     return sig
 
