@@ -89,6 +89,7 @@ GATE_RESCAN = 0.5  # seconds: while the arrival gate holds the mission clock, ev
 STALL_GAP = 1.0  # seconds: a watchdog tick (every 0.1 s on the node) later than this after the previous one: the board stalled
 NEVER_REPORTED = "never reported"  # why a robot silent until the start-up timeout is dropped
 REFUSED = "its agent refused the mission"  # why a robot whose agent refuses is dropped (then its reason)
+POSES_REJECTED = "no pose accepted"  # why a robot whose every pose was rejected is dropped (then the last reason)
 REFUSAL_CHARS = 300  # of an agent's reason, kept and logged
 LIVE_EVENTS = frozenset(("add_task", "cancel_task", "add_agent", "drop_agent"))  # journaled events from outside the mission file
 HEADER_BYTES = 330  # about the bytes of a stream header without its events (for the automatic keyframe period)
@@ -630,6 +631,7 @@ class MissionBoard(BoardCore):
         self.join_refused: dict[str, str] = {}  # robot asking to join -> why it was refused (warned once)
         self.refusals: dict[int, str] = {}  # robot of the mission -> why its agent refuses to take part
         self._refusals_said: set[int] = set()  # robots whose refusal was logged (once per board process)
+        self.pose_rejections: dict[int, str] = {}  # robot -> why its latest pose was rejected (e.g. its frame)
         self._joins = TokenBucket(self.JOIN_RATE, 2 * self.JOIN_RATE, now())  # robots taken in
         self._join_slowed = False  # warned that joins come faster than JOIN_RATE
         self.robots_changed = False  # robots were added since the node last published the mission
@@ -1023,6 +1025,8 @@ class MissionBoard(BoardCore):
                 for a in range(self.state.A):
                     if a in self.refusals and self.seen_status[a] is None:
                         self.lose(a, f"{REFUSED}: {self.refusals[a]}")
+                    elif self.seen_pose[a] is None and a in self.pose_rejections:  # heard, but never usable
+                        self.lose(a, f"{POSES_REJECTED}: {self.pose_rejections[a]}")
                     elif self.seen_status[a] is None or self.seen_pose[a] is None:
                         self.lose(a, NEVER_REPORTED)
                 self.start()
@@ -1140,7 +1144,13 @@ class MissionBoard(BoardCore):
         if p is None:
             return "no pose"
         d = math.hypot(p[0] - x, p[1] - y) * self.scale
-        return f"last pose {d:.2f} m from the goal (tolerance {self.tolerance * self.scale:.2f} m)"
+        return f"last pose {d:.3f} m from the goal (tolerance {self.tolerance * self.scale:.3f} m)"
+
+    def pose_rejected(self, a: int, why: str) -> None:
+        """Robot a's pose was rejected (``why``: e.g. its frame): said with the robot's name if it
+        is dropped at the start-up timeout for want of a pose, instead of "never reported"."""
+        if 0 <= a < len(self.seen_pose):
+            self.pose_rejections[a] = " ".join(str(why).split())[:REFUSAL_CHARS]
 
     def waiting(self) -> list[str]:
         """Robots whose agent heartbeat or pose was never seen (before the start)."""
@@ -1632,6 +1642,12 @@ class MissionBoard(BoardCore):
                 f"{sol.extra.get('failure') or 'the mission did not succeed'}; {len(refused)} of {st.A} robot(s) "
                 f"refused by their agents ({', '.join(n for n, _ in refused[:5])}{', ...' if len(refused) > 5 else ''}"
                 f"), {refused[0][0]}'s saying: {refused[0][1][len(REFUSED) + 2:]}")
+        rejected = [(self.names[a], r) for a, r in sorted(self.lost.items()) if r.startswith(POSES_REJECTED)]
+        if not sol.success and rejected:  # heard, but in another frame (or malformed): the operator's fix
+            sol.extra["failure"] = (
+                f"{sol.extra.get('failure') or 'the mission did not succeed'}; {len(rejected)} of {st.A} robot(s) "
+                f"had every pose rejected ({', '.join(n for n, _ in rejected[:5])}"
+                f"{', ...' if len(rejected) > 5 else ''}), {rejected[0][0]}'s: {rejected[0][1][len(POSES_REJECTED) + 2:]}")
         never = [self.names[a] for a, r in sorted(self.lost.items()) if r == NEVER_REPORTED]
         if not sol.success and never:  # the likely cause: processes that never came up on this domain
             sol.extra["failure"] = (

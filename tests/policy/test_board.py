@@ -365,6 +365,33 @@ def test_a_robot_whose_agent_refused_is_dropped_with_its_reason_at_the_start_up_
     assert running.lost == {0: "its agent refused the mission: wrong method"}  # robot_1 is heard: kept
 
 
+def test_a_robot_whose_every_pose_was_rejected_is_dropped_saying_why_not_as_never_reported():
+    """Poses in another frame (Nav2's odom instead of map) are rejected: at the start-up timeout
+    such a robot is dropped with the rejection's reason, and the failure says it, where it would
+    otherwise read as a robot whose driver never came up."""
+    now = FakeTime()
+    b = MissionBoard(INST, seed=SEED, rules=RULES, now=now, startup_timeout=3.0)
+    b.poll()
+    b.heartbeat(b.session, b.names)
+    why = "pose of robot_0 in frame 'odom', expected 'map' (frame_id)"
+    b.pose_rejected(0, why)
+    b.pose_rejected(99, "no such robot")  # (ignored)
+    for a in range(1, INST.n_agents):
+        b.pose(a, *INST.depots[a])
+    for _ in range(40):
+        now.t += 0.1
+        b.tick()
+        b.poll()
+    assert b.started and b.lost == {0: f"no pose accepted: {why}"}
+    for a in range(1, INST.n_agents):  # the others lost too: the mission fails
+        b.lose(a, "x")
+    drive(b)
+    sol = b.result()
+    assert not sol.success
+    assert f"1 of {INST.n_agents} robot(s) had every pose rejected (robot_0), robot_0's: {why}" \
+        in sol.extra["failure"], sol.extra["failure"]
+
+
 def test_silent_robot_is_lost_and_the_others_finish():
     now = FakeTime()
     b = started_board(now=now, heartbeat_timeout=5.0)

@@ -36,8 +36,9 @@ class FakeDriver:
     20 Hz; records every goal and, at each stop, the mission clock and the planned arrival."""
 
     def __init__(self, graph, name: str, speed: float, short: float = 0.0, ignore: bool = False,
-                 pose_type: str = "PoseStamped"):
+                 pose_type: str = "PoseStamped", frame: str = "map"):
         self.node = graph.node(f"driver_{name}")
+        self.frame = frame  # of the poses it publishes
         a = ROBOTS.index(name)
         self.pos = (float(INST.depots[a, 0]), float(INST.depots[a, 1]))
         self.speed, self.short, self.ignore = speed, short, ignore
@@ -76,7 +77,7 @@ class FakeDriver:
                 self.stops.append((self.clock, self.planned))
             else:
                 self.pos = (self.pos[0] + dx / d * s, self.pos[1] + dy / d * s)
-        msg = C.pose_to_msg(self.pos, self.clock, "map", SCALE)
+        msg = C.pose_to_msg(self.pos, self.clock, self.frame, SCALE)
         if self.amcl:
             msg = PoseWithCovarianceStamped(header=msg.header, pose=PoseWithCovariance(pose=msg.pose))
         self.pub.publish(msg)
@@ -132,6 +133,28 @@ def test_a_robot_that_never_arrives_is_dropped_as_stuck_and_the_rest_finish(tmp_
     for m in result["undone_tasks"]:
         assert not (INST.requirements[m] <= team).all(), f"task {m} was satisfiable without {EXT}"
     assert all(r["return_time"] is not None for a, r in enumerate(result["agents"]) if a != lost)
+
+
+def test_a_robot_whose_poses_are_in_another_frame_is_dropped_saying_so_and_never_sent_a_goal_there(
+        tmp_path, graph, mission_procs):
+    """Nav2's odometry is in frame odom: the board rejects every pose of that robot, drops it at
+    the start-up timeout saying why (not as a robot that never reported), and its agent, which
+    stops a dropped robot where it is, sends no stop goal made of odom coordinates (a place on the
+    map the robot would drive to)."""
+    procs = mission_procs(save_instance(INST, tmp_path / "inst.yaml"), ROBOTS, seed=SEED, external=[EXT],
+                          agents_per_process=6,
+                          board_params={"scale": SCALE, "progress_period": 0.0, "real_time_departures": True,
+                                        "startup_timeout": 6.0})
+    fake = FakeDriver(graph, EXT, speed=2.0, frame="odom")
+    graph.spin_until(lambda: procs.board.proc.poll() is not None, 90, "the task board to finish the mission")
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert result["lost_robots"] == [EXT], result["lost_reasons"]
+    assert result["lost_reasons"][EXT] == (f"no pose accepted: pose of {EXT} in frame 'odom', expected 'map' "
+                                           f"(frame_id)")
+    graph.spin_until(lambda: all(p.proc.poll() is not None for p in procs.agents), 30, "the agents to exit")
+    assert fake.goals == [], fake.goals  # no stop goal in the wrong frame (and no leg: it was dropped at the start)
+    log = "".join(p.log.read_text() for p in procs.agents)
+    assert f"{EXT}: its poses are in frame 'odom', not the mission's 'map': not used" in log, log[-3000:]
 
 
 def test_a_robot_slower_than_planned_completes_late(tmp_path, graph, mission_procs):

@@ -192,8 +192,10 @@ def test_fleet_launch_one_agent_per_robot(launch_file):
     for n, r in zip(nodes, robots):
         assert n.kw["namespace"] == r.namespace and params_of(n)["robot"] == r.name
         assert params_of(n)["seed"] == 5 and params_of(n)["method"] == "random"
-        assert n.kw["remappings"] == ([("goal_pose", r.goal_topic)] if r.goal_topic != "goal_pose" else [])
+        pose = [("pose", r.pose_topic)] if r.pose_topic != f"{r.namespace}/pose" else []
+        assert n.kw["remappings"] == ([("goal_pose", r.goal_topic)] if r.goal_topic != "goal_pose" else []) + pose
         assert params_of(n).get("species", -1) == r.species
+        assert params_of(n).get("pose_type", "PoseStamped") == r.pose_type
         assert set(params_of(n)) <= set(DECLARED["agent_node"])
     _, nodes = launch_file(FLEET, fleet=str(fleet), board="true")
     assert node_of(nodes[0]) == "task_board" and len(nodes) == len(robots) + 1

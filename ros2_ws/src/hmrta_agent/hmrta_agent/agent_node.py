@@ -562,17 +562,32 @@ class AgentNode(Node):
     def _on_pose(self, msg) -> None:
         self._pose = msg
 
-    def position(self) -> tuple[float, float] | None:
-        """Where its driver last reported the robot (mission coordinates, clipped to the unit
-        square), or None (no pose yet: the board places it at its species' depot)."""
-        m = self.host.mission
-        if self._pose is None or m is None:
+    def _pose_xy(self, m: Mission) -> tuple[float, float] | None:
+        """The robot's last reported position in mission coordinates, or None: no pose yet, a
+        malformed one, or one in another frame than the mission's (its coordinates would mean
+        another place: warned once)."""
+        if self._pose is None:
+            return None
+        frame = self._pose.header.frame_id
+        if frame != m.frame_id:
+            self._warn_once(f"pose frame {frame}", f"{self.robot}: its poses are in frame {frame[:64]!r}, not the "
+                                                   f"mission's {m.frame_id!r}: not used (the board rejects them too)")
             return None
         try:
             x, y, _ = pose_from_msg(self._pose, m.scale)
         except DecodeError:
             return None
-        return (min(1.0, max(0.0, x)), min(1.0, max(0.0, y)))
+        return x, y
+
+    def position(self) -> tuple[float, float] | None:
+        """Where its driver last reported the robot (mission coordinates, clipped to the unit
+        square), or None (no pose yet, or not in the mission's frame: the board places it at its
+        species' depot)."""
+        m = self.host.mission
+        xy = None if m is None else self._pose_xy(m)
+        if xy is None:
+            return None
+        return (min(1.0, max(0.0, xy[0])), min(1.0, max(0.0, xy[1])))
 
     def wants_to_join(self) -> bool:
         """Not in the mission heard, with a species: it asks the board to add it (heartbeat)."""
@@ -780,7 +795,8 @@ class AgentNode(Node):
             for node, x, y, depart in new:  # a goal the robot has not reached in time: published again now
                 if node == RESEND and not self.finished:
                     self.goal_pub.publish(pose_to_msg((x, y), depart, m.frame_id, m.scale))
-                    self.get_logger().warning(f"{self.robot}: the board re-sends the goal ({x:.3f}, {y:.3f}) "
+                    self.get_logger().warning(f"{self.robot}: the board re-sends the goal ({x * m.scale:.2f}, "
+                                              f"{y * m.scale:.2f}) m "
                                               f"(departed t={depart:.3f}): the robot has not arrived in time")
 
     def flush_goals(self) -> None:
@@ -839,15 +855,12 @@ class AgentNode(Node):
     def _try_stop(self) -> None:
         m, waited = self.mission, time.monotonic() - self._stopping
         if self._pose is not None and not self._stop_sent:
-            try:
-                x, y, _ = pose_from_msg(self._pose, m.scale)
-            except DecodeError:
-                x = y = None
+            x, y = self._pose_xy(m) or (None, None)  # (never a pose of another frame: another place)
             if x is not None:
                 self.goal_pub.publish(pose_to_msg((x, y), self.host.clock, m.frame_id, m.scale))
                 self._stop_sent, self._stopping = True, time.monotonic()  # then a moment for it to go out
                 self.get_logger().warning(f"{self.robot}: the board declared this robot lost: goal set to where it "
-                                          f"is ({x:.3f}, {y:.3f}) to stop it; stopping")
+                                          f"is ({x * m.scale:.2f}, {y * m.scale:.2f}) m to stop it; stopping")
                 return
         if self._stop_sent:
             if waited < self.STOP_SEND_WAIT:
@@ -855,8 +868,9 @@ class AgentNode(Node):
         elif waited < self.STOP_POSE_WAIT:
             return
         else:
-            self.get_logger().warning(f"{self.robot}: the board declared this robot lost; no pose heard from it "
-                                      f"within {self.STOP_POSE_WAIT:g} s, so it was not sent a stop (it may still "
+            self.get_logger().warning(f"{self.robot}: the board declared this robot lost; no pose in frame "
+                                      f"{m.frame_id!r} heard from it within {self.STOP_POSE_WAIT:g} s, so it was not "
+                                      f"sent a stop (it may still "
                                       f"drive to its last goal); stopping")
         self._stop_timer.cancel()
         self._finish()

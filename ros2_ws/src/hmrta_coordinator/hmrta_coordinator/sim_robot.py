@@ -117,6 +117,11 @@ class SimRobot(Node):
                                ("board_silence_warning", silence, silence >= 0, "a number of seconds >= 0 (0: never)")):
             if not ok or not math.isfinite(v):
                 raise ValueError(f"{k}: expected {want}, got {v!r}")
+        if self.external and self.time_scale <= 0:  # real robots on a clock that jumps: tasks take no time
+            self.get_logger().warning(
+                f"external robots ({', '.join(sorted(self.external)[:5])}) on a mission clock run as fast as "
+                f"possible (time_scale 0): the clock jumps to each next event, so their tasks take no wall time once "
+                f"they arrive; set -p time_scale:=1.0 for real robots")
         clock_topic = T.clock_topic(clock_topic)
         self.mission: Mission | None = None
         self.robots: dict[str, SimulatedRobot] = {}

@@ -158,6 +158,9 @@ class TaskBoard(Node):
                 raise ValueError(f"{k}: expected a finite number >= 0, got {v!r}")
         if queue_depth < 1:
             raise ValueError(f"queue_depth: expected a number of messages >= 1, got {queue_depth}")
+        if tolerance == 0:  # a pose is never exactly on its goal (localisation noise, the controller's own tolerance)
+            self.get_logger().warning("arrival_tolerance 0: a robot counts as arrived only on its goal exactly, which a "
+                                      "real robot never is; take a little more than your controller's goal tolerance")
         if real_time and tolerance > 0.1 * scale:  # real robots; the mission area is scale x scale metres
             self.get_logger().warning(
                 f"arrival_tolerance {tolerance:g} m is {100 * tolerance / scale:.0f}% of the mission area's side "
@@ -423,12 +426,14 @@ class TaskBoard(Node):
         frame = msg.header.frame_id
         if frame != self.mission.frame_id:
             self.board.rejected["wrong_frame"] += 1
-            return self._reject("wrong_frame", f"pose of {self.names[a]} in frame {short(frame)}, expected "
-                                               f"{self.mission.frame_id!r} (frame_id)", self.names[a], every=5.0)
+            why = f"pose of {self.names[a]} in frame {short(frame)}, expected {self.mission.frame_id!r} (frame_id)"
+            self.board.pose_rejected(a, why)
+            return self._reject("wrong_frame", why, self.names[a], every=5.0)
         try:
             x, y, _ = pose_from_msg(msg, self.mission.scale)
         except DecodeError as e:
             self.board.malformed()
+            self.board.pose_rejected(a, f"malformed pose: {e}")
             return self._reject("malformed", f"malformed pose of {self.names[a]}: {e}", self.names[a], every=5.0)
         if self.board.pose(a, x, y):  # a pose repeated (heartbeat) changes nothing to publish
             self._flush()
@@ -500,9 +505,12 @@ class TaskBoard(Node):
         if not b.started and now - self.t_created > 5.0:
             agents = [n for a, n in enumerate(self.names) if b.seen_status[a] is None]
             poses = [n for a, n in enumerate(self.names) if b.seen_pose[a] is None]
+            bad = [a for a in range(len(self.names)) if b.seen_pose[a] is None and a in b.pose_rejections]
             self.get_logger().info(f"waiting for the agents of {agents[:8]}{'...' if len(agents) > 8 else ''} and "
                                    f"the poses of {poses[:8]}{'...' if len(poses) > 8 else ''} (heartbeats on "
-                                   f"{self.topics.status}, poses on {self.topics.robot('<robot>', topics.POSE)})",
+                                   f"{self.topics.status}, poses on {self.topics.robot('<robot>', topics.POSE)})"
+                                   + (f"; {len(bad)} of those robots' poses are heard but rejected, e.g. "
+                                      f"{b.pose_rejections[bad[0]]}" if bad else ""),
                                    throttle_duration_sec=5.0)
         b.tick()
         self._flush()

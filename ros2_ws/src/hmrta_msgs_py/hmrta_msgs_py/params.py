@@ -69,10 +69,14 @@ TASK_BOARD: tuple[Param, ...] = (
     Param("wait_for_robots", BOOL, True, "start the mission only once every robot's agent and pose are up"),
     Param("startup_timeout", DOUBLE, 120.0, "wall seconds to wait for the robots at start (0: forever)"),
     Param("heartbeat_timeout", DOUBLE, 5.0,
-          "wall seconds without its agent's heartbeat before a robot is dropped (a silent pose drops nobody)"),
-    Param("decision_timeout", DOUBLE, 30.0, "wall seconds an agent has to answer its turn before it is dropped"),
+          "wall seconds without its agent's heartbeat before a robot is dropped (a silent pose drops nobody; "
+          "0: never)"),
+    Param("decision_timeout", DOUBLE, 30.0, "wall seconds an agent has to answer its turn before it is dropped "
+          "(0: never)"),
     Param("arrival_tolerance", DOUBLE, 0.25,
-          "metres from its goal within which a robot counts as arrived (Nav2's usual goal tolerance)"),
+          "metres from its goal within which a robot counts as arrived (Nav2's default xy_goal_tolerance; with "
+          "real robots take a little more than your controller's goal tolerance plus the localisation's noise, "
+          "or a robot the controller calls arrived may be held and then dropped as stuck)"),
     Param("leg_timeout_factor", DOUBLE, 3.0,
           "a leg times out after this x its planned travel time + leg_timeout_floor: the goal is re-sent once, "
           "then the robot is dropped as stuck (factor and floor 0: never)"),
