@@ -411,6 +411,17 @@ def test_fuzzed_payloads_decode_or_raise_decode_error(text):
             pass
 
 
+def test_goal_headings_round_trip():
+    for yaw in (0.0, 1.0, -2.5, math.pi / 2, 3.1):
+        msg = C.pose_to_msg((0.5, 0.25), 3.0, "map", 10.0, yaw)
+        assert abs(math.remainder(C.yaw_from_msg(msg) - yaw, math.tau)) < 1e-12
+        assert math.isclose(msg.pose.orientation.z ** 2 + msg.pose.orientation.w ** 2, 1.0)
+    assert C.pose_to_msg((0.5, 0.25), 3.0).pose.orientation.w == 1.0 and C.yaw_from_msg(C.pose_to_msg((0, 0), 0)) == 0
+    zero = C.pose_to_msg((0.5, 0.25), 3.0)
+    zero.pose.orientation.w = 0.0  # an unset quaternion (all zeros): no heading
+    assert C.yaw_from_msg(zero) is None
+
+
 def test_statuses_carry_the_refusals_of_agents_that_stop():
     s = C.Status((), "s1", 4, "h:1", refused=(C.Refusal("robot_2", "robot_2: method random but ..."),))
     d = json.loads(C.status_to_msg(s).data)

@@ -46,6 +46,7 @@ class FakeDriver:
         self.planned = 0.0  # planned arrival of the current goal (mission time)
         self.clock = 0.0
         self.goals: list[tuple[float, float, float]] = []
+        self.yaws: list[float | None] = []  # each goal's heading
         self.stops: list[tuple[float, float]] = []  # (mission clock, planned arrival) at each stop
         self.amcl = pose_type == "PoseWithCovarianceStamped"  # as Nav2's amcl: amcl_pose, latched
         self.pub = self.node.create_publisher(PoseWithCovarianceStamped, topics.robot_topic(name, "amcl_pose"),
@@ -61,6 +62,7 @@ class FakeDriver:
     def on_goal(self, msg: PoseStamped) -> None:
         x, y, t = C.pose_from_msg(msg, SCALE)
         self.goals.append((x, y, t))
+        self.yaws.append(C.yaw_from_msg(msg))
         if self.ignore:
             return
         d = math.hypot(x - self.pos[0], y - self.pos[1])
@@ -112,6 +114,13 @@ def test_a_robot_that_stops_0_2_m_short_has_arrived(tmp_path, graph, mission_pro
     for k in ("success", "routes", "makespan"):
         assert result[k] == ref[k], k
     assert len(fake.stops) >= 2  # it drove its route (and home), always 0.2 m short
+    # every goal is headed along its leg (from the previous goal; the first from the depot), not
+    # at a fixed heading that a navigation stack would turn the robot to at every goal
+    start = tuple(INST.depots[ROBOTS.index(EXT)])
+    for (x, y, _), yaw in zip(fake.goals, fake.yaws):
+        if math.dist((x, y), start) > 1e-9:
+            assert yaw is not None and abs(math.remainder(yaw - math.atan2(y - start[1], x - start[0]), math.tau)) < 1e-6
+        start = (x, y)
 
 
 @pytest.mark.parametrize("pose_type", ["PoseStamped", "PoseWithCovarianceStamped"])

@@ -77,7 +77,7 @@ from hmrta_msgs_py.console import signals_deferred
 from hmrta_msgs_py.codec import (POSE_TYPES, Choice, DecodeError, Join, KeyframeRequest, Mission, Refusal, Status,
                                  board_from_msg, choice_to_msg, clock_from_msg, keyframe_request_to_msg,
                                  mission_from_msg, pose_from_msg, pose_to_msg, pose_type, rejection_from_msg,
-                                 status_to_msg)
+                                 status_to_msg, yaw_from_msg)
 from hmrta_msgs_py.runtime import (BoardSilence, LEAN_NODE, declare_method_parameters, mission_namespaces, spin_nodes,
                                    starting)
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
@@ -537,6 +537,8 @@ class AgentNode(Node):
         self.answered = -1  # board version last answered
         self.leg_seq: int | None = None  # number of this robot's legs already taken from the board
         self.pending: list = []  # legs whose departure time has not come yet
+        self._goal_at: tuple[float, float] | None = None  # the last goal sent (mission coordinates)
+        self._goal_yaw: float | None = None  # its heading
         self.ready = False
         self._unready_since: float | None = None  # monotonic time it has had a mission without being ready
         self._unready_said = -math.inf  # when it last said why
@@ -698,6 +700,7 @@ class AgentNode(Node):
                                f"species {species}: not taking part", mission.session)
         self.mission, self.index = mission, idx
         self.answered, self.leg_seq, self.pending = -1, None, []
+        self._goal_at = self._goal_yaw = None
         self.get_logger().info(f"{self.robot}: agent {idx} (species {species}) of mission "
                                f"{mission.instance.name}, method {self.method}")
 
@@ -794,7 +797,7 @@ class AgentNode(Node):
             m = self.mission
             for node, x, y, depart in new:  # a goal the robot has not reached in time: published again now
                 if node == RESEND and not self.finished:
-                    self.goal_pub.publish(pose_to_msg((x, y), depart, m.frame_id, m.scale))
+                    self._send_goal(x, y, depart)
                     self.get_logger().warning(f"{self.robot}: the board re-sends the goal ({x * m.scale:.2f}, "
                                               f"{y * m.scale:.2f}) m "
                                               f"(departed t={depart:.3f}): the robot has not arrived in time")
@@ -806,8 +809,24 @@ class AgentNode(Node):
             if self.finished:
                 return
             node, x, y, depart = self.pending.pop(0)
-            self.goal_pub.publish(pose_to_msg((x, y), depart, m.frame_id, m.scale))
-            self.get_logger().debug(f"goal node {node} at ({x:.3f}, {y:.3f}), departing t={depart:.3f}")
+            self._send_goal(x, y, depart)
+            self.get_logger().debug(f"goal node {node} at ({x * m.scale:.2f}, {y * m.scale:.2f}) m, departing "
+                                    f"t={depart:.3f}")
+
+    def _send_goal(self, x: float, y: float, depart: float) -> None:
+        """Publish the goal (x, y) (mission coordinates), headed along the leg that reaches it:
+        from the previous goal (the robot's pose, or its depot, before the first), so that a
+        navigation stack does not turn the robot to a fixed heading at every goal. A goal at the
+        same place as the previous one (sent again) keeps its heading."""
+        m = self.mission
+        start = self._goal_at
+        if start is None:
+            start = self._pose_xy(m) or tuple(float(v) for v in m.instance.depots[self.index])
+        dx, dy = x - start[0], y - start[1]
+        if math.hypot(dx, dy) > 1e-9:
+            self._goal_yaw = math.atan2(dy, dx)
+        self._goal_at = (x, y)
+        self.goal_pub.publish(pose_to_msg((x, y), depart, m.frame_id, m.scale, self._goal_yaw))
 
     def _decide(self, version: int, t_recv: float) -> None:
         state = self.host.replica.state  # shared by the agents of the process: deciders only read it
@@ -856,8 +875,9 @@ class AgentNode(Node):
         m, waited = self.mission, time.monotonic() - self._stopping
         if self._pose is not None and not self._stop_sent:
             x, y = self._pose_xy(m) or (None, None)  # (never a pose of another frame: another place)
-            if x is not None:
-                self.goal_pub.publish(pose_to_msg((x, y), self.host.clock, m.frame_id, m.scale))
+            if x is not None:  # where it is, heading as it is (not turned to a fixed heading)
+                self.goal_pub.publish(pose_to_msg((x, y), self.host.clock, m.frame_id, m.scale,
+                                                  yaw_from_msg(self._pose)))
                 self._stop_sent, self._stopping = True, time.monotonic()  # then a moment for it to go out
                 self.get_logger().warning(f"{self.robot}: the board declared this robot lost: goal set to where it "
                                           f"is ({x * m.scale:.2f}, {y * m.scale:.2f}) m to stop it; stopping")

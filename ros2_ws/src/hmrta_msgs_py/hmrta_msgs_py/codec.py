@@ -168,14 +168,31 @@ def clock_from_msg(msg: Clock) -> float:
 # ---------------------------------------------------------------------------------------------
 # poses and goals (geometry_msgs/PoseStamped; mission coordinates x scale = frame coordinates)
 # ---------------------------------------------------------------------------------------------
-def pose_to_msg(xy: Sequence[float], stamp: float, frame_id: str = "map", scale: float = 1.0) -> PoseStamped:
+def pose_to_msg(xy: Sequence[float], stamp: float, frame_id: str = "map", scale: float = 1.0,
+                yaw: float | None = None) -> PoseStamped:
+    """A pose (a goal, a simulated robot's pose) at mission coordinates ``xy``, heading ``yaw``
+    (radians from the frame's x axis, about z; None: the identity orientation)."""
     msg = PoseStamped()
     msg.header.stamp = time_to_stamp(stamp)
     msg.header.frame_id = frame_id
     msg.pose.position.x = float(xy[0]) * scale
     msg.pose.position.y = float(xy[1]) * scale
-    msg.pose.orientation.w = 1.0
+    if yaw is None or not math.isfinite(yaw):
+        msg.pose.orientation.w = 1.0
+    else:
+        msg.pose.orientation.z = math.sin(yaw / 2.0)
+        msg.pose.orientation.w = math.cos(yaw / 2.0)
     return msg
+
+
+def yaw_from_msg(msg: PoseStamped | PoseWithCovarianceStamped | Odometry) -> float | None:
+    """The heading about z (radians) of a pose of any of :data:`POSE_TYPES`; None when its
+    orientation is not a usable quaternion (all zeros, non-finite)."""
+    q = (msg.pose.pose if hasattr(msg.pose, "covariance") else msg.pose).orientation
+    x, y, z, w = q.x, q.y, q.z, q.w
+    if not all(math.isfinite(v) for v in (x, y, z, w)) or x * x + y * y + z * z + w * w < 1e-12:
+        return None
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 # the robot pose message types the board reads (its ``pose_type`` / ``pose_types`` parameters)
