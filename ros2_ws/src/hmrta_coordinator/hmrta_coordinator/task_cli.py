@@ -1,6 +1,7 @@
 """hmrta-task: submit, cancel and list a running mission's tasks (operator interface).
 
     hmrta-task add --location 0.3,0.7 --requirements 1,0,2 --duration 3 [--id inspect-7]
+    hmrta-task add --metres --location 12.5,30 ...   (map metres: divided by the mission's scale)
     hmrta-task cancel inspect-7        (or a task of the mission by its index: hmrta-task cancel 3)
     hmrta-task list
 
@@ -86,7 +87,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="the mission's namespace (its nodes' mission_namespace: topics NS/hmrta/...; default /)")
     sub = p.add_subparsers(dest="cmd", required=True)
     a = sub.add_parser("add", help="submit a task")
-    a.add_argument("--location", type=_point, required=True, metavar="X,Y", help="in the unit square [0, 1]")
+    a.add_argument("--location", type=_point, required=True, metavar="X,Y",
+                   help="in the unit square [0, 1] (mission coordinates); with --metres, in metres")
+    a.add_argument("--metres", action="store_true",
+                   help="--location is in metres on the mission's map (its frame_id, as the robots' poses): "
+                        "divided by the mission's scale, read from its board")
     a.add_argument("--requirements", type=_floats, required=True, metavar="R1,R2,...",
                    help=f"one per skill of the mission, each in [0, {MAX_VALUE:g}], not all 0")
     a.add_argument("--duration", type=_number, required=True,
@@ -121,8 +126,9 @@ def main(argv: list[str] | None = None) -> int:
         if not all(0 <= r <= MAX_VALUE for r in args.requirements) or not any(args.requirements):
             p.error(f"--requirements: expected numbers in [0, {MAX_VALUE:g}], at least one of them non-zero, got "
                     f"{','.join(f'{r:g}' for r in args.requirements)}")
-        if not all(0 <= v <= 1 for v in args.location):
-            p.error(f"--location: expected x,y in the unit square [0, 1], got {args.location[0]:g},{args.location[1]:g}")
+        if not all(0 <= v <= (math.inf if args.metres else 1) for v in args.location):
+            want = "metres >= 0 (--metres)" if args.metres else "in the unit square [0, 1]"
+            p.error(f"--location: expected x,y {want}, got {args.location[0]:g},{args.location[1]:g}")
         if args.id is not None and not args.id.strip():
             p.error("--id: expected a task id (leave the option out for a random one), got an empty one")
 
@@ -186,6 +192,28 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         rid = args.id if args.cmd == "cancel" or args.id is not None else f"task-{uuid.uuid4().hex[:8]}"
         task = None
+        if args.cmd == "add" and args.metres:  # metres -> mission coordinates: the mission's scale
+            from hmrta_msgs_py.codec import mission_from_msg
+
+            missions: list = []
+            node.create_subscription(String, T.mission, missions.append, topics.MISSION_SUB_QOS)
+            while not missions and time.monotonic() < deadline:
+                rclpy.spin_once(node, timeout_sec=0.05)
+            if not missions:
+                print(f"hmrta-task: no mission heard on {T.mission} within {args.timeout:g} s (its scale turns "
+                      f"--metres into mission coordinates)", file=sys.stderr)
+                return 1
+            try:
+                scale = mission_from_msg(missions[-1]).scale
+            except DecodeError as e:
+                print(f"hmrta-task: unreadable mission: {e}", file=sys.stderr)
+                return 1
+            x, y = args.location
+            if not (x <= scale and y <= scale):
+                print(f"hmrta-task: error: --location {x:g},{y:g} m is outside the mission's map, [0, {scale:g}] m on "
+                      f"each axis (scale {scale:g} m per mission unit)", file=sys.stderr)
+                return 2
+            args.location = [x / scale, y / scale]
         if args.cmd == "add":
             task = {"location": args.location, "requirements": args.requirements, "duration": args.duration}
         answers: list = []
