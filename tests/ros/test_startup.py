@@ -150,6 +150,8 @@ def test_ctrl_c_or_sigterm_at_any_moment_of_start_up_is_one_line(exe, args, sig,
     (["-r", "__ns:=/robot_1/"], "-r __ns:=/robot_1/: expected a namespace such as /robot_1"),
     (["--params-file", "/no/such/params.yaml"], "cannot parse '--params-file /no/such/params.yaml': expected"),
     (["-r", "goal_pose"], "cannot parse '-r goal_pose': expected -r FROM:=TO"),
+    (["-p", "pose_types:=[robot_0:Odometry,robot_1:Odometry]"],  # unquoted: not YAML rcl can read
+     """entries with a colon need quotes: -p 'pose_types:=["robot_0:Odometry", "robot_1:Odometry"]'"""),
 ])
 def test_malformed_ros_args_are_one_line_user_errors(exe, args, says, tmp_path, domain):
     r = subprocess.run([str(BIN / exe), "--ros-args", *args], capture_output=True, text=True, timeout=60,

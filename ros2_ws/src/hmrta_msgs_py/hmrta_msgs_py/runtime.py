@@ -177,6 +177,12 @@ def ros_error_text(text: str, args: list[str]) -> str | None:
         why = _first_error(why)
         form = _ROS_ARG_FORMS.get(kind, f"rcl: {why}")
         detail = f" ({why})" if kind == "params file" and "error not set" not in why else ""
+        value = arg.partition(":=")[2]
+        if kind == "parameter override rule" and value.startswith("[") and ":" in value and '"' not in value \
+                and "'" not in value:  # a YAML flow list of ROBOT:TYPE entries, unquoted (rcl cannot read them)
+            name = arg.partition(":=")[0].split()[-1]  # (rcl quotes it with its -p)
+            items = ", ".join(f'"{x.strip()}"' for x in value.strip("[]").split(",") if x.strip())
+            detail += f"; entries with a colon need quotes: -p '{name}:=[{items}]'"
         return f"--ros-args: cannot parse {arg!r}: {form}{detail}"
     if "error creating node" in text and ("namespace" in text or "node name" in text):
         why = _first_error(text.split("error creating node: ", 1)[1]).replace("node name must", "a name must")
