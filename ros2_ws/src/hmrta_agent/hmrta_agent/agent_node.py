@@ -819,12 +819,11 @@ class AgentNode(Node):
         navigation stack does not turn the robot to a fixed heading at every goal. A goal at the
         same place as the previous one (sent again) keeps its heading."""
         m = self.mission
-        start = self._goal_at
-        if start is None:
-            start = self._pose_xy(m) or tuple(float(v) for v in m.instance.depots[self.index])
-        dx, dy = x - start[0], y - start[1]
-        if math.hypot(dx, dy) > 1e-9:
-            self._goal_yaw = math.atan2(dy, dx)
+        start = self._goal_at or self._pose_xy(m)
+        if start is None and self.index is not None:
+            start = tuple(float(v) for v in m.instance.depots[self.index])
+        if start is not None and math.hypot(x - start[0], y - start[1]) > 1e-9:
+            self._goal_yaw = math.atan2(y - start[1], x - start[0])
         self._goal_at = (x, y)
         self.goal_pub.publish(pose_to_msg((x, y), depart, m.frame_id, m.scale, self._goal_yaw))
 
