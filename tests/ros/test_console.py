@@ -158,3 +158,25 @@ def test_a_signal_right_after_the_start_up_warnings_stops_a_running_node(tmp_pat
     assert out.returncode == 0, (out.returncode, out.stdout, out.stderr)
     assert out.stdout.splitlines() == ["warned", "spin returned SIGTERM"], out.stdout
     assert "stopped by SIGTERM while waiting" in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def test_sigusr1_prints_every_threads_stack_and_the_process_goes_on(tmp_path):
+    """A node that seems stuck says where: ``kill -USR1 PID`` dumps its Python stacks on stderr."""
+    import signal
+    import time
+
+    (tmp_path / "sleepy_node.py").write_text(
+        "import time\ndef main():\n    print('up', flush=True)\n    time.sleep(2.0)\n    return 0\n")
+    env = dict(os.environ, PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    p = subprocess.Popen([sys.executable, "-c", "from hmrta_msgs_py.console import run; run('some_node', 'sleepy_node')"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert p.stdout.readline() == "up\n"
+        time.sleep(0.2)
+        p.send_signal(signal.SIGUSR1)
+        out, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, err
+    assert "most recent call first" in err and "sleepy_node.py\", line 4 in main" in err, err

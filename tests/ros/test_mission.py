@@ -129,8 +129,19 @@ def assert_routes_equal(result: dict, ref: dict) -> None:
 
 
 def wait_board_exit(graph, procs, timeout: float, statuses: tuple[int, ...] = (0,)) -> int:
-    """Wait for the board to exit; its exit status (0; 3: the mission failed) must be one of ``statuses``."""
-    graph.spin_until(lambda: procs.board.proc.poll() is not None, timeout, "the task board to finish the mission")
+    """Wait for the board to exit; its exit status (0; 3: the mission failed) must be one of
+    ``statuses``. A board still running at the timeout is asked for its threads' Python stacks
+    (SIGUSR1), which the failure shows with the end of its log."""
+    try:
+        graph.spin_until(lambda: procs.board.proc.poll() is not None, timeout, "the task board to finish the mission")
+    except AssertionError as e:
+        import signal
+        import time
+
+        procs.board.proc.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        raise AssertionError(f"{e}; the board's log ends (after SIGUSR1: its stacks):\n"
+                             f"{procs.board.log.read_text()[-6000:]}") from None
     assert procs.board.proc.returncode in statuses, (procs.board.log.read_text()[-3000:])
     return procs.board.proc.returncode
 

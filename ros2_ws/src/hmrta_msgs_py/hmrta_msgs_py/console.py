@@ -48,7 +48,13 @@ def signals_deferred() -> Iterator[None]:
 
 
 def run(prog: str, module: str, func: str = "main") -> None:
-    """Import ``module`` and exit with what its ``func()`` returns (None: 0)."""
+    """Import ``module`` and exit with what its ``func()`` returns (None: 0). ``kill -USR1 PID``
+    prints the Python stack of every thread of the process on its stderr (a node that seems
+    stuck says where), and the process goes on."""
+    if hasattr(signal, "SIGUSR1"):
+        import faulthandler
+
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     if threading.current_thread() is threading.main_thread():
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
             signal.signal(signal.SIGINT, _noted)
