@@ -70,7 +70,7 @@ import numpy as np
 from .core import DONE, LOST, STATUS_NAMES, EventRejected, MissionState, Rules, apply_event, copy_fields
 from .instance import Instance
 from .keys import rejection_code
-from .reading import finite
+from .reading import finite, one_line
 from .solution import Solution, solution_from_state
 
 EPS = 1e-6  # sim-time comparisons (stamps are rounded to the nanosecond)
@@ -829,7 +829,7 @@ class MissionBoard(BoardCore):
         a = self.index.get(name)
         if a is None or a in self.lost or self.finished or self.seen_status[a] is not None:
             return
-        why = " ".join(str(why).split())[:REFUSAL_CHARS]  # one line, bounded (from any publisher)
+        why = one_line(why)[:REFUSAL_CHARS]  # one line, bounded (from any publisher)
         if a not in self._refusals_said:
             self._refusals_said.add(a)
             T = self.startup_timeout
@@ -1023,7 +1023,7 @@ class MissionBoard(BoardCore):
         if not self.started:
             if self.startup_timeout > 0 and now - max(self.t_created, self._resumed) > self.startup_timeout:
                 for a in range(self.state.A):
-                    if a in self.refusals and self.seen_status[a] is None:
+                    if a in self.refusals:  # (never a robot an agent reported: heartbeat)
                         self.lose(a, f"{REFUSED}: {self.refusals[a]}")
                     elif self.seen_pose[a] is None and a in self.pose_rejections:  # heard, but never usable
                         self.lose(a, f"{POSES_REJECTED}: {self.pose_rejections[a]}")
@@ -1150,7 +1150,7 @@ class MissionBoard(BoardCore):
         """Robot a's pose was rejected (``why``: e.g. its frame): said with the robot's name if it
         is dropped at the start-up timeout for want of a pose, instead of "never reported"."""
         if 0 <= a < len(self.seen_pose):
-            self.pose_rejections[a] = " ".join(str(why).split())[:REFUSAL_CHARS]
+            self.pose_rejections[a] = one_line(why)[:REFUSAL_CHARS]
 
     def waiting(self) -> list[str]:
         """Robots whose agent heartbeat or pose was never seen (before the start)."""
@@ -1636,18 +1636,16 @@ class MissionBoard(BoardCore):
             sol.extra["board_restarts"] = self.restarts
         if self.lost and alive:
             sol.extra["home_time"] = max(float(st.arrive[a]) for a in alive)
-        refused = [(self.names[a], r) for a, r in sorted(self.lost.items()) if r.startswith(REFUSED)]
-        if not sol.success and refused:  # the agents said why
-            sol.extra["failure"] = (
-                f"{sol.extra.get('failure') or 'the mission did not succeed'}; {len(refused)} of {st.A} robot(s) "
-                f"refused by their agents ({', '.join(n for n, _ in refused[:5])}{', ...' if len(refused) > 5 else ''}"
-                f"), {refused[0][0]}'s saying: {refused[0][1][len(REFUSED) + 2:]}")
-        rejected = [(self.names[a], r) for a, r in sorted(self.lost.items()) if r.startswith(POSES_REJECTED)]
-        if not sol.success and rejected:  # heard, but in another frame (or malformed): the operator's fix
-            sol.extra["failure"] = (
-                f"{sol.extra.get('failure') or 'the mission did not succeed'}; {len(rejected)} of {st.A} robot(s) "
-                f"had every pose rejected ({', '.join(n for n, _ in rejected[:5])}"
-                f"{', ...' if len(rejected) > 5 else ''}), {rejected[0][0]}'s: {rejected[0][1][len(POSES_REJECTED) + 2:]}")
+        if not sol.success:  # robots dropped with a reason an operator can act on (their agents', their poses')
+            for reason, what, says in ((REFUSED, "refused by their agents", "saying"),
+                                       (POSES_REJECTED, "had every pose rejected", "")):
+                hit = [(self.names[a], r[len(reason) + 2:]) for a, r in sorted(self.lost.items())
+                       if r.startswith(f"{reason}: ")]
+                if hit:
+                    sol.extra["failure"] = (
+                        f"{sol.extra.get('failure') or 'the mission did not succeed'}; {len(hit)} of {st.A} robot(s) "
+                        f"{what} ({', '.join(n for n, _ in hit[:5])}{', ...' if len(hit) > 5 else ''}), "
+                        f"{hit[0][0]}'s{' ' + says if says else ''}: {hit[0][1]}")
         never = [self.names[a] for a, r in sorted(self.lost.items()) if r == NEVER_REPORTED]
         if not sol.success and never:  # the likely cause: processes that never came up on this domain
             sol.extra["failure"] = (

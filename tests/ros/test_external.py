@@ -12,6 +12,7 @@ import math
 import pytest
 
 from conftest import save_instance
+from test_mission import wait_board_exit
 from hmrta.baselines import GREEDY_RULES, Greedy
 from hmrta.generators import ScenarioGenerator
 from hmrta.sim import simulate
@@ -96,8 +97,7 @@ def run(tmp_path, graph, mission_procs, board: dict, time_scale: float = 0.0, **
                           board_params={"scale": SCALE, "progress_period": 0.0, "real_time_departures": True,
                                         **board}, **amcl)
     fake = FakeDriver(graph, EXT, **driver)
-    graph.spin_until(lambda: procs.board.proc.poll() is not None, 90, "the task board to finish the mission")
-    assert procs.board.proc.returncode == 0, procs.board.log.read_text()[-3000:]
+    wait_board_exit(graph, procs, 90)
     return json.loads((tmp_path / "result.json").read_text()), fake
 
 

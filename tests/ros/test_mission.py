@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -135,9 +136,6 @@ def wait_board_exit(graph, procs, timeout: float, statuses: tuple[int, ...] = (0
     try:
         graph.spin_until(lambda: procs.board.proc.poll() is not None, timeout, "the task board to finish the mission")
     except AssertionError as e:
-        import signal
-        import time
-
         procs.board.proc.send_signal(signal.SIGUSR1)
         time.sleep(1.0)
         raise AssertionError(f"{e}; the board's log ends (after SIGUSR1: its stacks):\n"

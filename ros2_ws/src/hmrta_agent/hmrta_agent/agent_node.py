@@ -466,14 +466,14 @@ class Host:
         from rclpy.duration import Duration
 
         pub, now, left = self._status_pub, time.monotonic(), []
+        readers = pub.get_subscription_count() if pub is not None and rclpy.ok() else 0
         for r in self._refusals:
-            readers = pub.get_subscription_count() if pub is not None and rclpy.ok() else 0
             if readers > r["readers"]:  # a reader more (the board's, the recorder's): it gets the refusal too
                 self._seq += 1
                 refusal = (Refusal(r["agent"].robot, r["why"]),)
                 pub.publish(status_to_msg(Status((), r["session"], self._seq, self._host, refused=refusal), self.signer))
                 r["first"] = now if r["first"] is None else r["first"]
-            r["readers"] = max(r["readers"], readers)
+                r["readers"] = readers
             heard = (r["first"] is not None and now - r["first"] >= self.REFUSAL_SETTLE
                      and (not rclpy.ok() or pub.wait_for_all_acked(Duration(seconds=0))))
             if heard:
@@ -873,8 +873,9 @@ class AgentNode(Node):
     def _try_stop(self) -> None:
         m, waited = self.mission, time.monotonic() - self._stopping
         if self._pose is not None and not self._stop_sent:
-            x, y = self._pose_xy(m) or (None, None)  # (never a pose of another frame: another place)
-            if x is not None:  # where it is, heading as it is (not turned to a fixed heading)
+            xy = self._pose_xy(m)  # (never a pose of another frame: another place)
+            if xy is not None:  # where it is, heading as it is (not turned to a fixed heading)
+                x, y = xy
                 self.goal_pub.publish(pose_to_msg((x, y), self.host.clock, m.frame_id, m.scale,
                                                   yaw_from_msg(self._pose)))
                 self._stop_sent, self._stopping = True, time.monotonic()  # then a moment for it to go out

@@ -76,6 +76,14 @@ def task_words(tasks: dict, m: int, clock: float | None) -> str:
     return ""
 
 
+def _spin_until(node, done, until: float, step: float = 0.05) -> None:
+    """Spin ``node`` until ``done()`` is true or the monotonic clock reaches ``until``."""
+    import rclpy
+
+    while not done() and time.monotonic() < until:
+        rclpy.spin_once(node, timeout_sec=step)
+
+
 def main(argv: list[str] | None = None) -> int:
     from hmrta.cli import Parser  # bad arguments: one line
     from hmrta.instance import MAX_VALUE
@@ -155,8 +163,7 @@ def main(argv: list[str] | None = None) -> int:
             node.create_subscription(Clock, args.clock_topic or T.clock, lambda m: now.append(clock_from_msg(m)),
                                      topics.CLOCK_QOS)
             ask = node.create_publisher(String, T.keyframe_requests, topics.KEYFRAME_REQUEST_QOS)
-            while not got and time.monotonic() < deadline:
-                rclpy.spin_once(node, timeout_sec=0.1)
+            _spin_until(node, lambda: got, deadline, step=0.1)
             if not got:
                 print(f"hmrta-task: no board within {args.timeout:g} s (nothing on {T.keyframe}: is a mission running "
                       f"on this ROS domain, in mission namespace {T.namespace}?)", file=sys.stderr)
@@ -173,8 +180,7 @@ def main(argv: list[str] | None = None) -> int:
                 if ask.get_subscription_count() > 0:
                     ask.publish(keyframe_request_to_msg(KeyframeRequest(b.session, -1, "hmrta-task list")))
                 end = time.monotonic() + 0.5
-                while len(got) == n and time.monotonic() < min(end, fresh):
-                    rclpy.spin_once(node, timeout_sec=0.05)
+                _spin_until(node, lambda: len(got) != n, min(end, fresh))
             try:
                 b = board_from_msg(got[-1])
             except DecodeError as e:
@@ -182,8 +188,7 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             t = b.state["tasks"]
             names = t.get("names") or [None] * len(t["status"])
-            while not now and time.monotonic() < deadline:  # the latched clock, if not heard yet (discovery)
-                rclpy.spin_once(node, timeout_sec=0.05)
+            _spin_until(node, lambda: now, deadline)  # the latched clock, if not heard yet (discovery)
             clock = f"mission clock {now[-1]:.3f}" if now else "mission clock not heard"
             print(f"board {b.version}, phase {b.phase}, state at t={b.clock:.3f} (its last event), {clock}: "
                   f"{b.n_done}/{b.n_tasks} tasks done")
@@ -197,8 +202,7 @@ def main(argv: list[str] | None = None) -> int:
 
             missions: list = []
             node.create_subscription(String, T.mission, missions.append, topics.MISSION_SUB_QOS)
-            while not missions and time.monotonic() < deadline:
-                rclpy.spin_once(node, timeout_sec=0.05)
+            _spin_until(node, lambda: missions, deadline)
             if not missions:
                 print(f"hmrta-task: no mission heard on {T.mission} within {args.timeout:g} s (its scale turns "
                       f"--metres into mission coordinates)", file=sys.stderr)
@@ -229,15 +233,13 @@ def main(argv: list[str] | None = None) -> int:
 
         node.create_subscription(String, T.task_events, on_event, topics.TASK_EVENT_QOS)
         pub = node.create_publisher(String, T.task_requests, topics.TASK_REQUEST_QOS)
-        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.05)
+        _spin_until(node, lambda: pub.get_subscription_count() > 0, deadline)
         if pub.get_subscription_count() == 0:
             print(f"hmrta-task: no board listens on {T.task_requests} (waited {args.timeout:g} s)",
                   file=sys.stderr)
             return 1
         pub.publish(task_request_to_msg(TaskRequest(args.cmd, rid, task, nonce)))
-        while not answers and time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.05)
+        _spin_until(node, lambda: answers, deadline)
         if not answers:
             print(f"hmrta-task: no answer to {args.cmd} {rid!r} within {args.timeout:g} s", file=sys.stderr)
             return 1
