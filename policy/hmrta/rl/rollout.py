@@ -45,6 +45,20 @@ def forward_threads(n_states: int):
     return intra_op_threads(1 if n_states <= SINGLE_THREAD_STATES else torch.get_num_threads())
 
 
+def model_device(model: torch.nn.Module) -> torch.device:
+    """The device of ``model``'s weights (the CPU for a module or callable without any). Training
+    may keep its network on a GPU; observations are built on the CPU and moved there for each
+    forward pass."""
+    params = getattr(model, "parameters", None)
+    p = next(iter(params()), None) if callable(params) else None
+    return p.device if p is not None else torch.device("cpu")
+
+
+def to_device(obs: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    """``obs`` on ``device`` (the same dict when that is the CPU, where observations are built)."""
+    return obs if device.type == "cpu" else {k: v.to(device) for k, v in obs.items()}
+
+
 def greedy_rows(logits: torch.Tensor, depot: str = "argmax") -> torch.Tensor:
     """[b] the greedy action rows of ``logits`` [b, T] (row 0 the depot, inadmissible rows -inf),
     by the rule ``depot`` (``ModelConfig.greedy_depot``): "argmax" the most likely row; "majority"
@@ -84,19 +98,23 @@ def rollout(model: torch.nn.Module, states: list[MissionState], *, sample: bool,
     ``cfg.greedy_depot``) or sampled.
 
     ``temperature``: sampling from softmax(logits / temperature) (training exploration).
-    ``amp``: bfloat16 autocast on CPU (training collection only; inference stays float32 so that
-    results are exactly reproducible).
+    ``amp``: bfloat16 autocast (training collection on the CPU only; inference stays float32 so
+    that results are exactly reproducible).
+    The forward passes run where ``model``'s weights are (a GPU in training); observations,
+    logits, sampling (``generator`` is a CPU generator), recorded trajectories and actions stay on
+    the CPU.
     ``before_step(idx, obs, nodes, act)``: called with each decision batch before the states step
     (e.g. to branch copies of some states)."""
     traj = Trajectories() if record else None
+    device = model_device(model)
     active = [i for i, s in enumerate(states) if not s.done]
     with torch.inference_mode(), forward_threads(len(active)):
         while active:
             for lo in range(0, len(active), max_batch):
                 idx = active[lo:lo + max_batch]
                 obs, nodes = batch_observations([states[i] for i in idx], **model.cfg.view())
-                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
-                    logits = model(**obs).float()  # [b, T]
+                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+                    logits = model(**to_device(obs, device)).float().cpu()  # [b, T]
                 if sample:
                     probs = torch.softmax(logits / temperature, dim=-1)  # [b, T]
                     act = torch.multinomial(probs, 1, generator=generator)[:, 0]  # [b]

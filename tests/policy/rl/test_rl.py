@@ -288,6 +288,35 @@ def test_tiny_training_run_improves(tmp_path):
     assert rows[-1]["entropy"] < rows[0]["entropy"]
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU that torch can use")
+def test_every_training_phase_runs_with_the_network_on_a_gpu(tmp_path):
+    """``hmrta train --device cuda``: observations are built on the CPU and every forward pass runs
+    where the network is. Cloning (with DAgger and soft targets), lookahead distillation,
+    REINFORCE with self-imitation, in-process validation, save and resume; greedy decoding on the
+    GPU decides as on the CPU."""
+    FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
+    cfg = _tiny_cfg(pretrain={"iterations": 2, "instances_per_iter": 2, "lr": 3e-3, "epochs": 1, "batch": 64,
+                              "teacher": "greedy-coalition", "dagger": 0.5, "tau": 0.5},
+                    distill={"instances_per_iter": 2, "snapshot_prob": 0.5, "steps": 2, "batch": 64,
+                             "buffer": 2, "lr": 3e-3},
+                    train={"sil": {"coef": 1.0, "steps": 2, "batch": 64, "buffer": 2}})
+    tr = FixedTrainer(cfg, tmp_path, device="cuda", log=lambda s: None)
+    assert next(tr.learner.model.parameters()).is_cuda
+    rows = [tr.pretrain_step(), tr.distill_step(), tr.train_step(), tr.train_step()]
+    assert all(np.isfinite(v) for r in rows for k, v in r.items() if "loss" in k)
+    assert tr.validate()["val_success"] == 1.0
+    tr.save(tmp_path / "last.pt")
+    cpu = Trainer(cfg, tmp_path / "cpu", device="cpu", log=lambda s: None)
+    cpu.load(tmp_path / "last.pt")
+    insts = ScenarioGenerator("MA-AT", 6, 2, 8, 3).generate(4, 11)
+    on = {}
+    for name, net in (("cuda", tr.eval_model()), ("cpu", cpu.eval_model())):
+        states = [MissionState(i, seed=0, rules=RULES) for i in insts]
+        rollout(net, states, sample=False)
+        on[name] = [s.makespan for s in states]
+    assert on["cuda"] == pytest.approx(on["cpu"])
+
+
 def test_concatenated_batches_of_different_widths_score_as_each_alone(model):
     from hmrta.rl.features import concat_batches
 
