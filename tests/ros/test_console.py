@@ -180,3 +180,46 @@ def test_sigusr1_prints_every_threads_stack_and_the_process_goes_on(tmp_path):
             p.kill()
     assert p.returncode == 0, err
     assert "most recent call first" in err and "sleepy_node.py\", line 4 in main" in err, err
+
+
+@pytest.mark.parametrize("where", ["destroy_node", "exit"])
+def test_a_teardown_that_hangs_ends_the_process_with_its_status(tmp_path, where):
+    """Once a console script's nodes have stopped, the rest of its life is bounded: a teardown that
+    hangs (here a node's destroy_node, or a non-daemon thread the interpreter waits for at exit)
+    ends the process after HMRTA_TEARDOWN_TIMEOUT seconds with the status it would have had,
+    printing where it hung. The mission's work is done by then (a board's result is written)."""
+    import time
+
+    (tmp_path / "stuck_node.py").write_text(
+        "import threading, time\n"
+        "import rclpy\n"
+        "from rclpy.node import Node\n"
+        "from rclpy.task import Future\n"
+        "from hmrta_msgs_py.runtime import spin_nodes, starting\n"
+        "class Stuck(Node):\n"
+        "    def destroy_node(self):\n"
+        f"        if {where == 'destroy_node'!r}:\n"
+        "            time.sleep(3600)\n"
+        "        return super().destroy_node()\n"
+        "def main():\n"
+        "    with starting('stuck_node', args=['stuck_node']):\n"
+        "        node = Stuck('stuck_node', enable_rosout=False, start_parameter_services=False)\n"
+        "    done = Future()\n"
+        "    node.create_timer(0.2, lambda: done.set_result(True))\n"
+        "    spin_nodes([node], until=done, exit_status=lambda: 3)\n"
+        f"    if {where == 'exit'!r}:\n"
+        "        threading.Thread(target=time.sleep, args=(3600,), name='left_running').start()\n"
+        "    print('finished', flush=True)\n"
+        "    return 3\n")
+    t0 = time.monotonic()
+    out = run_python("from hmrta_msgs_py.console import run; run('stuck_node', 'stuck_node')",
+                     PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+                     ROS_DOMAIN_ID="96", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", HMRTA_TEARDOWN_TIMEOUT="3")
+    assert out.returncode == 3, (out.returncode, out.stdout, out.stderr)
+    assert time.monotonic() - t0 < 50
+    assert "stuck_node: still shutting down 3 s after its nodes stopped" in out.stderr, out.stderr
+    assert "exiting with status 3" in out.stderr
+    if where == "destroy_node":
+        assert "finished" not in out.stdout and "in destroy_node" in out.stderr, out.stderr
+    else:
+        assert out.stdout == "finished\n", out.stdout  # main returned; the interpreter waited at exit

@@ -987,7 +987,7 @@ def main(args: list[str] | None = None) -> int:
             nodes = [AgentNode(host)]
         _set_torch_threads(cli.torch_threads)  # the deciders are built: torch is loaded if they use it
         host.attach(nodes[0], cli.heartbeat_period)
-    spin_nodes(nodes, until=host.all_done)
+    spin_nodes(nodes, until=host.all_done, exit_status=host.exit_status)
     return host.exit_status()
 
 

@@ -684,7 +684,8 @@ def main(args: list[str] | None = None) -> int:
     # a bad mission file, policy or parameter is a user error
     with starting("task_board", (InstanceError, MethodError, JournalError, ValueError), args=argv):
         board = TaskBoard()
-    spin_nodes([board], until=board.done if board.exit_on_done else board.refused, stopped=board.stopped)
+    spin_nodes([board], until=board.done if board.exit_on_done else board.refused, stopped=board.stopped,
+               exit_status=board.exit_status)
     return board.exit_status()
 
 

@@ -24,6 +24,8 @@ INTERRUPTED: list[int] = []
 
 _DEFERRED = [0]  # open signals_deferred() blocks
 
+SCRIPT: list[str] = []  # the console script's name, once run() started it (runtime.teardown_watchdog)
+
 
 def _noted(sig: int, frame) -> None:
     INTERRUPTED.append(sig)
@@ -50,7 +52,9 @@ def signals_deferred() -> Iterator[None]:
 def run(prog: str, module: str, func: str = "main") -> None:
     """Import ``module`` and exit with what its ``func()`` returns (None: 0). ``kill -USR1 PID``
     prints the Python stack of every thread of the process on its stderr (a node that seems
-    stuck says where), and the process goes on."""
+    stuck says where), and the process goes on. Once its nodes stop, the rest of its life is
+    bounded (:func:`hmrta_msgs_py.runtime.teardown_watchdog`)."""
+    SCRIPT[:] = [prog]
     if hasattr(signal, "SIGUSR1"):
         import faulthandler
 

@@ -18,6 +18,8 @@ import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.task import Future
 
+from . import console
+
 DISCOVERY_VAR = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 
 # nodes hosted many to a process: no parameter services, no /rosout publisher
@@ -286,11 +288,54 @@ def make_executor():
 SPUN = False  # spin_nodes was entered: an interrupt from now on is not one during start-up
 
 
+# seconds the process may take, once its nodes stop, to destroy them, shut rclpy down and exit
+TEARDOWN_TIMEOUT = 30.0
+TEARDOWN_VAR = "HMRTA_TEARDOWN_TIMEOUT"  # overrides it (seconds)
+
+
+def teardown_watchdog(prog: str, exit_status: Callable[[], int | None] | None = None) -> threading.Timer:
+    """Started when a process's nodes stop: should the rest of its life (destroying the nodes,
+    shutting the middleware down, the interpreter's exit) take longer than ``TEARDOWN_TIMEOUT``
+    seconds, it prints the Python stack of every thread and one line on stderr, and ends the
+    process with ``exit_status()`` (None or no function: 0), the status it would have had. So a
+    middleware that hangs in its teardown never keeps a finished node alive (its work, such as a
+    board's result, is written before). A daemon timer: it ends with the process."""
+    try:
+        limit = float(os.environ.get(TEARDOWN_VAR, TEARDOWN_TIMEOUT))
+    except ValueError:
+        limit = TEARDOWN_TIMEOUT
+
+    def expired() -> None:
+        import faulthandler
+
+        try:
+            code = exit_status() if exit_status is not None else None
+        except Exception:  # (the process's state is what it is: exit all the same)
+            code = 1
+        code = 0 if code is None else int(code)
+        try:
+            faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+            print(f"{prog}: still shutting down {limit:g} s after its nodes stopped (the stacks above say "
+                  f"where); exiting with status {code}", file=sys.stderr, flush=True)
+        finally:
+            os._exit(code)
+
+    timer = threading.Timer(limit, expired)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
 def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], None] | None = None,
-               stopped: Callable[[str], str] | None = None) -> str | None:
+               stopped: Callable[[str], str] | None = None,
+               exit_status: Callable[[], int | None] | None = None) -> str | None:
     """Spin nodes on one executor until ``until`` completes, Ctrl-C / SIGTERM or external
     shutdown; then destroy the nodes and shut rclpy down (ros2/demos style). Returns the name of
     the signal that stopped it (SIGINT, SIGTERM), or None.
+
+    In an HMRTA console script, once ``on_exit`` (if given) has run, the rest of the process's
+    life is bounded by :func:`teardown_watchdog`, which exits with ``exit_status()`` should it
+    run out.
 
     First warns about parameters given that no node declares. A signal before ``until`` is done
     is logged as one line (``stopped(signal)``, if given, says what was left undone).
@@ -320,6 +365,8 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
             nodes[0].get_logger().info(text)
         if on_exit is not None:
             on_exit()
+        if console.SCRIPT:  # (a process of someone else's that hosts nodes is left alone)
+            teardown_watchdog(console.SCRIPT[0], exit_status)
         for n in nodes:
             n.destroy_node()
         if executor is not None:
