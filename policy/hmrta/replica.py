@@ -2,10 +2,10 @@
 
 The board publishes every version it reaches as a small header (``hmrta-board/2``) carrying the
 events applied since the previous version (the records of its journal, in order) and a digest of
-its state (:func:`hmrta.board.state_digest`); now and then, and when a replica asks, it also
+its state (:func:`hmrta.board_core.state_digest`); now and then, and when a replica asks, it also
 publishes a *keyframe*: the same header with every robot's latest legs and the full state
 snapshot. A :class:`Replica` starts from a keyframe and applies each version's events with the
-board's own code (:class:`hmrta.board.BoardCore`). The state machine is deterministic, so the
+board's own code (:class:`hmrta.board_core.BoardCore`). The state machine is deterministic, so the
 replica's state equals the board's after every version; the digest checks it.
 
 * **Gaps.** A version whose previous version is not the replica's (a message was lost) is kept,
@@ -34,7 +34,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-from .board import BOARD_FORMAT, BoardCore, BoardState, Header, state_digest
+from .board_core import BOARD_FORMAT, BoardCore, BoardState, Header, state_digest
 from .core import Rules
 from .instance import Instance
 
@@ -60,7 +60,7 @@ class Replica(BoardCore):
     """The board's state machine rebuilt from its messages (see the module docstring).
 
     Feed it every board message in the order received with :meth:`receive`; read
-    :attr:`state` (a :class:`hmrta.board.BoardState`), :attr:`head` (the header of its version),
+    :attr:`state` (a :class:`hmrta.board_core.BoardState`), :attr:`head` (the header of its version),
     :meth:`legs`; decide only while :attr:`current`. ``now`` gives wall seconds (the retry
     period of :meth:`request`)."""
 
@@ -220,7 +220,7 @@ class Replica(BoardCore):
         return (self.version if self.state is not None else -1), why
 
     def legs(self, a: int, after: int | None = None) -> tuple[int, tuple] | None:
-        """Robot a's legs (``(seq, legs)``: see :meth:`hmrta.board.BoardState.legs`), or None
+        """Robot a's legs (``(seq, legs)``: see :meth:`hmrta.board_core.BoardState.legs`), or None
         (lost, or not in the replica's state)."""
         st = self.state
         return None if st is None or a >= st.A else st.legs(a, after)
