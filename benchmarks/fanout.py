@@ -78,7 +78,7 @@ def main() -> None:
             assert [r.labels.acts for r in sols] == [r.labels.acts for r in ref]  # the same labels
         elif not a.schedules:  # (an anytime solver on the clock may differ between runs)
             assert [s.makespan for s in sols] == [s.makespan for s in ref]  # the same answers
-        print(f"Ray, {n} CPU{'s' if n > 1 else ' '}       : {count(sols) / dt:7.2f} {unit}  "
+        print(f"{f'Ray, {n} CPU' + ('s' if n > 1 else ''):<18}: {count(sols) / dt:7.2f} {unit}  "
               f"(start-up and warm-up {up:.1f} s)")
     print(f"load average after {' / '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
