@@ -194,7 +194,7 @@ class ReinforceConfig:
     # advantage of a rollout: "raw" (return - the mean of its instance's beta returns) or "relative"
     # (the same divided by that mean cost: missions of different time scales weigh alike)
     advantage: str = _f("raw", lambda v: None if v in ("raw", "relative") else "expected raw or relative")
-    amp: bool = _f(True, _boolean)  # bfloat16 autocast for collection and re-scoring (CPU); evaluation is float32
+    amp: bool = _f(True, _boolean)  # bfloat16 autocast, collection and re-scoring, CPU only (a GPU: float32)
     # > 0: decay of an exponential moving average of the weights (every phase's updates), which
     # validation scores, best.pt keeps and export ships (0: the raw weights)
     ema: float = _f(0.0, _number(0, 1, text="expected a decay in [0, 1)"))

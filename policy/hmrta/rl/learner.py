@@ -26,7 +26,7 @@ class Learner:
 
     @property
     def amp(self) -> bool:
-        """bfloat16 autocast for collection (CPU only)."""
+        """bfloat16 autocast for collection, re-scoring and replay (``train.amp``, on the CPU only)."""
         return self.cfg.train.amp and self.device.type == "cpu"
 
     def set_lr(self, lr: float) -> None:

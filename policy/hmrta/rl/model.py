@@ -185,7 +185,7 @@ class PolicyNet(nn.Module):
         ax = self.agent_cross(ae, te, t_ign, ab)  # [B, N, d]
         tg = _masked_mean(tx, task_valid)  # [B, d]
         ag = _masked_mean(ax, agent_valid)  # [B, d]
-        me = ax[torch.arange(ax.shape[0]), decider]  # [B, d]
+        me = ax[torch.arange(ax.shape[0], device=decider.device), decider]  # [B, d]
         q = self.query(torch.cat([me, tg, ag], dim=-1)).unsqueeze(1)  # [B, 1, d]
         ctx = torch.cat([tx, ax], dim=1)  # [B, T + N, d]
         q = self.dec1(q, ctx, torch.cat([t_ign, a_ign], dim=1))  # [B, 1, d]

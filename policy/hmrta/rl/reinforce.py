@@ -86,7 +86,7 @@ class Reinforce:
         for lo in range(0, len(sub_acts), t.rescore_chunk):
             sl = slice(lo, lo + t.rescore_chunk)
             batch = {k: v[sl].to(lr_.device) for k, v in sub.items()}
-            with torch.autocast(lr_.device.type, dtype=torch.bfloat16, enabled=t.amp):
+            with torch.autocast(lr_.device.type, dtype=torch.bfloat16, enabled=lr_.amp):
                 logits = lr_.model(**batch).float()  # [c, T]
             logp_all = torch.log_softmax(logits / t.temperature, dim=-1)  # [c, T]
             a = sub_acts[sl].to(lr_.device)
@@ -109,7 +109,7 @@ class Reinforce:
         if sil.steps:
             self.sil_buffer.append({k: v[is_best] for k, v in {**allobs, "target": acts}.items()})
             del self.sil_buffer[:-sil.buffer]
-            sil_loss = lr_.replay_steps(self.sil_buffer, sil.steps, sil.batch, t.grad_clip, t.amp, where)
+            sil_loss = lr_.replay_steps(self.sil_buffer, sil.steps, sil.batch, t.grad_clip, lr_.amp, where)
         dt = time.perf_counter() - t0
         run.iteration += 1
         run.episodes += n_ep
