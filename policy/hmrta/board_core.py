@@ -215,7 +215,7 @@ def point_or_none(p: Any) -> tuple[float, float] | None:
 
 class BoardCore:
     """The board's state machine (:class:`BoardState`, revision ``rev``, lost robots ``lost``) and
-    how the board's events change it. :class:`MissionBoard` applies events as they come and
+    how the board's events change it. :class:`hmrta.board.MissionBoard` applies events as they come and
     replays its journal with :meth:`apply_event`; an agent's :class:`hmrta.replica.Replica`
     applies the events the board publishes the same way, so both states stay equal."""
 

@@ -12,7 +12,8 @@ from typing import Any
 from .instance import Instance
 
 JOURNAL_FORMAT = "hmrta-journal/1"
-JOURNAL_START = b'{"format":"' + JOURNAL_FORMAT.encode() + b'"'  # how every journal file begins (MissionBoard._mission_header)
+# how every journal file begins (hmrta.board.MissionBoard._mission_header)
+JOURNAL_START = b'{"format":"' + JOURNAL_FORMAT.encode() + b'"'
 
 
 class JournalError(ValueError):

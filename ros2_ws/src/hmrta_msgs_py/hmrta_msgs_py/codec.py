@@ -308,7 +308,7 @@ class Board:
     state: dict[str, Any] | None = field(default=None, repr=False)  # keyframes: the hmrta-state/1 snapshot
     prev: int | None = None  # the version the events apply to (default: version - 1)
     events: tuple[dict[str, Any], ...] = ()  # the board's journal records of this version, in order
-    digest: str = ""  # hmrta.board.state_digest of the state after the events
+    digest: str = ""  # hmrta.board_core.state_digest of the state after the events
     until: float | None = None  # keyframes: the mission time the board's state may reach
     keyframe: bool = False  # a keyframe (header, legs and state) rather than a stream header
 
