@@ -182,44 +182,56 @@ def test_sigusr1_prints_every_threads_stack_and_the_process_goes_on(tmp_path):
     assert "most recent call first" in err and "sleepy_node.py\", line 4 in main" in err, err
 
 
-@pytest.mark.parametrize("where", ["destroy_node", "exit"])
-def test_a_teardown_that_hangs_ends_the_process_with_its_status(tmp_path, where):
+@pytest.mark.parametrize("where,status", [("destroy_node", 3), ("exit", 3), ("crash", 1), ("gil", 1)])
+def test_a_teardown_that_hangs_ends_the_process_with_its_status(tmp_path, where, status):
     """Once a console script's nodes have stopped, the rest of its life is bounded: a teardown that
-    hangs (here a node's destroy_node, or a non-daemon thread the interpreter waits for at exit)
-    ends the process after HMRTA_TEARDOWN_TIMEOUT seconds with the status it would have had,
-    printing where it hung. The mission's work is done by then (a board's result is written)."""
+    hangs (a node's destroy_node, a non-daemon thread the interpreter waits for at exit, a call
+    into C that holds the interpreter's lock at exit) ends the process after
+    HMRTA_TEARDOWN_TIMEOUT seconds with the status it would have had (here 3), printing where it
+    hung; 1 after a crash (its traceback printed too), and 1 where no Python code can run (the
+    backstop, FINAL_GRACE seconds later). The mission's work is done by then."""
     import time
 
     (tmp_path / "stuck_node.py").write_text(
-        "import threading, time\n"
+        "import atexit, re, threading, time\n"
         "import rclpy\n"
         "from rclpy.node import Node\n"
         "from rclpy.task import Future\n"
         "from hmrta_msgs_py.runtime import spin_nodes, starting\n"
+        f"WHERE = {where!r}\n"
         "class Stuck(Node):\n"
         "    def destroy_node(self):\n"
-        f"        if {where == 'destroy_node'!r}:\n"
+        "        if WHERE in ('destroy_node', 'crash'):\n"
         "            time.sleep(3600)\n"
         "        return super().destroy_node()\n"
+        "def boom():\n"
+        "    raise RuntimeError('boom in a callback')\n"
         "def main():\n"
         "    with starting('stuck_node', args=['stuck_node']):\n"
         "        node = Stuck('stuck_node', enable_rosout=False, start_parameter_services=False)\n"
         "    done = Future()\n"
-        "    node.create_timer(0.2, lambda: done.set_result(True))\n"
+        "    node.create_timer(0.2, boom if WHERE == 'crash' else lambda: done.set_result(True))\n"
         "    spin_nodes([node], until=done, exit_status=lambda: 3)\n"
-        f"    if {where == 'exit'!r}:\n"
+        "    if WHERE == 'exit':\n"
         "        threading.Thread(target=time.sleep, args=(3600,), name='left_running').start()\n"
+        "    if WHERE == 'gil':  # a regular expression that backtracks for ages, holding the lock\n"
+        "        atexit.register(re.fullmatch, '(a|aa)+b', 'a' * 80)\n"
         "    print('finished', flush=True)\n"
         "    return 3\n")
     t0 = time.monotonic()
     out = run_python("from hmrta_msgs_py.console import run; run('stuck_node', 'stuck_node')",
                      PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
-                     ROS_DOMAIN_ID="96", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", HMRTA_TEARDOWN_TIMEOUT="3")
-    assert out.returncode == 3, (out.returncode, out.stdout, out.stderr)
+                     ROS_DOMAIN_ID="96", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", HMRTA_TEARDOWN_TIMEOUT="2")
+    assert out.returncode == status, (out.returncode, out.stdout, out.stderr)
     assert time.monotonic() - t0 < 50
-    assert "stuck_node: still shutting down 3 s after its nodes stopped" in out.stderr, out.stderr
-    assert "exiting with status 3" in out.stderr
-    if where == "destroy_node":
-        assert "finished" not in out.stdout and "in destroy_node" in out.stderr, out.stderr
-    else:
+    if where == "gil":  # the backstop: faulthandler's, 2 + 5 s
+        assert out.stdout == "finished\n" and "Timeout (0:00:07)!" in out.stderr, out.stderr
+        return
+    assert "stuck_node: still shutting down 2 s after its nodes stopped" in out.stderr, out.stderr
+    assert f"exiting with status {status}" in out.stderr
+    if where == "exit":
         assert out.stdout == "finished\n", out.stdout  # main returned; the interpreter waited at exit
+    else:
+        assert "finished" not in out.stdout and "in destroy_node" in out.stderr, out.stderr
+    if where == "crash":
+        assert "it had crashed:" in out.stderr and "RuntimeError: boom in a callback" in out.stderr

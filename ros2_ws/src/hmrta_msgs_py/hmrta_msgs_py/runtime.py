@@ -290,39 +290,60 @@ SPUN = False  # spin_nodes was entered: an interrupt from now on is not one duri
 
 # seconds the process may take, once its nodes stop, to destroy them, shut rclpy down and exit
 TEARDOWN_TIMEOUT = 30.0
-TEARDOWN_VAR = "HMRTA_TEARDOWN_TIMEOUT"  # overrides it (seconds)
+TEARDOWN_VAR = "HMRTA_TEARDOWN_TIMEOUT"  # overrides it (seconds, a positive number)
+FINAL_GRACE = 5.0  # seconds after the timeout: the backstop that needs no Python (status 1)
+
+# the exit status that replaces the nodes' own once their teardown began: a crash (1), or a
+# signal that interrupted the teardown (128 + the signal, as console.stopped reports it)
+_STATUS_OVERRIDE: list[int] = []
+_CRASH: list[str] = []  # the traceback of a crash that ended the spin (printed by the watchdog)
+
+
+def teardown_limit() -> float:
+    """``HMRTA_TEARDOWN_TIMEOUT`` when it is a positive finite number of seconds, else
+    ``TEARDOWN_TIMEOUT``."""
+    try:
+        limit = float(os.environ.get(TEARDOWN_VAR, TEARDOWN_TIMEOUT))
+    except ValueError:
+        return TEARDOWN_TIMEOUT
+    return limit if 0 < limit < float("inf") else TEARDOWN_TIMEOUT
 
 
 def teardown_watchdog(prog: str, exit_status: Callable[[], int | None] | None = None) -> threading.Timer:
     """Started when a process's nodes stop: should the rest of its life (destroying the nodes,
-    shutting the middleware down, the interpreter's exit) take longer than ``TEARDOWN_TIMEOUT``
+    shutting the middleware down, the interpreter's exit) take longer than :func:`teardown_limit`
     seconds, it prints the Python stack of every thread and one line on stderr, and ends the
-    process with ``exit_status()`` (None or no function: 0), the status it would have had. So a
-    middleware that hangs in its teardown never keeps a finished node alive (its work, such as a
-    board's result, is written before). A daemon timer: it ends with the process."""
-    try:
-        limit = float(os.environ.get(TEARDOWN_VAR, TEARDOWN_TIMEOUT))
-    except ValueError:
-        limit = TEARDOWN_TIMEOUT
+    process with the status it would have had: ``exit_status()`` (None or no function: 0), 1
+    after a crash, 128 + the signal that interrupted the teardown. So a middleware that hangs in
+    its teardown never keeps a finished node alive (its work, such as a board's result, is
+    written before). A daemon timer: it ends with the process. Where Python code can no longer
+    run (late in the interpreter's finalization), a backstop ``FINAL_GRACE`` s later prints the
+    stacks and exits with status 1."""
+    import faulthandler
+
+    limit = teardown_limit()
 
     def expired() -> None:
-        import faulthandler
-
         try:
-            code = exit_status() if exit_status is not None else None
+            code = _STATUS_OVERRIDE[-1] if _STATUS_OVERRIDE else exit_status() if exit_status is not None else None
         except Exception:  # (the process's state is what it is: exit all the same)
             code = 1
         code = 0 if code is None else int(code)
         try:
             faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
-            print(f"{prog}: still shutting down {limit:g} s after its nodes stopped (the stacks above say "
-                  f"where); exiting with status {code}", file=sys.stderr, flush=True)
+            flush = threading.Thread(target=sys.stdout.flush, daemon=True)  # (what was printed, if it can)
+            flush.start()
+            flush.join(1.0)
+            crash = f"; it had crashed:\n{_CRASH[-1]}" if _CRASH else ""
+            os.write(2, f"{prog}: still shutting down {limit:g} s after its nodes stopped (the stacks above say "
+                        f"where); exiting with status {code}{crash}\n".encode())
         finally:
             os._exit(code)
 
     timer = threading.Timer(limit, expired)
     timer.daemon = True
     timer.start()
+    faulthandler.dump_traceback_later(limit + FINAL_GRACE, exit=True)
     return timer
 
 
@@ -358,7 +379,14 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
             executor.spin_until_future_complete(until, timeout_sec=0.5)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except BaseException:  # a crash: its traceback follows the teardown, and the status is 1
+        import traceback
+
+        _STATUS_OVERRIDE.append(1)
+        _CRASH.append(traceback.format_exc())
+        raise
     finally:
+        signals["teardown"] = "yes"  # a signal from now on interrupts the teardown
         sig = signals.get("signal")
         if sig is not None and not until.done() and nodes:
             text = stopped(sig) if stopped is not None else f"stopped by {sig}"
@@ -389,6 +417,9 @@ def _stop_on_signals() -> dict[str, str]:
         uninstall_signal_handlers()  # rclpy's would shut the context down under the nodes
 
     def noted(sig: int, frame) -> None:
+        if "teardown" in got:  # the process then ends as console.stopped says: 128 + the signal
+            _STATUS_OVERRIDE.append(128 + sig)
+            raise KeyboardInterrupt
         if "signal" in got:
             raise KeyboardInterrupt
         got["signal"] = signal.Signals(sig).name
