@@ -6,6 +6,9 @@
    reported compute time (target: RL(g.) ten times faster than the paper for the same row).
 
 usage: python benchmarks/rl_throughput.py [--checkpoint P] [--count N] [--large-count N] [--threads T]
+                                         [--train-iters N] [--device cpu|cuda]
+
+``--count 0`` skips the inference table; ``--device cuda`` trains on a GPU (inference stays on the CPU).
 """
 from __future__ import annotations
 
@@ -22,14 +25,14 @@ from hmrta.methods import solve
 from hmrta.rl.train import DEFAULTS, Trainer, deep_update
 
 
-def training_throughput(iters: int) -> None:
-    print("## Training throughput (REINFORCE, 8 instances x 10 rollouts per iteration)")
+def training_throughput(iters: int, device: str = "cpu") -> None:
+    print(f"## Training throughput (REINFORCE, 8 instances x 10 rollouts per iteration, network on {device})")
     print("| size (agents, species, tasks) | episodes/s | collection decisions/s | iteration decisions/s |")
     print("|---|---|---|---|")
     for s, per, m in [(3, 3, 20), (5, 5, 50)]:
         cfg = deep_update(DEFAULTS, {"validation": {"rows": [[4, 2, 5, 2, 1]]}})
         with tempfile.TemporaryDirectory() as d:
-            tr = Trainer(cfg, d, device="cpu", log=lambda *_: None)
+            tr = Trainer(cfg, d, device=device, log=lambda *_: None)
             gen = ScenarioGenerator("MA-AT", s * per, s, m, 5)
             tr._instances = lambda n, task_range=None: [gen.sample(tr.np_rng) for _ in range(n)]  # fixed size
             rows = [tr.train_step() for _ in range(iters)]
@@ -61,16 +64,18 @@ def inference(checkpoint: str | None, count: int, large_count: int) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoint", default=None, help="policy checkpoint (default: shipped)")
-    ap.add_argument("--count", type=int, default=5, help="instances per row up to 50 tasks")
+    ap.add_argument("--count", type=int, default=5, help="instances per row up to 50 tasks (0: no inference table)")
     ap.add_argument("--large-count", type=int, default=2, help="instances per row above 50 tasks")
     ap.add_argument("--train-iters", type=int, default=3, help="training iterations per size (0: skip)")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--device", default="cpu", help="where training runs the network: cpu, cuda or cuda:N")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     t0 = time.time()
     if a.train_iters:
-        training_throughput(a.train_iters)
-    inference(a.checkpoint, a.count, a.large_count)
+        training_throughput(a.train_iters, a.device)
+    if a.count:
+        inference(a.checkpoint, a.count, a.large_count)
     print(f"\n(total {time.time() - t0:.0f} s, torch threads {a.threads})")
 
 
