@@ -74,7 +74,7 @@ class Distill:
             self.buffer.append(entry)
             del self.buffer[:-d.buffer]
             lr_.set_lr(d.lr)
-            loss = lr_.replay_steps(self.buffer, d.steps, d.batch, t.grad_clip, amp, f"iteration {run.iteration + 1}")
+            loss = lr_.replay_steps(self.buffer, d.steps, d.batch, t.grad_clip, f"iteration {run.iteration + 1}")
         run.distill_done += 1
         n_dec = sum(s.decisions for s in states) + sum(s.decisions for s in branches)
         run.decisions += n_dec

@@ -60,9 +60,10 @@ class Learner:
         self.opt.zero_grad(set_to_none=True)
 
     def replay_steps(self, buffer: list[dict[str, torch.Tensor]], steps: int, batch_size: int, clip: float,
-                     amp: bool, where: str) -> float:
+                     where: str) -> float:
         """Cross-entropy minibatch steps on replayed (observation, target) rows: target actions
-        (long) or target distributions over the admissible actions (float, zero elsewhere)."""
+        (long) or target distributions over the admissible actions (float, zero elsewhere);
+        autocast as collection (:attr:`amp`)."""
         self.model.train()
         losses = []
         for _ in range(steps):
@@ -71,7 +72,7 @@ class Learner:
             idx = torch.as_tensor(self.np_rng.permutation(n)[:batch_size])
             batch = {k: v[idx].to(self.device) for k, v in entry.items()}
             target = batch.pop("target")
-            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=amp):
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.amp):
                 logits = self.model(**batch).float()  # [b, T]
             if target.dtype == torch.long:  # target actions
                 loss = torch.nn.functional.cross_entropy(logits, target)

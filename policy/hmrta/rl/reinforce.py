@@ -109,7 +109,7 @@ class Reinforce:
         if sil.steps:
             self.sil_buffer.append({k: v[is_best] for k, v in {**allobs, "target": acts}.items()})
             del self.sil_buffer[:-sil.buffer]
-            sil_loss = lr_.replay_steps(self.sil_buffer, sil.steps, sil.batch, t.grad_clip, lr_.amp, where)
+            sil_loss = lr_.replay_steps(self.sil_buffer, sil.steps, sil.batch, t.grad_clip, where)
         dt = time.perf_counter() - t0
         run.iteration += 1
         run.episodes += n_ep

@@ -890,8 +890,7 @@ class AgentNode(Node):
         else:
             self.get_logger().warning(f"{self.robot}: the board declared this robot lost; no pose in frame "
                                       f"{m.frame_id!r} heard from it within {self.STOP_POSE_WAIT:g} s, so it was not "
-                                      f"sent a stop (it may still "
-                                      f"drive to its last goal); stopping")
+                                      f"sent a stop (it may still drive to its last goal); stopping")
         self._stop_timer.cancel()
         self._finish()
 

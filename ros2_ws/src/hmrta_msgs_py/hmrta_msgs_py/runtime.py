@@ -293,10 +293,10 @@ TEARDOWN_TIMEOUT = 30.0
 TEARDOWN_VAR = "HMRTA_TEARDOWN_TIMEOUT"  # overrides it (seconds, a positive number)
 FINAL_GRACE = 5.0  # seconds after the timeout: the backstop that needs no Python (status 1)
 
-# the exit status that replaces the nodes' own once their teardown began: a crash (1), or a
-# signal that interrupted the teardown (128 + the signal, as console.stopped reports it)
-_STATUS_OVERRIDE: list[int] = []
-_CRASH: list[str] = []  # the traceback of a crash that ended the spin (printed by the watchdog)
+# (exit status, what to add to the watchdog's line) replacing the nodes' own status once their
+# teardown began: a crash (1, its traceback), or a signal that interrupted the teardown (128 + the
+# signal, as console.stopped reports it)
+_OVERRIDE: list[tuple[int, str]] = []
 
 
 def teardown_limit() -> float:
@@ -309,7 +309,7 @@ def teardown_limit() -> float:
     return limit if 0 < limit < float("inf") else TEARDOWN_TIMEOUT
 
 
-def teardown_watchdog(prog: str, exit_status: Callable[[], int | None] | None = None) -> threading.Timer:
+def teardown_watchdog(prog: str, exit_status: Callable[[], int | None] | None = None) -> None:
     """Started when a process's nodes stop: should the rest of its life (destroying the nodes,
     shutting the middleware down, the interpreter's exit) take longer than :func:`teardown_limit`
     seconds, it prints the Python stack of every thread and one line on stderr, and ends the
@@ -324,19 +324,20 @@ def teardown_watchdog(prog: str, exit_status: Callable[[], int | None] | None = 
     limit = teardown_limit()
 
     def expired() -> None:
-        try:
-            code = _STATUS_OVERRIDE[-1] if _STATUS_OVERRIDE else exit_status() if exit_status is not None else None
-        except Exception:  # (the process's state is what it is: exit all the same)
-            code = 1
+        code, note = _OVERRIDE[-1] if _OVERRIDE else (None, "")
+        if code is None:
+            try:
+                code = exit_status() if exit_status is not None else None
+            except Exception:  # (the process's state is what it is: exit all the same)
+                code = 1
         code = 0 if code is None else int(code)
         try:
             faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
             flush = threading.Thread(target=sys.stdout.flush, daemon=True)  # (what was printed, if it can)
             flush.start()
             flush.join(1.0)
-            crash = f"; it had crashed:\n{_CRASH[-1]}" if _CRASH else ""
             os.write(2, f"{prog}: still shutting down {limit:g} s after its nodes stopped (the stacks above say "
-                        f"where); exiting with status {code}{crash}\n".encode())
+                        f"where); exiting with status {code}{note}\n".encode())
         finally:
             os._exit(code)
 
@@ -344,7 +345,6 @@ def teardown_watchdog(prog: str, exit_status: Callable[[], int | None] | None = 
     timer.daemon = True
     timer.start()
     faulthandler.dump_traceback_later(limit + FINAL_GRACE, exit=True)
-    return timer
 
 
 def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], None] | None = None,
@@ -382,8 +382,7 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
     except BaseException:  # a crash: its traceback follows the teardown, and the status is 1
         import traceback
 
-        _STATUS_OVERRIDE.append(1)
-        _CRASH.append(traceback.format_exc())
+        _OVERRIDE.append((1, f"; it had crashed:\n{traceback.format_exc()}"))
         raise
     finally:
         signals["teardown"] = "yes"  # a signal from now on interrupts the teardown
@@ -418,7 +417,7 @@ def _stop_on_signals() -> dict[str, str]:
 
     def noted(sig: int, frame) -> None:
         if "teardown" in got:  # the process then ends as console.stopped says: 128 + the signal
-            _STATUS_OVERRIDE.append(128 + sig)
+            _OVERRIDE.append((128 + sig, ""))
             raise KeyboardInterrupt
         if "signal" in got:
             raise KeyboardInterrupt
