@@ -182,6 +182,27 @@ def test_sigusr1_prints_every_threads_stack_and_the_process_goes_on(tmp_path):
     assert "most recent call first" in err and "sleepy_node.py\", line 4 in main" in err, err
 
 
+def test_a_fatal_signal_prints_where_before_the_process_dies(tmp_path):
+    """A crash in native code (the middleware's segmentation fault) leaves the Python stack of
+    every thread on stderr, the node's log, and the process still dies of its signal (a
+    supervisor sees the same status)."""
+    import signal
+
+    (tmp_path / "crashing_node.py").write_text(
+        "import os, signal\n"
+        "def crash_in_native_code():\n"
+        "    os.kill(os.getpid(), signal.SIGSEGV)\n"
+        "def main():\n"
+        "    crash_in_native_code()\n"
+        "    return 0\n")
+    out = run_python("from hmrta_msgs_py.console import run; run('some_node', 'crashing_node')",
+                     PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+                     PYTHONFAULTHANDLER="")
+    assert out.returncode == -signal.SIGSEGV, (out.returncode, out.stderr)
+    assert "Fatal Python error: Segmentation fault" in out.stderr, out.stderr
+    assert 'crashing_node.py", line 3 in crash_in_native_code' in out.stderr, out.stderr
+
+
 @pytest.mark.parametrize("where,status", [("destroy_node", 3), ("exit", 3), ("crash", 1), ("gil", 1)])
 def test_a_teardown_that_hangs_ends_the_process_with_its_status(tmp_path, where, status):
     """Once a console script's nodes have stopped, the rest of its life is bounded: a teardown that

@@ -52,12 +52,16 @@ def signals_deferred() -> Iterator[None]:
 def run(prog: str, module: str, func: str = "main") -> None:
     """Import ``module`` and exit with what its ``func()`` returns (None: 0). ``kill -USR1 PID``
     prints the Python stack of every thread of the process on its stderr (a node that seems
-    stuck says where), and the process goes on. Once its nodes stop, the rest of its life is
-    bounded (:func:`hmrta_msgs_py.runtime.teardown_watchdog`)."""
-    SCRIPT[:] = [prog]
-    if hasattr(signal, "SIGUSR1"):
-        import faulthandler
+    stuck says where), and the process goes on; a fatal signal (a segmentation fault in the
+    middleware, an abort) prints them too before the process dies of it, so its log says where.
+    Once its nodes stop, the rest of its life is bounded
+    (:func:`hmrta_msgs_py.runtime.teardown_watchdog`)."""
+    import faulthandler
 
+    SCRIPT[:] = [prog]
+    if not faulthandler.is_enabled():
+        faulthandler.enable(all_threads=True)
+    if hasattr(signal, "SIGUSR1"):
         faulthandler.register(signal.SIGUSR1, all_threads=True)
     if threading.current_thread() is threading.main_thread():
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
