@@ -221,6 +221,25 @@ class CoalitionGreedy:
         arr = None if loc is None else f[first] + np.hypot(x[first] - loc[:, 0:1], y[first] - loc[:, 1:2]) / v
         return order, new, first, arr  # arr [N, S]
 
+    @classmethod
+    def _sets(cls, free_at: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The robots [B] in an order where each set of equal (free_at, x, y) is a run (``order``),
+        and where each run starts (``first`` [S]); the order of the sets is left open. With every
+        robot a set of its own, ``order`` is the identity. Robots sorted by x alone are in such an
+        order when every two neighbours of equal x are at the same y and free at the same time
+        (a coalition that finished together), which :meth:`_places`' full sort then need not
+        find."""
+        B = len(free_at)
+        o = np.argsort(pos[:, 0])  # [B]
+        xs, ys, fs = pos[o, 0], pos[o, 1], free_at[o]  # [B] each
+        same_x = xs[1:] == xs[:-1]  # [B - 1]
+        if not same_x.any():
+            return np.arange(B), np.arange(B)
+        if (~same_x | ((ys[1:] == ys[:-1]) & (fs[1:] == fs[:-1]))).all():
+            return o, np.flatnonzero(np.concatenate([[True], ~same_x]))
+        order, _, first, _ = cls._places(free_at, pos)
+        return order, first
+
     # the approximate arrivals of _completing_arrival_by_place are within a relative few 1e-16 of
     # the exact ones (coordinates in the unit square, speed at least MIN_VELOCITY: no overflow, and
     # an underflow moves an arrival by under 1e-144); the search allows a relative 1e-9
@@ -255,10 +274,13 @@ class CoalitionGreedy:
         the earliest of them arrives at t + d or later by its approximate arrival; otherwise four
         times as many sets are looked at, up to all of them."""
         B = len(free_at)
-        order, _, first, _ = cls._places(free_at, pos)  # [B], [B], [S]
+        order, first = cls._sets(free_at, pos)  # [B], [S]
         S = len(first)
-        f, x, y = free_at[order[first]], pos[order[first], 0], pos[order[first], 1]  # [S] each
-        cap_s = np.add.reduceat(cap[order], first, axis=0)  # [S, K] capability of each set (exact sums)
+        if S == B:  # every robot a set of its own
+            f, x, y, cap_s = free_at, pos[:, 0], pos[:, 1], cap  # [S] each, [S, K]
+        else:
+            f, x, y = free_at[order[first]], pos[order[first], 0], pos[order[first], 1]  # [S] each
+            cap_s = np.add.reduceat(cap[order], first, axis=0)  # [S, K] capability of each set (exact sums)
         # f + sqrt(dx^2 + dy^2) / v, in place (the same operations, in the same order)
         arr = x - loc[:, 0:1]  # [N, S] dx
         arr *= arr
@@ -306,19 +328,20 @@ class CoalitionGreedy:
         last = np.full(N, np.inf)  # [N]
         rows = np.arange(N)  # [R] the tasks still undecided
         while len(rows):
-            a = arr[rows]  # [R, G]
+            a = arr if len(rows) == N else arr[rows]  # [R, G] (not written to)
             if q < G:  # the q earliest groups, and the earliest of the others
                 part = None
                 if distinct:
                     after = np.partition(a, q, axis=1)[:, q]  # [R] the earliest not looked at
-                    sel = a < after[:, None]  # [R, G] at most q a row
-                    if np.count_nonzero(sel) == q * len(rows):  # q in every row: the q earliest
-                        part = np.nonzero(sel)[1].reshape(len(rows), q)  # [R, q]
+                    at = np.flatnonzero(a < after[:, None])  # [<= R q] at most q a row, flat, row by row
+                    if len(at) == q * len(rows):  # q in every row: the q earliest
+                        part = at.reshape(len(rows), q) - (G * np.arange(len(rows)))[:, None]  # [R, q]
+                        ga = a.reshape(-1)[at].reshape(len(rows), q)  # [R, q] their arrivals
                 if part is None:  # (or a tie at the q-th arrival: q of the earliest, any of the tied ones)
                     part = np.argpartition(a, q, axis=1)  # [R, G]
                     after = np.take_along_axis(a, part[:, q:q + 1], 1)[:, 0]  # [R] the earliest not looked at
                     part = part[:, :q]  # [R, q]
-                ga = np.take_along_axis(a, part, 1)  # [R, q] their arrivals
+                    ga = np.take_along_axis(a, part, 1)  # [R, q] their arrivals
                 more = np.isfinite(after)  # [R] groups not looked at yet may still count
             else:
                 part, ga, more = None, a, np.zeros(len(rows), dtype=bool)

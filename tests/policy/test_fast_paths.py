@@ -318,6 +318,42 @@ def test_coalition_completing_arrival_by_place_with_arrivals_ulps_apart(seed, mo
     assert np.isinf(got[0])
 
 
+@pytest.mark.parametrize("kind", ["apart", "coalitions", "shared x"])
+@pytest.mark.parametrize("seed", range(4))
+def test_coalition_sets_of_robots_free_at_one_place_and_time(kind, seed):
+    """Summed by place, the robots are split into sets of equal (free_at, x, y) by a sort on x
+    alone where that suffices (every robot apart; coalitions that finished together, each at an
+    x of its own) and by the full sort where it does not (robots at one x but another y or
+    time): the same sets as the full sort either way, and the full sort's answer."""
+    rng = np.random.default_rng(200 + seed)
+    B, N, K = CoalitionGreedy.GROUPED + int(rng.integers(1, 150)), int(rng.integers(2, 30)), int(rng.integers(1, 4))
+    if kind == "apart":
+        pos, free_at = rng.random((B, 2)), rng.choice([0.0, 0.5, 2.0], B)  # [B, 2], [B]
+    else:
+        n_sets = int(rng.integers(2, B // 2))
+        spots, times = rng.random((n_sets, 2)), rng.choice([0.0, 0.5, 2.0], n_sets)  # [S, 2], [S]
+        if kind == "shared x":  # one place at two times (odd seeds), or two places at one x at one time
+            spots[1, 0] = spots[0, 0]
+            times[1] = times[0] + 1.0 if seed % 2 else times[0]
+            spots[1, 1] = spots[0, 1] if seed % 2 else 1.0 - spots[0, 1]
+        of = np.concatenate([np.arange(n_sets), rng.integers(n_sets, size=B - n_sets)])  # [B] every set used
+        rng.shuffle(of)
+        pos, free_at = spots[of], times[of]
+    order, first = CoalitionGreedy._sets(free_at, pos)
+    full, _, full_first, _ = CoalitionGreedy._places(free_at, pos)
+
+    def sets(o, f):
+        return sorted(sorted(o[a:b].tolist()) for a, b in zip(f, np.append(f[1:], len(o))))
+
+    assert sorted(order.tolist()) == list(range(B))
+    assert sets(order, first) == sets(full, full_first)
+    cap = rng.choice([0.0, 0.25, 0.5, 1.0], (B, K))  # [B, K]
+    loc = rng.random((N, 2))  # [N, 2]
+    rem = rng.choice([0.25, 0.75, 1.5, 4.0], (N, K))  # [N, K]
+    got = CoalitionGreedy._completing_arrival(free_at, pos, loc, 0.2, cap, rem, exact=True)
+    assert np.array_equal(got, _completing_arrival_reference(free_at, pos, loc, 0.2, cap, rem))
+
+
 def test_coalition_completing_arrival_by_place_when_approximate_and_exact_orders_disagree(monkeypatch):
     """Two places whose approximate arrivals (sqrt) and exact ones (np.hypot) are in opposite
     orders, either enough for the task: the one looked at first (approximately earlier) covers,
