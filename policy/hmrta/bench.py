@@ -497,6 +497,83 @@ def _solve_record(job: tuple) -> dict:
     return r
 
 
+def read_cache(path: Path) -> dict[tuple, dict]:
+    """The records of a bench cache (``cache.jsonl``: one :func:`_solve_record` a line) by
+    (row, method, instance identity, seed, variant); a later record of the same key replaces an
+    earlier one. A last line cut short by an interruption is left out. Raises InputError naming
+    the file, the line and the field of anything else that is not such a record (a damaged or
+    edited cache would otherwise be read as results)."""
+    from .reading import InputError, decode_text, read_bytes
+
+    lines = decode_text(read_bytes(path, max_bytes=2**30), str(path)).splitlines()
+    cache: dict[tuple, dict] = {}
+    for n, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            r = json.loads(line)
+        except json.JSONDecodeError as e:
+            if n == len(lines):
+                continue  # cut short by an interruption: solved again
+            raise InputError(f"{path}:{n}: not JSON ({e.msg}); {_CACHE_FIX}") from None
+        _check_cache_record(r, f"{path}:{n}")
+        cache[(r["row"], r["method"], r["index"], r["seed"], r.get("variant"))] = r
+    return cache
+
+
+_CACHE_FIX = "a damaged cache: remove the line (or the file) and those results are solved again"
+
+
+def _check_cache_record(r: Any, where: str) -> None:
+    """InputError("<where>: <field>: expected ..., got ...") unless ``r`` is a record as
+    :func:`_solve_record` writes it."""
+    from .reading import InputError, short
+
+    def bad(key: str, want: str, got: Any) -> None:
+        raise InputError(f"{where}: {key}: expected {want}, got {short(got)} ({_CACHE_FIX})")
+
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    if not isinstance(r, dict):
+        bad("record", "a JSON object", r)
+    for k in ("row", "method"):
+        if not isinstance(r.get(k), str):
+            bad(k, "a string", r.get(k))
+    if not isinstance(r.get("index"), (int, str)) or isinstance(r.get("index"), bool):
+        bad("index", "an integer or a string", r.get("index"))
+    if not isinstance(r.get("seed"), int) or isinstance(r.get("seed"), bool):
+        bad("seed", "an integer", r.get("seed"))
+    if r.get("variant") is not None and not isinstance(r["variant"], str):
+        bad("variant", "a string", r["variant"])
+    if not isinstance(r.get("success"), bool):
+        bad("success", "true or false", r.get("success"))
+    for k in ("makespan", "awt", "redundancy", "compute_seconds"):
+        if not number(r.get(k)):
+            bad(k, "a number", r.get(k))
+    if r["success"] and not (math.isfinite(r["makespan"]) and r["makespan"] >= 0):
+        bad("makespan", "a finite number >= 0 (the result is a success)", r["makespan"])
+    if not (math.isfinite(r["compute_seconds"]) and r["compute_seconds"] >= 0):
+        bad("compute_seconds", "a finite number >= 0", r["compute_seconds"])
+    if r.get("solver_bound") is not None and not number(r["solver_bound"]):
+        bad("solver_bound", "a number", r["solver_bound"])
+    left = r.get("left_out")
+    if left is not None and not (isinstance(left, dict) and all(isinstance(v, str) for v in left.values())):
+        bad("left_out", "an object of candidate: reason", left)
+    resp = r.get("response")
+    if resp is None:
+        return
+    if not isinstance(resp, dict) or not isinstance(resp.get("dynamic"), bool):
+        bad("response", 'an object with "dynamic" true or false', resp)
+    for k in ("mean", "max"):
+        if resp.get(k) is not None and not number(resp[k]):
+            bad(f"response.{k}", "a number or null", resp[k])
+    lost = resp.get("lost")
+    if not isinstance(lost, dict) or any(not isinstance(lost.get(k), int) or isinstance(lost.get(k), bool)
+                                         for k in LOST_KINDS):
+        bad("response.lost", f"an object of whole numbers for {', '.join(LOST_KINDS)}", lost)
+
+
 def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Path | None,
               solve_opts: dict[str, Any], progress: bool = True, with_bounds: bool = False,
               log: Callable[[str], None] = print, compare: Iterable[tuple[str, str]] | None = None,
@@ -518,15 +595,8 @@ def run_bench(rows: list, methods: list[str], count: int, seed: int, out_dir: Pa
     from .fanout import Fanout
 
     fan = Fanout(workers, ray_address)  # a missing Ray is reported before any work, too
-    cache: dict[tuple, dict] = {}
     cache_path = out_dir / "cache.jsonl" if out_dir else None
-    if cache_path and cache_path.exists():
-        for line in cache_path.read_text().splitlines():
-            try:
-                r = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line cut short by an interruption
-            cache[(r["row"], r["method"], r["index"], r["seed"], r.get("variant"))] = r
+    cache = read_cache(cache_path) if cache_path and cache_path.exists() else {}
     sets = [(row, _row_instances(row, count, seed)) for row in rows]
     if out_dir:  # once the instances are drawn: a row that cannot be drawn leaves no empty folder
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -42,6 +42,36 @@ def test_cache_is_reused_only_for_the_same_variant(tmp_path):
     assert _makespans(_bench(tmp_path)) == _makespans(first)
 
 
+@pytest.mark.parametrize("damage,where", [
+    (lambda r: r | {"makespan": "x"}, ":1: makespan: expected a number"),
+    (lambda r: r | {"makespan": math.nan}, ":1: makespan: expected a finite number >= 0"),
+    (lambda r: r | {"success": 1}, ":1: success: expected true or false"),
+    (lambda r: {"a": 1}, ":1: row: expected a string"),
+    (lambda r: 5, ":1: record: expected a JSON object"),
+    (lambda r: r | {"response": {"dynamic": False, "mean": None, "max": None, "lost": {}}},
+     ":1: response.lost: expected an object of whole numbers"),
+])
+def test_a_damaged_cache_is_an_error_naming_its_line_and_field(tmp_path, damage, where):
+    """A cache record that is not one a run writes is refused (file, line, field), not served as
+    a result nor a crash; a last line cut short by an interruption is solved again."""
+    from hmrta.reading import InputError
+
+    first = _bench(tmp_path)
+    path = tmp_path / "cache.jsonl"
+    lines = path.read_text().splitlines()
+    path.write_text(json.dumps(damage(json.loads(lines[0]))) + "\n" + lines[1] + "\n")
+    with pytest.raises(InputError, match=f"cache.jsonl{where}.*remove the line"):
+        _bench(tmp_path)
+    path.write_text(lines[0] + "\n" + lines[1][:20])  # interrupted while writing the second
+    assert _makespans(_bench(tmp_path)) == _makespans(first)
+    path.write_text(lines[0][:20] + "\n" + lines[1] + "\n")  # not the last line: damaged
+    with pytest.raises(InputError, match="cache.jsonl:1: not JSON"):
+        _bench(tmp_path)
+    path.write_bytes(b"\xff\xfe" + lines[0].encode())
+    with pytest.raises(InputError, match="cache.jsonl"):
+        _bench(tmp_path)
+
+
 def test_rl_variant_follows_the_checkpoint_content(tmp_path):
     a = tmp_path / "a.pt"
     shutil.copy(DEFAULT_CHECKPOINT, a)
