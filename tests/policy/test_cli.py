@@ -220,6 +220,28 @@ def test_routes_files_are_read_alike_by_evaluate_bound_and_render(tmp_path, caps
         assert f"{bad}: routes: expected a list of {inst.n_agents} routes" in line, (cmd, line)
 
 
+def test_a_damaged_solution_file_is_refused_not_re_simulated(tmp_path, capsys):
+    """``bound`` and ``render`` re-simulate a routes file, never a solution file that fails its
+    checks: its own error is the answer (it used to be re-simulated from its routes, exit 0)."""
+    pytest.importorskip("matplotlib")
+    from hmrta.methods import solve
+
+    sol = solve(load_instance(EXAMPLE), "greedy")
+    good = tmp_path / "sol.json"
+    sol.save(good)
+    d = json.loads(good.read_text())
+    for change, message in (({"format": "hmrta-solution/9"}, "format: expected 'hmrta-solution/1'"),
+                            ({"makespan": 1.0}, "makespan: expected at least the last finish"),
+                            ({"tasks": None}, "tasks: expected a list")):
+        bad = tmp_path / "bad.json"
+        bad.write_text(json.dumps(d | change))
+        for cmd in (["bound"], ["render", "--out", str(tmp_path / "b.png"), "--no-progress"]):
+            assert main([cmd[0], str(EXAMPLE), str(bad), *cmd[1:]]) == 2, (cmd, change)
+            line = _one_error_line(capsys)
+            assert f"{bad}: {message}" in line, (cmd, line)
+        assert not (tmp_path / "b.png").exists()
+
+
 # ---------------------------------------------------------------------------------------------
 # missing optional dependencies
 # ---------------------------------------------------------------------------------------------

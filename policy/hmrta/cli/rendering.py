@@ -61,18 +61,17 @@ def _read_solution(path: str):
 
 def _solution_or_routes(inst, path: str):
     """An ``hmrta-solution/1`` file, or a routes file as ``hmrta evaluate`` takes it (then
-    re-simulated on ``inst``); when it is neither, the error is the routes reader's for a file
-    that looks like a routes file (an object with ``routes`` and no ``format``), else the
-    solution reader's."""
-    from ..solution import RouteError, SolutionError, read_routes
+    re-simulated on ``inst``): an object with ``routes`` and no ``format``. Anything else is read
+    as a solution, and its error is the solution reader's: a damaged solution file (a wrong
+    ``format``, a makespan that is not one) is refused, never re-simulated from its routes."""
+    from ..solution import SolutionError, read_routes
 
     try:
         return _read_solution(path)
-    except SolutionError as e:
-        try:
-            routes = read_routes(inst, path)
-        except RouteError as r:
-            raise (r if _looks_like_routes(path) else e) from None
+    except SolutionError:
+        if not _looks_like_routes(path):
+            raise
+    routes = read_routes(inst, path)
     if inst.dynamic or bool((inst.releases > 0).any()):
         raise UserError(f"{path}: routes are re-simulated without release times or events (as hmrta evaluate "
                         f"does), which this mission has: give its solution file (hmrta solve --out)")
