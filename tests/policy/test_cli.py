@@ -467,6 +467,26 @@ def test_render_frames_and_fps(opt, value, tmp_path, capsys):
 CONFIG = Path(__file__).resolve().parents[2] / "policy" / "configs" / "default.yaml"
 
 
+def test_train_check_reads_the_checkpoint_it_would_start_from(tmp_path, capsys):
+    """``train --check --resume`` reads the checkpoint the run would start from (``--init``: a
+    file or a shipped name) as the run would, and writes nothing: a checkpoint cut short, or one
+    that does not fit the config's network, is an error before any training."""
+    pytest.importorskip("torch")
+    from hmrta.rl.checkpoint_info import SHIPPED_DIR
+
+    team = CONFIG.with_name("coalition-team.yaml")
+    run = tmp_path / "run"
+    train = ["train", "--config", str(team), "--run-dir", str(run), "--check", "--resume"]
+    assert main([*train, "--init", "coalition-team", "--reseed"]) == 0
+    out = capsys.readouterr().out
+    assert f"{SHIPPED_DIR / 'coalition-team.pt'}: a checkpoint this run can start from" in out, out
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes((SHIPPED_DIR / "coalition-team.pt").read_bytes()[:5000])
+    _exit2([*train, "--init", str(cut)], capsys, f"{cut}: not a readable hmrta checkpoint (a zip archive cut short")
+    _exit2([*train, "--init", "default", "--reseed"], capsys, "weights do not match the network")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.pt"]  # no run folder
+
+
 def test_train_device_and_missing_checkpoints(tmp_path, monkeypatch, capsys):
     torch = pytest.importorskip("torch")
     run = tmp_path / "run"
@@ -478,7 +498,8 @@ def test_train_device_and_missing_checkpoints(tmp_path, monkeypatch, capsys):
         _exit2([*train, "--check", "--device", device], capsys, f"--device {device}: {needle}")  # --check too
     missing = tmp_path / "nosuch.pt"
     _exit2([*train, "--resume", "--init", str(missing)], capsys, f"--init {missing}: no such checkpoint file")
-    _exit2([*train, "--resume", "--init", str(tmp_path)], capsys, f"--init {tmp_path}: no such checkpoint file")
+    _exit2([*train, "--resume", "--init", str(tmp_path)], capsys, f"--init {tmp_path}: is a folder")
+    _exit2([*train, "--resume", "--init", "nosuch"], capsys, "no shipped checkpoint of that name (shipped: broad,")
     _exit2([*train, "--resume"], capsys, f"--resume: no checkpoint {run / 'last.pt'} to continue")
     assert list(tmp_path.iterdir()) == []  # no run folder
     run.write_text("a file")

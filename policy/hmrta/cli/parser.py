@@ -182,7 +182,8 @@ def build_parser() -> argparse.ArgumentParser:
                         ", ".join(sorted(p.stem for p in CONFIGS.glob("*.yaml"))) + "; when left out: the shipped config named default)")
     t.add_argument("--resume", action="store_true", help="continue the run in --run-dir (model, optimiser, RNG) from "
                                                          "its last.pt, which must exist")
-    t.add_argument("--init", default=None, help="with --resume: start from this checkpoint file instead of last.pt")
+    t.add_argument("--init", default=None, help="with --resume: start from this checkpoint (a file, or a shipped "
+                                                "checkpoint by name, e.g. broad) instead of last.pt")
     t.add_argument("--reseed", action="store_true",
                    help="with --resume: draw fresh random streams from the config's seed and forget the "
                         "checkpoint's best validation score (an independent continuation, e.g. under other rules)")

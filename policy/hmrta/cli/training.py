@@ -58,13 +58,29 @@ def cmd_train(args) -> int:
     last = run_dir / "last.pt"
     if last.exists() and not args.resume:
         raise UserError(f"{run_dir} already holds a run: pass --resume to continue it or --run-dir for a new one")
-    if args.init and not Path(args.init).is_file():
-        raise UserError(f"--init {args.init}: no such checkpoint file")
+    if args.init:  # a file, or a shipped checkpoint by its name (as every other command takes one)
+        from ..rl.checkpoint_info import checkpoint_path, shipped_checkpoints
+
+        init = checkpoint_path(args.init)
+        if init.is_dir():
+            raise UserError(f"--init {args.init}: is a folder, expected a checkpoint file")
+        if not init.is_file():
+            raise UserError(f"--init {args.init}: no such checkpoint file, and no shipped checkpoint of that name "
+                            f"(shipped: {', '.join(sorted(shipped_checkpoints()))})")
+        args.init = str(init)
     if args.resume and not args.init and not last.is_file():
         raise UserError(f"--resume: no checkpoint {last} to continue (start a new run without --resume, or give "
                         f"--init CHECKPOINT)")
-    if args.check:  # the config, and the command line as it would run
+    if args.check:  # the config, and the command line as it would run (the checkpoint it resumes included)
         print(f"{args.config}: a valid training config (name {cfg['name']!r})")
+        if args.resume:
+            import tempfile
+
+            src = Path(args.init) if args.init else last
+            with tempfile.TemporaryDirectory() as probe_dir:  # read as the run would, into a trainer thrown away
+                Trainer(cfg, probe_dir, device=args.device, log=lambda s: None).load(
+                    src, reseed=args.reseed, same_run=not args.init)
+            print(f"{src}: a checkpoint this run can {'start from' if args.init else 'continue'}")
         return 0
     if args.threads:
         torch.set_num_threads(args.threads)

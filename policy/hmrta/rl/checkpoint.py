@@ -55,10 +55,23 @@ def _torch_reason(e: Exception) -> str:
         return "not a torch checkpoint file"  # bytes that are no pickle at all (torch's legacy reader on them)
     if isinstance(e, EOFError):
         return "empty, or cut short"
-    if "hasRecord" in text or "PytorchStreamReader" in text:
+    if "hasRecord" in text or "PytorchStreamReader" in text or "inline_container" in text:
         return "a zip archive without a torch checkpoint's records, or a damaged one"
     first = (text.strip().splitlines() or [""])[0][:200]
     return f"{type(e).__name__}: {first}"
+
+
+def _cut_short(p: Path) -> str | None:
+    """Why a file torch cannot read is not a checkpoint, when it is a zip archive (as a torch
+    checkpoint is) without the end of one: copied or downloaded in part. None otherwise."""
+    import zipfile
+
+    try:
+        with open(p, "rb") as f:
+            zipped = f.read(4) == b"PK\x03\x04"
+        return "a zip archive cut short: copied or downloaded in part?" if zipped and not zipfile.is_zipfile(p) else None
+    except OSError:
+        return None
 
 
 def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
@@ -83,7 +96,7 @@ def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
                                   f"tensors and plain data)") from None
         raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({_torch_reason(e)})") from None
     except Exception as e:  # noqa: BLE001 - corrupt, truncated, not a torch file, ...
-        raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({_torch_reason(e)})") from None
+        raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({_cut_short(p) or _torch_reason(e)})") from None
     if not isinstance(ck, dict):
         raise CheckpointError(f"{p}: not an hmrta checkpoint (expected a dict, got {type(ck).__name__})")
     format_version(ck, p)
