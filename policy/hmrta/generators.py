@@ -11,7 +11,7 @@ from typing import Iterator
 
 import numpy as np
 
-from .instance import DEFAULT_VELOCITY, MAX_AGENTS, MAX_TASKS, Instance, Species, Task
+from .instance import DEFAULT_VELOCITY, MAX_AGENTS, MAX_SKILLS, MAX_TASKS, Instance, Species, Task
 
 SCENARIOS = ("SA-BT", "SA-AT", "MA-AT", "MA-BT")
 
@@ -72,6 +72,8 @@ class ScenarioGenerator:
             raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {self.scenario!r}")
         if self.species < 1 or self.skills < 1 or self.tasks < 0:
             raise ValueError("species and skills must be >= 1 and tasks >= 0")
+        if self.skills > MAX_SKILLS:  # what a mission file may hold
+            raise ValueError(f"skills ({self.skills}): a mission has at most {MAX_SKILLS}")
         if self.agents < self.species:
             raise ValueError(f"agents ({self.agents}) must be at least species ({self.species}): one agent or more "
                              f"per species")

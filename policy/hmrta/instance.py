@@ -27,6 +27,7 @@ REQUIREMENT_TYPES = ("additive", "binary")
 DEFAULT_VELOCITY = 0.2
 MAX_AGENTS = 10_000  # most agents a mission may have (all species together)
 MAX_TASKS = 100_000  # most tasks a mission file may hold
+MAX_SKILLS = 1_000  # most skills a mission may have (the learned policy reads at most 5)
 # traits, requirements and durations at most MAX_VALUE, velocity in [MIN_VELOCITY, MAX_VALUE]: every
 # time and capability sum of a mission then stays finite (and far from float overflow)
 MAX_VALUE = 1e9
@@ -363,8 +364,8 @@ def instance_from_dict(d: Any, source: str = "<data>", task_labels: Sequence[str
         raise _err(f"{source}: velocity", f"expected a number in [{MIN_VELOCITY:g}, {MAX_VALUE:g}], "
                                           f"got {short(d['velocity'])}")
     k = d["skills"]
-    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-        raise _err(f"{source}: skills", f"expected a positive integer, got {short(k)}")
+    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= MAX_SKILLS:
+        raise _err(f"{source}: skills", f"expected an integer in 1..{MAX_SKILLS}, got {short(k)}")
     name = d.get("name", Path(source).stem if source != "<data>" else "instance")
     if isinstance(name, bool) or not isinstance(name, (str, int, float)):
         raise _err(f"{source}: name", f"expected a string, got {short(name)}")

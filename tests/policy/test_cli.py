@@ -639,6 +639,8 @@ def test_generate_caps_the_mission_and_the_set(tmp_path, capsys):
            "tasks (100001): a mission holds at most 100000")
     _exit2([*row, "--tasks", "2000", "--count", "100000000", "--out", str(tmp_path / "b")], capsys,
            "at most 1,000,000 tasks in one set")
+    _exit2([*row[:-1], "100000000", "--tasks", "3", "--count", "1", "--out", str(tmp_path / "c")], capsys,
+           "skills (100000000): a mission has at most 1000")  # (2 ** skills, drawn at once, would not end)
     assert list(tmp_path.iterdir()) == []
 
 

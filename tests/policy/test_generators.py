@@ -173,3 +173,5 @@ def test_negative_seeds_are_refused_by_name():
 def test_a_team_larger_than_a_mission_file_may_hold_is_refused():
     with pytest.raises(ValueError, match="a mission holds at most 10000"):
         ScenarioGenerator("MA-AT", 10_002, 2, 6, 3)
+    with pytest.raises(ValueError, match=r"skills \(1001\): a mission has at most 1000"):
+        ScenarioGenerator("MA-AT", 4, 2, 6, 1001)
