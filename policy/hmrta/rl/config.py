@@ -442,7 +442,10 @@ def load_config(path: str | Path, overrides: dict | None = None, given: str = ""
     file's values before the check; ``given`` (e.g. ``--iterations``) then says where they came
     from in a message. Returns the resolved config (every key, defaults filled in)."""
     p = Path(path)
-    raw = read_yaml(p) or {}
+    raw = read_yaml(p)
+    if raw is None:  # (a config that wants every default says so: {} or name: ...)
+        raise ValueError(f"{p}: empty (expected a training config: a mapping of settings, as in the shipped "
+                         f"configs; {{}} for every default)")
     if not isinstance(raw, dict):
         raise ValueError(f"{p}: expected a mapping, got {type(raw).__name__}")
     ref = defaults()

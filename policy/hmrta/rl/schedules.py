@@ -193,8 +193,9 @@ def read_schedules(path: str | os.PathLike) -> tuple[dict[str, Any], dict[int, d
     lines = text.split("\n")
     torn = bool(lines and lines[-1])  # the last line lacks its newline
     body = lines[:-1]
-    if not body:
-        raise ScheduleError(f"{p}: empty (expected a {FORMAT} header line)")
+    if not body:  # nothing, or one line without its newline (a header cut short, or not a dataset)
+        what = "empty" if not text.strip() else "no complete line (a dataset's lines end with a newline)"
+        raise ScheduleError(f"{p}: {what}; expected a {FORMAT} header line")
     parsed = []
     for n, line in enumerate(body, 1):
         try:

@@ -826,6 +826,8 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\ntrain: {advantage: scaled}\n", "train.advantage: expected raw or relative"),
     ("version: 2\n", "version: expected 1"),
     ("[1, 2]\n", "expected a mapping"),
+    ("", "empty (expected a training config"),
+    ("# settings to come\n", "empty (expected a training config"),
 ])
 def test_config_errors_name_the_key(tmp_path, text, message):
     from hmrta.rl.train import load_config

@@ -105,7 +105,8 @@ def test_dataset_lines_validate_against_the_schema(dataset):
 
 
 @pytest.mark.parametrize("text, message", [
-    ("", "empty"),
+    ("", "bad.jsonl: empty; expected a hmrta-schedules/1 header line"),
+    ("not json at all {", r"no complete line \(a dataset's lines end with a newline\)"),
     ('{"format": "hmrta-schedules/2"}\n', ":1: expected a header with format"),
     ('{"format": "hmrta-schedules/1", "generator": {"kind": "x", "min_tasks": 1, "max_tasks": 2}, "seed": 1, '
      '"solver": {"time_limit": 1}}\n', ":1: generator.kind"),
