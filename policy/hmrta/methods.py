@@ -49,6 +49,12 @@ class Option:
     def flag(self) -> str:
         return "--" + self.name.replace("_", "-")
 
+    @property
+    def label(self) -> str:
+        """How an error names it: ROS parameter and command-line flag (``option time_limit
+        (--time-limit)``)."""
+        return f"option {self.name}" + (f" ({self.flag})" if self.flag[2:] != self.name else "")
+
     def coerce(self, method: str, value: Any) -> Any:
         """``value`` as this option's type, or MethodError naming the method and the option."""
         try:
@@ -56,13 +62,13 @@ class Option:
                 raise ValueError
             v = self.type(value)
         except (TypeError, ValueError):
-            raise MethodError(f"{method}: option {self.name}: expected {self.type.__name__}, got {value!r}") from None
+            raise MethodError(f"{method}: {self.label}: expected {self.type.__name__}, got {value!r}") from None
         if self.choices is not None and v not in self.choices:
-            raise MethodError(f"{method}: option {self.name}: expected one of {', '.join(self.choices)}, got {v!r}")
+            raise MethodError(f"{method}: {self.label}: expected one of {', '.join(self.choices)}, got {v!r}")
         if isinstance(v, float) and not math.isfinite(v):
-            raise MethodError(f"{method}: option {self.name}: expected a finite number{self._range()}, got {value!r}")
+            raise MethodError(f"{method}: {self.label}: expected a finite number{self._range()}, got {value!r}")
         if (self.minimum is not None and v < self.minimum) or (self.maximum is not None and v > self.maximum):
-            raise MethodError(f"{method}: option {self.name}: expected a number{self._range()}, got {value!r}")
+            raise MethodError(f"{method}: {self.label}: expected a number{self._range()}, got {value!r}")
         return v
 
     def _range(self) -> str:
@@ -137,8 +143,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            options=(Option("samples", int, 10, f"sampled rollouts per mission, 1 to {MAX_SAMPLES} (offline; rl-sN "
                            "is shorthand)", minimum=1, maximum=MAX_SAMPLES, live=False),
                     Option("temperature", float, SAMPLE_TEMPERATURE,
-                           "sampling temperature: softmax(logits / T); below 1 the samples stay nearer the greedy "
-                           "decoding (docs/semantics.md#sampling-temperature)", minimum=0.01),
+                           "sampling temperature T (at least 0.01): softmax(logits / T); below 1 the samples stay "
+                           "nearer the greedy decoding (docs/semantics.md#sampling-temperature)", minimum=0.01),
                     CHECKPOINT), **_RL),
     Method("rl-lookahead", "one-step lookahead over the policy's greedy continuations: better, and far "
            "slower (a whole rollout per admissible task at every decision: up to a minute or two at 20 tasks; "
@@ -147,10 +153,10 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            options=(CHECKPOINT,), **_RL),
     Method("cpsat", "anytime exact solver: list scheduler, annealing and CP-SAT; offline only",
            "hmrta.solvers.cpsat:solve_cpsat", None, rules=None,
-           options=(Option("time_limit", float, 60.0, "seconds per mission", minimum=0.01),
+           options=(Option("time_limit", float, 60.0, "seconds per mission (at least 0.01)", minimum=0.01),
                     Option("warm_start", str, "none", "start from this method's solution",
                            choices=("none", "greedy", "rl")),
-                    Option("workers", int, 2, "parallel search workers", minimum=1),
+                    Option("workers", int, 2, "parallel search workers (at least 1)", minimum=1),
                     Option("heuristic_seconds", float, None,
                            "seconds of list scheduling and annealing before CP-SAT, a part of the time limit (at "
                            "most --time-limit; default: a quarter of it)", minimum=0.0, within="time_limit")),

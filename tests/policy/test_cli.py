@@ -355,8 +355,8 @@ def test_bench_suite_default_out_is_not_the_committed_tables(tmp_path, monkeypat
     (["--method", "rl-sample", "--temperature", "nan"], "option temperature: expected a finite number >= 0.01"),
     (["--method", "rl-sample", "--temperature", "0"], "option temperature: expected a number >= 0.01"),
     (["--method", "rl-sample", "--samples", "10001"], "option samples: expected a number in [1, 10000]"),
-    (["--method", "cpsat", "--time-limit", "inf"], "option time_limit: expected a finite number >= 0.01"),
-    (["--method", "cpsat", "--time-limit", "nan"], "option time_limit: expected a finite number >= 0.01"),
+    (["--method", "cpsat", "--time-limit", "inf"], "option time_limit (--time-limit): expected a finite number >= 0.01"),
+    (["--method", "cpsat", "--time-limit", "nan"], "option time_limit (--time-limit): expected a finite number >= 0.01"),
     # the heuristic phase is a part of the time limit
     (["--method", "cpsat", "--heuristic-seconds", "5", "--time-limit", "2"],
      "cpsat: option heuristic_seconds (--heuristic-seconds) 5 is more than option time_limit (--time-limit) 2: "
@@ -405,7 +405,7 @@ HOPELESS = ["--scenario", "MA-AT", "--agents", "1", "--species", "1", "--tasks",
     # option values are checked before the cache is written
     (["bench", *ROW, "--methods", "greedy,cpsat", "--heuristic-seconds", "3", "--time-limit", "1"],
      ["option heuristic_seconds (--heuristic-seconds) 3 is more than option time_limit (--time-limit) 1"]),
-    (["bench", *ROW, "--methods", "greedy,cpsat", "--time-limit", "nan"], ["option time_limit: expected a finite"]),
+    (["bench", *ROW, "--methods", "greedy,cpsat", "--time-limit", "nan"], ["option time_limit (--time-limit): expected a finite"]),
     (["bench", *ROW, "--seed", "-1"], ["--seed: expected an integer in 0..2^63-1"]),
     (["bench", *ROW, "--agents", "0"], ["--agents: expected a positive integer, got 0"]),
     (["bench", *ROW, "--agents", "7"], ["--agents 7: expected a multiple of --species (2)"]),

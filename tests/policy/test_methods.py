@@ -54,7 +54,7 @@ def test_option_errors_name_the_method():
     for bad in (math.inf, -math.inf, math.nan):
         with pytest.raises(MethodError, match="rl-sample: option temperature: expected a finite number >= 0.01"):
             methods.solve(inst, "rl-sample", temperature=bad)
-        with pytest.raises(MethodError, match="cpsat: option time_limit: expected a finite number >= 0.01"):
+        with pytest.raises(MethodError, match=r"cpsat: option time_limit \(--time-limit\): expected a finite number >= 0.01"):
             methods.solve(inst, "cpsat", time_limit=bad)
     with pytest.raises(MethodError, match="cpsat: option workers: expected int"):
         methods.solve(inst, "cpsat", workers=1.5)

@@ -69,7 +69,8 @@ def _cut_short(p: Path) -> str | None:
     try:
         with open(p, "rb") as f:
             zipped = f.read(4) == b"PK\x03\x04"
-        return "a zip archive cut short: copied or downloaded in part?" if zipped and not zipfile.is_zipfile(p) else None
+        cut = zipped and not zipfile.is_zipfile(p)
+        return "a zip archive cut short: copied or downloaded in part?" if cut else None
     except OSError:
         return None
 
