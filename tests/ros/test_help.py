@@ -162,6 +162,9 @@ def test_param_parse_rejects(typ, text):
     ("hmrta-mission", ["--timeout", "-5"], "--timeout"),
     ("hmrta-mission", ["--timeout", "nan"], "--timeout"),
     ("hmrta-mission", ["--heartbeat-timeout", "0"], "--heartbeat-timeout"),
+    ("hmrta-mission", ["--agents-per-process", "0"], "hmrta-mission: error: --agents-per-process: expected an "
+                                                     "integer >= 1, got 0"),
+    ("hmrta-mission", ["--method", "foo"], "hmrta-mission: error: unknown method 'foo'"),
     # outputs that cannot be written: refused before the method is chosen or any process starts
     ("hmrta-mission", ["--method", "greedy", "--out", "/proc/hmrta/m.json"], "--out /proc/hmrta/m.json: cannot write"),
     ("hmrta-mission", ["--method", "greedy", "--record", "/proc/x.mcap"], "--record /proc/x.mcap: cannot write"),
@@ -185,6 +188,10 @@ def test_param_parse_rejects(typ, text):
      "--location: expected x,y in the unit square [0, 1], got 0.1,1.5"),
     ("hmrta-task", ["add", "--location", "0.1,0.5", "--requirements", "1,0", "--duration", "1", "--id", ""],
      "--id: expected a task id"),
+    ("hmrta-task", ["add", "--location", "0.1,1.5", "--requirements", "1,0", "--duration", "1"],
+     "(see hmrta-task add --help)"),  # the subcommand's help, where its options are
+    ("hmrta-task", ["cancel", " "], "hmrta-task cancel: error: id: expected a task id"),
+    ("hmrta-task", [], "the following arguments are required: {add,cancel,list}"),
     ("agent_node", ["--robots", "robot_0,,robot_1"], "expected distinct comma-separated robot names"),
 ])
 def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_path):

@@ -624,8 +624,7 @@ def _main(argv: list[str] | None = None) -> int:
         p.error("give the instance argument or --scenario, not both")
     path = Path(args.scenario or args.instance) if (args.scenario or args.instance) else default_instance()
     if args.agents_per_process < 1:
-        print("hmrta-mission: --agents-per-process must be >= 1", file=sys.stderr)
-        return 2
+        p.error(f"--agents-per-process: expected an integer >= 1, got {args.agents_per_process}")
     from hmrta.cli import UserError, writable
 
     try:  # every output can be written (and is not the mission itself), checked before any work
@@ -634,7 +633,7 @@ def _main(argv: list[str] | None = None) -> int:
             if value:
                 writable(flag, value, inputs=(path,))
     except UserError as e:
-        print(f"hmrta-mission: {e}", file=sys.stderr)
+        print(f"hmrta-mission: error: {e}", file=sys.stderr)
         return 2
     from hmrta import keys as hkeys
 
@@ -656,7 +655,7 @@ def _main(argv: list[str] | None = None) -> int:
                                                                   **methods.options_from_args(args))
         methods.rules(args.method, **method_options)  # its checkpoint readable (a bad one: here, not in every node)
     except (InstanceError, methods.MethodError, hkeys.KeystoreError) as e:
-        print(f"hmrta-mission: {e}", file=sys.stderr)
+        print(f"hmrta-mission: error: {e}", file=sys.stderr)
         return 2
     chosen = None
     if scores is not None:
@@ -682,7 +681,7 @@ def _main(argv: list[str] | None = None) -> int:
         try:
             hkeys.create_keystore(keystore, robots + added, force=True)  # (the robots the scenario adds too)
         except hkeys.KeystoreError as e:
-            print(f"hmrta-mission: {e}", file=sys.stderr)
+            print(f"hmrta-mission: error: {e}", file=sys.stderr)
             return 2
     procs = MissionProcesses(path, robots, out, log_dir, env, seed=args.seed, method=args.method,
                              method_options=method_options, agents_per_process=args.agents_per_process,

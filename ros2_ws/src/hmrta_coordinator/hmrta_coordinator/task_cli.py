@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--domain-id", type=int, default=None, help="ROS domain 0..232 (default: $ROS_DOMAIN_ID)")
     p.add_argument("--mission-namespace", default="/", metavar="NS",
                    help="the mission's namespace (its nodes' mission_namespace: topics NS/hmrta/...; default /)")
-    sub = p.add_subparsers(dest="cmd", required=True)
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="{add,cancel,list}")
     a = sub.add_parser("add", help="submit a task")
     a.add_argument("--location", type=_point, required=True, metavar="X,Y",
                    help="in the unit square [0, 1] (mission coordinates); with --metres, in metres")
@@ -130,15 +130,17 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--domain-id: expected a ROS domain id in 0..232, got {args.domain_id}")
     if args.cmd == "add":  # a mission file's bounds (hmrta.instance): what the board accepts too
         if not 0 <= args.duration <= MAX_VALUE:
-            p.error(f"--duration: expected a number in [0, {MAX_VALUE:g}], got {args.duration:g}")
+            a.error(f"--duration: expected a number in [0, {MAX_VALUE:g}], got {args.duration:g}")
         if not all(0 <= r <= MAX_VALUE for r in args.requirements) or not any(args.requirements):
-            p.error(f"--requirements: expected numbers in [0, {MAX_VALUE:g}], at least one of them non-zero, got "
+            a.error(f"--requirements: expected numbers in [0, {MAX_VALUE:g}], at least one of them non-zero, got "
                     f"{','.join(f'{r:g}' for r in args.requirements)}")
         if not all(0 <= v <= (math.inf if args.metres else 1) for v in args.location):
             want = "metres >= 0 (--metres)" if args.metres else "in the unit square [0, 1]"
-            p.error(f"--location: expected x,y {want}, got {args.location[0]:g},{args.location[1]:g}")
+            a.error(f"--location: expected x,y {want}, got {args.location[0]:g},{args.location[1]:g}")
         if args.id is not None and not args.id.strip():
-            p.error("--id: expected a task id (leave the option out for a random one), got an empty one")
+            a.error("--id: expected a task id (leave the option out for a random one), got an empty one")
+    if args.cmd == "cancel" and not args.id.strip():
+        c.error("id: expected a task id (hmrta-task list shows them), got an empty one")
 
     import rclpy
     from rclpy.executors import ExternalShutdownException
