@@ -122,7 +122,10 @@ def create_keystore(path: str | os.PathLike, robots: Iterable[str], *, force: bo
         if not out.is_dir() or out.is_symlink():
             raise KeystoreError(f"{out}: exists and is not a folder")
         if any(out.iterdir()) and not force:
-            raise KeystoreError(f"{out}: folder is not empty (a keystore already? pass --force to replace it)")
+            foreign = _not_keystore(out)
+            raise KeystoreError(f"{out}: is not a keystore ({foreign}) and not empty; give the new one a folder of "
+                                f"its own" if foreign else
+                                f"{out}: holds a keystore already; pass --force to replace it")
     target = Path(os.path.abspath(out))  # "." and ".." resolved: the folder is renamed by its own name
     cwd = Path.cwd()
     if target == cwd or target in cwd.parents:
@@ -135,7 +138,10 @@ def create_keystore(path: str | os.PathLike, robots: Iterable[str], *, force: bo
                                 f"so give the new one a folder of its own")
     parent = target.parent
     if not parent.is_dir():
-        raise KeystoreError(f"{out}: parent folder {parent} does not exist")
+        try:  # as every other --out: the folders above it are made
+            parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise KeystoreError(f"{out}: cannot make its parent folder {parent} ({e.strerror})") from None
     keys = {n: secrets.token_bytes(KEY_BYTES) for n in names}
     try:
         tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=parent))  # mode 0700

@@ -242,7 +242,7 @@ def test_loading_refuses_readable_or_malformed_key_files(store, tmp_path):
 
 def test_create_is_atomic_and_never_overwrites_by_accident(store, monkeypatch):
     path, keys = store
-    with pytest.raises(K.KeystoreError, match="not empty"):
+    with pytest.raises(K.KeystoreError, match="holds a keystore already; pass --force to replace it"):
         K.create_keystore(path, ["robot_9"])
     assert K.load_keystore(path) == keys
     real = K._write_private
@@ -300,6 +300,9 @@ def test_force_replaces_only_a_keystore(tmp_path, store):
             (d / rel).write_text(text)
         with pytest.raises(K.KeystoreError, match="is not a keystore.*--force replaces only a keystore"):
             K.create_keystore(d, ["robot_0"], force=True)
+        with pytest.raises(K.KeystoreError, match="is not a keystore.*give the new one a folder of its own") as e:
+            K.create_keystore(d, ["robot_0"])  # without --force: not told that --force would do
+        assert "--force" not in str(e.value)
         assert {str(p.relative_to(d)): p.read_text() for p in d.rglob("*") if p.is_file()} == files, name
     new = K.create_keystore(path, ["robot_5"], force=True)  # a keystore is replaced
     assert K.load_keystore(path) == new != keys
@@ -324,6 +327,10 @@ def test_cli_keys_create(tmp_path, capsys):
     A = load_instance(inst).n_agents
     assert main(["keys", "create", "--instance", str(inst), "--out", str(out), "--force"]) == 0
     assert sorted(K.load_keystore(out)) == sorted(f"robot_{a}" for a in range(A))
+    deep = tmp_path / "a" / "b" / "ks"  # its parent folders are made, as for every other --out
+    assert main(["keys", "create", "--robots", "robot_0", "--out", str(deep)]) == 0
+    assert sorted(K.load_keystore(deep)) == ["robot_0"]
+    capsys.readouterr()
     for args in (["--robots", "robot_0,robot_0"], ["--robots", "9lives"], ["--robots", ","],
                  ["--instance", str(tmp_path / "missing.yaml")]):
         assert main(["keys", "create", *args, "--out", str(tmp_path / "other")]) == 2, args

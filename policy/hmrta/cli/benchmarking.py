@@ -79,8 +79,8 @@ def cmd_bench(args) -> int:
     else:
         missing = [k for k in ("scenario", *ROW_SIZES) if getattr(args, k) is None]
         if missing:
-            raise UserError(f"bench: give your missions (INSTANCE...), --suite paper, or all of --scenario --agents "
-                            f"--species --tasks --skills (missing --{missing[0]})")
+            raise UserError(f"bench: give your missions (INSTANCE...), --suite paper or families, or all of "
+                            f"--scenario --agents --species --tasks --skills (missing --{missing[0]})")
         _row_sizes(args)
         table = args.scenario
         try:  # every instance can be drawn (a team too small for the tasks cannot), before any work
