@@ -353,6 +353,19 @@ def check_solution(inst: Instance, sol: Solution, source: str = "solution") -> N
             if not (isinstance(a, int) and 0 <= a < len(on_route) and m in on_route[a]):
                 raise _serr(f"{source}: tasks[{m}].members", f"robot {short(a)} did task {m}, but task {m} is "
                                                             f"not on its route: the routes and tasks disagree")
+    for a, r in enumerate(sol.routes):  # a robot does its tasks one after the other, in its route's order
+        prev = None
+        for i, m in enumerate(r):
+            t = sol.tasks[m]
+            start, finish = t.get("start"), t.get("finish")
+            if (a not in (t.get("members") or ()) or not isinstance(start, (int, float))
+                    or not isinstance(finish, (int, float)) or not (start == start and finish == finish)):
+                continue  # not done by this robot (cancelled, left, lost): no time to order it by
+            if prev is not None and start < prev[1] - 1e-9 * max(1.0, abs(prev[1])):
+                raise _serr(f"{source}: routes[{a}][{i}]", f"task {m} starts at {start:g}, before task {prev[0]} "
+                                                          f"(earlier on robot {a}'s route) finishes at {prev[1]:g}: "
+                                                          f"the routes and tasks disagree")
+            prev = (m, finish)
 
 
 def final_instance(inst: Instance, sol: Solution, source: str = "solution") -> Instance:

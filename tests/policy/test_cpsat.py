@@ -160,7 +160,7 @@ def test_rl_warm_start_failure_is_a_method_error(monkeypatch):
     inst = _tiny(TINY[0])
     with pytest.raises(MethodError, match="warm-start rl"):
         solve(inst, "cpsat", seed=0, time_limit=1, warm_start="rl")
-    with pytest.raises(MethodError, match="warm_start: expected one of none, greedy, rl"):
+    with pytest.raises(MethodError, match=r"warm_start \(--warm-start\): expected one of none, greedy, rl"):
         solve(inst, "cpsat", seed=0, time_limit=1, warm_start="bogus")
 
 

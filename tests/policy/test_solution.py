@@ -242,6 +242,22 @@ def test_a_solution_whose_routes_miss_the_tasks_its_robots_did_is_refused():
         check_solution(inst, Solution.from_dict(d))
 
 
+def test_a_solution_whose_routes_run_against_its_task_times_is_refused():
+    """A route reversed (the same tasks, the timings kept): a robot would start a task before it
+    finished the one before it on its route."""
+    from hmrta.generators import ScenarioGenerator
+    from hmrta.methods import solve
+    from hmrta.solution import SolutionError, check_solution
+
+    inst = ScenarioGenerator("MA-AT", 4, 2, 8, 2).instance(0, 0)
+    d = solve(inst, "greedy", seed=0).to_dict()
+    a = next(i for i, r in enumerate(d["routes"]) if len(r) > 1)
+    d["routes"][a] = d["routes"][a][::-1]
+    with pytest.raises(SolutionError, match=rf"routes\[{a}\]\[1\]: task \d+ starts at .* before task \d+ \(earlier "
+                                            rf"on robot {a}'s route\) finishes"):
+        check_solution(inst, Solution.from_dict(d))
+
+
 # ---- partial results: the coalitions under way when a run stopped -----------------------------
 def _stopped():
     """A greedy run of an MA-AT mission stopped by its time limit with tasks in progress."""
