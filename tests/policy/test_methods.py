@@ -135,7 +135,7 @@ class _RunsCode:
 
 
 def test_checkpoint_config_reader_refuses_foreign_globals(tmp_path):
-    from hmrta.rl.checkpoint_info import CheckpointError, read_config
+    from hmrta.rl.checkpoint_info import DEFAULT_CHECKPOINT, CheckpointError, read_config
 
     bad = tmp_path / "evil.pt"
     _zip_with_pickle(bad, pickle.dumps({"config": {"rules": {}}, "x": _RunsCode()}))
@@ -146,8 +146,12 @@ def test_checkpoint_config_reader_refuses_foreign_globals(tmp_path):
     assert methods.rules("rl", checkpoint=str(plain)) == Rules(max_open="team")
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a zip")
-    with pytest.raises(CheckpointError, match="not a readable hmrta checkpoint"):
+    with pytest.raises(CheckpointError, match=r"not a readable hmrta checkpoint \(not a torch checkpoint file\)"):
         read_config(junk)
+    cut = tmp_path / "cut.pt"  # the light reader of a checkpoint's config (a live mission's): the same words
+    cut.write_bytes(DEFAULT_CHECKPOINT.read_bytes()[:5000])
+    with pytest.raises(CheckpointError, match=r"not a readable hmrta checkpoint \(a zip archive cut short"):
+        read_config(cut)
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         read_config(tmp_path / "missing.pt")
     wrong = tmp_path / "wrong.pt"

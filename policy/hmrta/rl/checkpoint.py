@@ -35,7 +35,7 @@ from typing import Any
 import torch
 
 from ..reading import short
-from .checkpoint_info import CheckpointError, checkpoint_path, missing, sha256
+from .checkpoint_info import CheckpointError, checkpoint_path, cut_short, missing, sha256
 
 FORMAT_VERSION = 1
 # the training counters a checkpoint holds (each an integer >= 0: :func:`counter`)
@@ -61,20 +61,6 @@ def _torch_reason(e: Exception) -> str:
     return f"{type(e).__name__}: {first}"
 
 
-def _cut_short(p: Path) -> str | None:
-    """Why a file torch cannot read is not a checkpoint, when it is a zip archive (as a torch
-    checkpoint is) without the end of one: copied or downloaded in part. None otherwise."""
-    import zipfile
-
-    try:
-        with open(p, "rb") as f:
-            zipped = f.read(4) == b"PK\x03\x04"
-        cut = zipped and not zipfile.is_zipfile(p)
-        return "a zip archive cut short: copied or downloaded in part?" if cut else None
-    except OSError:
-        return None
-
-
 def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
     """The checkpoint's top-level dict, unpickled weights-only (no code runs), of a format this
     version reads (``checkpoint_format`` 0 or 1). A bare shipped name (``broad``) is read too."""
@@ -97,7 +83,7 @@ def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
                                   f"tensors and plain data)") from None
         raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({_torch_reason(e)})") from None
     except Exception as e:  # noqa: BLE001 - corrupt, truncated, not a torch file, ...
-        raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({_cut_short(p) or _torch_reason(e)})") from None
+        raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({cut_short(p) or _torch_reason(e)})") from None
     if not isinstance(ck, dict):
         raise CheckpointError(f"{p}: not an hmrta checkpoint (expected a dict, got {type(ck).__name__})")
     format_version(ck, p)

@@ -67,6 +67,18 @@ def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
     return path
 
 
+def cut_short(p: str | Path) -> str | None:
+    """Why a file that cannot be read as a checkpoint is not one, when it is a zip archive (as a
+    torch checkpoint is) without the end of one: copied or downloaded in part. None otherwise."""
+    try:
+        with open(p, "rb") as f:
+            zipped = f.read(4) == b"PK\x03\x04"
+        cut = zipped and not zipfile.is_zipfile(p)
+        return "a zip archive cut short: copied or downloaded in part?" if cut else None
+    except OSError:
+        return None
+
+
 class _Mapping(dict):
     """What an OrderedDict of the checkpoint reads as: a dict that also takes the attributes torch
     pickles with it (a module's ``state_dict()`` carries ``_metadata``)."""
@@ -104,7 +116,10 @@ def _read(path: str, mtime_ns: int) -> dict:
                 data = _Unpickler(io.BytesIO(fh.read(MAX_PICKLE_BYTES + 1))).load()
     except CheckpointError:
         raise
-    except (zipfile.BadZipFile, pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
+    except zipfile.BadZipFile:  # (a torch checkpoint is a zip archive)
+        raise CheckpointError(f"{path}: not a readable hmrta checkpoint "
+                              f"({cut_short(path) or 'not a torch checkpoint file'})") from None
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
             IndexError, KeyError, RecursionError, MemoryError) as e:
         raise CheckpointError(f"{path}: not a readable hmrta checkpoint ({type(e).__name__}: {e})") from None
     if not isinstance(data, dict) or not isinstance(data.get("config"), dict):
