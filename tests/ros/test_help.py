@@ -218,6 +218,10 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
     ("sim_robot", ["-p", "rate:=0.0", "-p", "time_scale:=1.0"], "rate: expected"),
     ("sim_robot", ["-p", "time_scale:=-1.0"], "time_scale: expected"),
     ("sim_robot", ["-p", "heartbeat_period:=0.0"], "heartbeat_period: expected"),
+    ("recorder", ["-p", "discovery_period:=.inf"], "discovery_period: expected a number of seconds > 0"),
+    ("recorder", ["-p", "discovery_period:=.nan"], "discovery_period: expected a number of seconds > 0"),
+    ("recorder", ["-p", "robots:=[1abc]"], "robots: '1abc' is not a robot name"),
+    ("recorder", ["-p", "output:=/proc/nope/x.mcap"], "output: cannot write /proc/nope/x.mcap.part"),
 ])
 def test_bad_node_parameters_are_one_line_user_errors(exe, args, says, domain):
     example = ROOT / "policy" / "hmrta" / "data" / "example.yaml"
@@ -225,6 +229,22 @@ def test_bad_node_parameters_are_one_line_user_errors(exe, args, says, domain):
     r = subprocess.run([str(BIN / exe), "--ros-args", *extra, *args], capture_output=True, text=True, timeout=60,
                        env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain)))
     assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_recorder_output_that_is_a_folder_is_refused_and_nothing_is_left(tmp_path, domain):
+    """A folder as the recording's file was taken at start and crashed at the end (the recording
+    left beside it as <folder>.part); it is refused at start, and a recorder that did not start
+    leaves no .part file."""
+    (tmp_path / "work").mkdir()
+    for args in (["-p", f"output:={tmp_path / 'work'}"],
+                 ["-p", f"output:={tmp_path / 'x.mcap'}", "-p", "discovery_period:=-1.0"]):
+        r = subprocess.run([str(BIN / "recorder"), "--ros-args", *args], capture_output=True, text=True,
+                           timeout=60, cwd=tmp_path,
+                           env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain)))
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert r.stderr.strip().splitlines()[-1].startswith("recorder: output: " if "work" in args[1] else
+                                                            "recorder: discovery_period: "), r.stderr
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["work"], args
 
 
 def test_a_zero_agent_heartbeat_period_is_refused():

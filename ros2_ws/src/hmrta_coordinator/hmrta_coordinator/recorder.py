@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import math
 import os
 import re
 import sys
@@ -190,10 +191,34 @@ class Recorder(Node):
         self.clock_topic = self.topics.clock_topic(str(P("clock_topic", "").value))
         if compression not in COMPRESSION:
             raise ValueError(f"compression: expected one of {', '.join(COMPRESSION)}, got {compression!r}")
+        if not (math.isfinite(period) and period > 0):
+            raise ValueError(f"discovery_period: expected a number of seconds > 0 (at least 0.05 is used), "
+                             f"got {period}")
+        from rclpy.validate_topic_name import validate_topic_name
+
+        for r in self.robot_names:  # each names topics <ns>/<robot>/...: refused here, by the parameter's name
+            try:
+                validate_topic_name(f"/{r}/pose")
+            except Exception:  # noqa: BLE001 - rclpy's InvalidTopicNameException
+                raise ValueError(f"robots: {r!r} is not a robot name (a ROS name: letters, digits and '_', "
+                                 f"not starting with a digit)") from None
         self.output = Path(output or time.strftime("hmrta_%Y%m%d_%H%M%S.mcap")).absolute()
-        self.output.parent.mkdir(parents=True, exist_ok=True)
+        if self.output.is_dir():
+            raise ValueError(f"output: {self.output} is a folder, expected the recording's file (e.g. run.mcap)")
         self.part = part_path(self.output)
-        self._fh = open(self.part, "wb")
+        try:
+            self.output.parent.mkdir(parents=True, exist_ok=True)
+            self._fh = open(self.part, "wb")
+        except OSError as e:
+            raise ValueError(f"output: cannot write {self.part} ({e.strerror or type(e).__name__})") from None
+        try:
+            self._start(compression, period)
+        except BaseException:  # nothing is left behind by a node that did not start
+            self._fh.close()
+            self.part.unlink(missing_ok=True)
+            raise
+
+    def _start(self, compression: str, period: float) -> None:
         self.writer = Writer(self._fh, compression=COMPRESSION[compression])
         self.writer.start(profile="ros2", library="hmrta recorder")
         self.schemas: dict[str, int] = {}  # type -> schema id

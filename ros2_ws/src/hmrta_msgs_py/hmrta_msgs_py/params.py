@@ -135,7 +135,8 @@ RECORDER: tuple[Param, ...] = (
     Param("robots", STRING_ARRAY, [], "robots whose goal_pose and pose topics to record (empty: the mission's robots)"),
     Param("topics", STRING_ARRAY, [], "further topics to record (any message type installed here)"),
     Param("markers", BOOL, False, "also record <mission_namespace>/hmrta/markers (RViz markers; large)"),
-    Param("discovery_period", DOUBLE, 1.0, "wall seconds between looks for new topics to record"),
+    Param("discovery_period", DOUBLE, 1.0,
+          "wall seconds between looks for new topics to record (> 0; at least 0.05 is used)"),
     Param("compression", STRING, "zstd", "chunk compression: zstd, lz4 or none"),
     Param("mission_namespace", STRING, "/",
           "the mission's namespace: its topics are <ns>/hmrta/... and <ns>/<robot>/pose, goal_pose (two missions "
