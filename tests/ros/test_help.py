@@ -218,6 +218,13 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
     ("sim_robot", ["-p", "rate:=0.0", "-p", "time_scale:=1.0"], "rate: expected"),
     ("sim_robot", ["-p", "time_scale:=-1.0"], "time_scale: expected"),
     ("sim_robot", ["-p", "heartbeat_period:=0.0"], "heartbeat_period: expected"),
+    ("task_board", ["-p", "scale:=.inf"], "scale: expected a positive number of metres per mission unit, got inf"),
+    # (an option outside --ros-args, such as task_board --method greedy, is not silently left out)
+    ("task_board", ["-p", "seed:=1", "--", "--method", "greedy"], "unrecognized arguments: --method greedy"),
+    ("sim_robot", ["--", "--bogus"], "sim_robot: unrecognized arguments: --bogus (its settings are ROS parameters"),
+    ("recorder", ["--", "--bogus"], "recorder: unrecognized arguments: --bogus"),
+    ("task_board", ["-p", "output:=/tmp"], "output: /tmp is a folder, expected the result's file"),
+    ("task_board", ["-p", "output:=/proc/nope/r.json"], "output: cannot make the folder /proc/nope"),
     ("recorder", ["-p", "discovery_period:=.inf"], "discovery_period: expected a number of seconds > 0"),
     ("recorder", ["-p", "discovery_period:=.nan"], "discovery_period: expected a number of seconds > 0"),
     ("recorder", ["-p", "robots:=[1abc]"], "robots: '1abc' is not a robot name"),

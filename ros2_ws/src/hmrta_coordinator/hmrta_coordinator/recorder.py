@@ -364,9 +364,10 @@ def part_path(output: Path) -> Path:
 def main(args: list[str] | None = None) -> None:
     argv = sys.argv if args is None else args
     from hmrta_msgs_py.params import node_parameters
-    from hmrta_msgs_py.runtime import help_requested
+    from hmrta_msgs_py.runtime import help_requested, no_own_arguments
 
     help_requested(argv, "recorder", __doc__.split("\n\n")[0], node_parameters("recorder"))
+    no_own_arguments("recorder", argv)
     with starting("recorder", (ValueError, OSError), args=argv):  # a bad parameter or output path: a user error
         node = Recorder()
     # the single-threaded executor: the experimental events executor does not deliver raw messages

@@ -436,9 +436,10 @@ class SimRobot(Node):
 def main(args: list[str] | None = None) -> None:
     argv = sys.argv if args is None else args
     from hmrta_msgs_py.params import node_parameters
-    from hmrta_msgs_py.runtime import help_requested
+    from hmrta_msgs_py.runtime import help_requested, no_own_arguments
 
     help_requested(argv, "sim_robot", __doc__.split("\n\n")[0], node_parameters("sim_robot"))
+    no_own_arguments("sim_robot", argv)
     with starting("sim_robot", args=argv):  # a bad parameter: a user error
         node = SimRobot()
     spin_nodes([node], until=node.done if node.exit_on_done else None)

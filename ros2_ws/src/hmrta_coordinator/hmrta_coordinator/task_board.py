@@ -71,9 +71,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 import time
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 from rclpy.duration import Duration
@@ -147,8 +149,18 @@ class TaskBoard(Node):
 
         if not path:
             raise ValueError("set the mission file: -p instance:=PATH")
-        if not scale > 0:
+        if not (scale > 0 and math.isfinite(scale)):
             raise ValueError(f"scale: expected a positive number of metres per mission unit, got {scale!r}")
+        if self.output:  # where the result goes, checked before the mission (a write that fails at its end loses it)
+            out = Path(self.output).absolute()
+            if out.is_dir():
+                raise ValueError(f"output: {out} is a folder, expected the result's file (e.g. result.json)")
+            try:
+                out.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise ValueError(f"output: cannot make the folder {out.parent} ({e.strerror})") from None
+            if not os.access(out.parent, os.W_OK):
+                raise ValueError(f"output: cannot write in {out.parent}")
         for k, v in (("arrival_tolerance", tolerance), ("leg_timeout_factor", leg_timeout_factor),
                      ("leg_timeout_floor", leg_timeout_floor), ("startup_timeout", startup_timeout),
                      ("heartbeat_timeout", heartbeat_timeout), ("decision_timeout", decision_timeout),
@@ -566,9 +578,14 @@ class TaskBoard(Node):
     def _finish(self) -> None:
         sol = self.result()
         self.failure = None if sol.success else str(sol.extra.get("failure") or "the mission did not succeed")
+        self.pub_result.publish(result_to_msg(sol.to_dict()))  # first: a file that cannot be written loses nothing
         if self.output:
-            sol.save(self.output)
-        self.pub_result.publish(result_to_msg(sol.to_dict()))
+            try:
+                sol.save(self.output)
+            except OSError as e:
+                self.get_logger().error(f"output: cannot write {self.output} ({e.strerror or type(e).__name__}); "
+                                        f"the result went out on {self.pub_result.topic_name} only")
+                self.output = ""
         lost = self.board.lost
         self.get_logger().info(sol.summary() + (f"; lost {sol.extra['lost_robots']}, undone tasks "
                                                 f"{sol.extra['undone_tasks']}" if lost else "")
@@ -678,9 +695,10 @@ def main(args: list[str] | None = None) -> int:
     """Exit status: 0, 2 a user error, 3 the mission finished and failed, 130 Ctrl-C at start-up."""
     argv = sys.argv if args is None else args
     from hmrta_msgs_py.params import node_parameters
-    from hmrta_msgs_py.runtime import help_requested
+    from hmrta_msgs_py.runtime import help_requested, no_own_arguments
 
     help_requested(argv, "task_board", __doc__.split("\n\n")[0], node_parameters("task_board"))
+    no_own_arguments("task_board", argv)
     # a bad mission file, policy or parameter is a user error
     with starting("task_board", (InstanceError, MethodError, JournalError, ValueError), args=argv):
         board = TaskBoard()

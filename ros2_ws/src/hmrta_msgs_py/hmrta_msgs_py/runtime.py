@@ -145,6 +145,17 @@ def without_ros_args(prog: str, argv: list[str]) -> list[str]:
     return remove_ros_args(argv)
 
 
+def no_own_arguments(prog: str, argv: list[str]) -> None:
+    """For a node whose settings are all ROS parameters: anything on its command line outside
+    ``--ros-args`` (``task_board --method greedy``) is one line on stderr and exit 2, not silently
+    left out (the node would run with the parameter's default)."""
+    rest = without_ros_args(prog, argv)[1:]
+    if rest:
+        print(f"{prog}: unrecognized arguments: {' '.join(rest)} (its settings are ROS parameters: "
+              f"{prog} --ros-args -p NAME:=VALUE; {prog} --help lists them)", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def _name_remaps(args: list[str]) -> list[tuple[str, str]]:
     """(``__ns`` or ``__node``, value) of the ``-r [NODE:]__ns:=NS`` and ``-r [NODE:]__node:=NAME``
     remappings in the ``--ros-args`` sections of ``args``."""
