@@ -500,8 +500,12 @@ class AgentNode(Node):
         self.robot = robot or self.get_namespace().strip("/").split("/")[-1]
         if not self.robot:
             raise ValueError("set the robot name (-p robot:=NAME or a namespace, -r __ns:=/NAME)")
+        topics.check_robot_name(self.robot)  # its topics are <ns>/<robot>/...: refused here, by its parameter
         self.index_param = self.declare_parameter("index", -1).value
         self.species_param = self.declare_parameter("species", -1).value
+        for k, v in (("index", self.index_param), ("species", self.species_param)):
+            if v < -1:
+                raise ValueError(f"{k}: expected an integer >= 0, or -1 (not set), got {v}")
         self.method, self.options = declare_method_parameters(self)
         self.seed = self.declare_parameter("seed", 0).value
         self.exit_on_done = self.declare_parameter("exit_on_done", True).value

@@ -194,14 +194,8 @@ class Recorder(Node):
         if not (math.isfinite(period) and period > 0):
             raise ValueError(f"discovery_period: expected a number of seconds > 0 (at least 0.05 is used), "
                              f"got {period}")
-        from rclpy.validate_topic_name import validate_topic_name
-
         for r in self.robot_names:  # each names topics <ns>/<robot>/...: refused here, by the parameter's name
-            try:
-                validate_topic_name(f"/{r}/pose")
-            except Exception:  # noqa: BLE001 - rclpy's InvalidTopicNameException
-                raise ValueError(f"robots: {r!r} is not a robot name (a ROS name: letters, digits and '_', "
-                                 f"not starting with a digit)") from None
+            topics.check_robot_name(r, "robots")
         self.output = Path(output or time.strftime("hmrta_%Y%m%d_%H%M%S.mcap")).absolute()
         if self.output.is_dir():
             raise ValueError(f"output: {self.output} is a folder, expected the recording's file (e.g. run.mcap)")

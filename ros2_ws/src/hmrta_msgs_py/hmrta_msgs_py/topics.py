@@ -176,6 +176,19 @@ def check_root_namespace(node, what: str) -> None:
                          f"-p mission_namespace:={ns} (docs/ros.md, Several missions on one ROS domain)")
 
 
+def check_robot_name(name: str, what: str = "robot") -> str:
+    """``name`` if it can name a robot's topics (``<ns>/<name>/pose``, ``goal_pose``); else a
+    ValueError naming ``what`` (the node's parameter)."""
+    from rclpy.validate_topic_name import validate_topic_name
+
+    try:
+        validate_topic_name(f"/{name}/pose")
+    except Exception:  # noqa: BLE001 - rclpy's InvalidTopicNameException
+        raise ValueError(f"{what}: {name!r} is not a robot name (a ROS name: letters, digits and '_', not "
+                         f"starting with a digit)") from None
+    return name
+
+
 def check_clock_topic(name: str, what: str = "clock_topic") -> str:
     """``name`` if it can name the mission clock (an absolute, valid topic other than /clock, a
     simulator's); else a ValueError naming ``what`` (the nodes' parameter, ``hmrta-task``'s option)."""
