@@ -201,6 +201,8 @@ def parse(spec: str) -> tuple[str, dict[str, Any]]:
     m = re.fullmatch(r"rl-s(\d+)", base)
     name, implied = ("rl-sample", {"samples": int(m.group(1))}) if m else (base, {})
     method = get(name)
+    if m:  # rl-s0 is no method, offline or live
+        implied["samples"] = method.option("samples").coerce(base, implied["samples"])
     if at:
         if method.option("checkpoint") is None:
             raise MethodError(f"{spec}: method {name} takes no checkpoint (METHOD@CHECKPOINT is for "
