@@ -232,6 +232,9 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
     ("recorder", ["-p", "discovery_period:=.nan"], "discovery_period: expected a number of seconds > 0"),
     ("recorder", ["-p", "robots:=[1abc]"], "robots: '1abc' is not a robot name"),
     ("recorder", ["-p", "output:=/proc/nope/x.mcap"], "output: cannot write /proc/nope/x.mcap.part"),
+    ("task_board", ["-p", "instance:=/no/such/mission.yaml"], "instance: /no/such/mission.yaml: no such file"),
+    ("task_board", ["-p", "method:=rl-s0"], "rl-s0: option samples: expected a number in [1, 10000], got 0"),
+    ("agent_node", ["-p", "robot:=robot_0", "-p", "method:=rl-s0"], "rl-s0: option samples: expected a number"),
 ])
 def test_bad_node_parameters_are_one_line_user_errors(exe, args, says, domain):
     example = ROOT / "policy" / "hmrta" / "data" / "example.yaml"
@@ -239,6 +242,18 @@ def test_bad_node_parameters_are_one_line_user_errors(exe, args, says, domain):
     r = subprocess.run([str(BIN / exe), "--ros-args", *extra, *args], capture_output=True, text=True, timeout=60,
                        env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain)))
     assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("args,says", [
+    (["--bogus"], "unrecognized arguments: --bogus"),
+    (["--torch-threads", "0"], "--torch-threads: expected a positive integer"),
+    (["--robots", "a,a"], "argument --robots: expected distinct comma-separated robot names, got 'a,a'"),
+])
+def test_agent_node_flags_are_one_line_user_errors(args, says, domain):
+    r = subprocess.run([str(BIN / "agent_node"), *args, "--ros-args", "-p", "robot:=robot_0"], capture_output=True,
+                       text=True, timeout=60,
+                       env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain)))
+    assert r.returncode == 2 and r.stderr == f"agent_node: error: {says} (see agent_node --help)\n", r.stderr
 
 
 def test_a_recorder_output_that_is_a_folder_is_refused_and_nothing_is_left(tmp_path, domain):

@@ -24,7 +24,7 @@ from std_msgs.msg import String  # noqa: E402
 
 from hmrta_coordinator.launching import POSE_TYPES as FLEET_POSE_TYPES  # noqa: E402
 from hmrta_coordinator.launching import FleetRobot, board_pose_types  # noqa: E402
-from hmrta_coordinator.task_board import _pose_types  # noqa: E402
+from hmrta_coordinator.task_board import _pose_types, _waiting_text  # noqa: E402
 from hmrta_msgs_py import codec as C  # noqa: E402
 from hmrta_msgs_py import topics  # noqa: E402
 from test_mission import assert_same_as_offline, robots_of, wait_board_exit  # noqa: E402
@@ -52,6 +52,16 @@ def test_pose_types_decode_alike():
         ["Odometry", "Odometry", "PoseWithCovarianceStamped"]
     with pytest.raises(ValueError, match="expected a pose type"):
         C.pose_type("Twist")
+
+
+def test_start_up_wait_says_how_many_are_missing_and_what_happens_at_the_timeout():
+    names = [f"robot_{a}" for a in range(15)]
+    text = _waiting_text(names, names, names[:2], 12.4, 120.0)
+    assert text == ("waiting for 15 of 15 agents (robot_0, robot_1, robot_2, robot_3, robot_4, robot_5, ..., "
+                    "robot_14) and 2 of 15 poses (robot_0, robot_1) for 12 s; at 120 s "
+                    "(startup_timeout) the mission starts without the robots still missing")
+    assert _waiting_text(names, [], ["robot_3"], 5, 0.0) == \
+        "waiting for 1 of 15 poses (robot_3) for 5 s (every agent heard); no limit (startup_timeout 0)"
 
 
 def test_pose_types_parameter_and_fleet():

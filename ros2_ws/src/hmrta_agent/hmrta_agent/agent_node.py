@@ -945,12 +945,13 @@ def main(args: list[str] | None = None) -> int:
     from hmrta_msgs_py.params import node_parameters
     from hmrta_msgs_py.runtime import parameters_help, without_ros_args
 
-    p = argparse.ArgumentParser(prog="agent_node", description=__doc__.split("\n\n")[0],
-                                usage="agent_node [-h] [--robots ROBOTS] [--heartbeat-period S] [--torch-threads N] "
-                                      "[--ignore-board-version V] [--ros-args -p NAME:=VALUE ... -r FROM:=TO ...]",
-                                formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog="ROS parameters (--ros-args -p NAME:=VALUE):\n"
-                                       + parameters_help(node_parameters("agent_node")))
+    from hmrta.cli import Parser  # a bad command line: one line naming the flag (exit 2), like every user error
+
+    p = Parser(prog="agent_node", description=__doc__.split("\n\n")[0],
+               usage="agent_node [-h] [--robots ROBOTS] [--heartbeat-period S] [--torch-threads N] "
+                     "[--ignore-board-version V] [--ros-args -p NAME:=VALUE ... -r FROM:=TO ...]",
+               formatter_class=argparse.RawDescriptionHelpFormatter,
+               epilog="ROS parameters (--ros-args -p NAME:=VALUE):\n" + parameters_help(node_parameters("agent_node")))
     p.add_argument("--robots", type=robots_arg, default=None,
                    help="host several robots in this process (node <mission_namespace>/<robot>/agent each); default: one "
                         "robot named by -p robot:=NAME or by the namespace")

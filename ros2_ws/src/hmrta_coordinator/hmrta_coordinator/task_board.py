@@ -180,7 +180,10 @@ class TaskBoard(Node):
                 f"your map's size in metres (or a smaller arrival_tolerance)")
         if not frame_id:
             raise ValueError("frame_id: expected the frame of the mission's coordinates (e.g. map), got ''")
-        self.inst = inst = load_instance(path)
+        try:
+            self.inst = inst = load_instance(path)
+        except InstanceError as e:  # (the file and the field named by the reader)
+            raise InstanceError(f"instance: {e}") from None
         A = inst.n_agents
         names = names or [f"robot_{a}" for a in range(A)]
         if len(names) != A:
@@ -518,9 +521,9 @@ class TaskBoard(Node):
             agents = [n for a, n in enumerate(self.names) if b.seen_status[a] is None]
             poses = [n for a, n in enumerate(self.names) if b.seen_pose[a] is None]
             bad = [a for a in range(len(self.names)) if b.seen_pose[a] is None and a in b.pose_rejections]
-            self.get_logger().info(f"waiting for the agents of {agents[:8]}{'...' if len(agents) > 8 else ''} and "
-                                   f"the poses of {poses[:8]}{'...' if len(poses) > 8 else ''} (heartbeats on "
-                                   f"{self.topics.status}, poses on {self.topics.robot('<robot>', topics.POSE)})"
+            self.get_logger().info(_waiting_text(self.names, agents, poses, now - self.t_created, b.startup_timeout)
+                                   + f" (heartbeats on {self.topics.status}, poses on "
+                                   f"{self.topics.robot('<robot>', topics.POSE)})"
                                    + (f"; {len(bad)} of those robots' poses are heard but rejected, e.g. "
                                       f"{b.pose_rejections[bad[0]]}" if bad else ""),
                                    throttle_duration_sec=5.0)
@@ -689,6 +692,19 @@ def _deeper(qos: QoSProfile, depth: int) -> QoSProfile:
 
 def _names(names: list[str]) -> str:
     return ", ".join(names) if len(names) <= 8 else f"{', '.join(names[:6])}, ..., {names[-1]}"
+
+
+def _waiting_text(names: list[str], agents: list[str], poses: list[str], waited: float, timeout: float) -> str:
+    """The start-up wait in one line: how many of the robots' agents and poses are missing (which
+    ones, the first few), for how long, and what happens at ``timeout`` (the board's
+    ``startup_timeout``; 0 waits without limit)."""
+    parts = [f"{len(missing)} of {len(names)} {what} ({_names(missing)})"
+             for what, missing in (("agents", agents), ("poses", poses)) if missing]
+    heard = [f"every {what} heard" for what, missing in (("agent", agents), ("pose", poses)) if not missing]
+    end = (f"at {timeout:g} s (startup_timeout) the mission starts without the robots still missing"
+           if timeout > 0 else "no limit (startup_timeout 0)")
+    heard_text = f" ({', '.join(heard)})" if heard else ""
+    return f"waiting for {' and '.join(parts) or 'the start'} for {waited:.0f} s{heard_text}; {end}"
 
 
 def main(args: list[str] | None = None) -> int:

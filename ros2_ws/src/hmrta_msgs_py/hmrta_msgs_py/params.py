@@ -82,12 +82,13 @@ TASK_BOARD: tuple[Param, ...] = (
           "then the robot is dropped as stuck (factor and floor 0: never)"),
     Param("leg_timeout_floor", DOUBLE, 10.0, "seconds added to every leg's timeout (see leg_timeout_factor)"),
     Param("exit_on_done", BOOL, True, "exit when the mission is finished"),
-    Param("marker_period", DOUBLE, 0.5, "wall seconds between <mission_namespace>/hmrta/markers updates"),
-    Param("progress_period", DOUBLE, 5.0, "wall seconds between progress log lines"),
+    Param("marker_period", DOUBLE, 0.5, "wall seconds between <mission_namespace>/hmrta/markers updates (0: no markers)"),
+    Param("progress_period", DOUBLE, 5.0, "wall seconds between progress log lines (0: none)"),
     Param("real_time_departures", BOOL, False, "no back-dated departures (real robots cannot leave in the past)"),
     Param("keystore", STRING, "", "mission keystore folder (or its keys.json); empty: no authentication"),
     Param("journal", STRING, "", "JSON-lines journal of the board, replayed when it exists (empty: none)"),
-    Param("rejection_rate", DOUBLE, 200.0, "logged and published rejections per second, at most"),
+    Param("rejection_rate", DOUBLE, 200.0, "logged and published rejections per second, at most (0: none one by one; "
+          "a count by reason every 5 s)"),
     Param("queue_depth", INTEGER, 2000, "receive queue depth (messages) of choices and heartbeats"),
     Param("keyframe_period", INTEGER, 0,
           "board versions between keyframes (0: whenever the stream has carried as many bytes as a keyframe)"),
@@ -156,10 +157,10 @@ def method_parameters() -> tuple[Param, ...]:
     :func:`hmrta_msgs_py.runtime.declare_method_parameters` (ROS has no None: '' / 0)."""
     from hmrta.methods import help_text, live_options, mission_methods, node_options
 
-    out = [Param("method", STRING, "portfolio", help_text(mission_methods()) + "; rl-sN = rl-sample with N samples; "
+    out = [Param("method", STRING, "portfolio", "the method that decides (rl-sN = rl-sample with N samples); "
                  "on a node, portfolio (the default): the task board chooses at the start and publishes the one "
                  "chosen as the mission's method; an agent started with portfolio runs the mission's method, "
-                 "whatever it is")]
+                 "whatever it is | " + help_text(mission_methods()))]
     live = live_options()
     for o in node_options().values():
         default = o.default if o.default is not None else {str: "", int: 0, float: 0.0}[o.type]

@@ -262,9 +262,22 @@ def declare_method_parameters(node) -> tuple[str, dict]:
     return name, options
 
 
-def parameters_help(params) -> str:
-    """One line per ROS parameter (:class:`hmrta_msgs_py.params.Param`): name, type, default, meaning."""
-    return "\n".join(f"  {p.name} ({p.type}, default {p.default!r}): {p.help}" for p in params)
+def parameters_help(params, width: int = 100) -> str:
+    """Each ROS parameter (:class:`hmrta_msgs_py.params.Param`): name, type, default and meaning,
+    wrapped at ``width`` columns; a meaning that lists choices ('a: ... | b: ...', the methods) gets
+    a line per choice."""
+    import textwrap
+
+    lines = []
+    for p in params:
+        head = f"  {p.name} ({p.type}, default {p.default!r}): "
+        w = max(width, len(head) + 40)  # (a long default: the meaning starts on its line all the same)
+        first, *choices = p.help.split(" | ")
+        lines += textwrap.wrap(first, w, initial_indent=head, subsequent_indent=" " * 6, break_on_hyphens=False)
+        for c in choices:
+            lines += textwrap.wrap(c, w, initial_indent=" " * 6 + "| ", subsequent_indent=" " * 8,
+                                   break_on_hyphens=False)
+    return "\n".join(lines)
 
 
 def help_requested(argv: list[str], prog: str, description: str, params) -> None:
