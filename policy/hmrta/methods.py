@@ -424,10 +424,15 @@ def checkpoint_of(name: str, options: dict[str, Any]) -> dict[str, str] | None:
     takes none. CheckpointError (a MethodError) when it is not a file here. Torch-free."""
     if get(name).option("checkpoint") is None:
         return None
-    from .rl.checkpoint_info import checkpoint_path, sha256
+    from .rl.checkpoint_info import CheckpointError, checkpoint_path, missing, sha256
 
     path = checkpoint_path(options.get("checkpoint"))
-    return {"path": str(path), "sha256": sha256(path)}
+    if not path.is_file():
+        raise missing(path)
+    try:
+        return {"path": str(path), "sha256": sha256(path)}
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot read it ({e.strerror or type(e).__name__})") from None
 
 
 def live_spec(spec: str, shared: dict[str, Any]) -> tuple[str, dict[str, Any]]:

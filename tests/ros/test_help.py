@@ -235,6 +235,11 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
     ("task_board", ["-p", "instance:=/no/such/mission.yaml"], "instance: /no/such/mission.yaml: no such file"),
     ("task_board", ["-p", "method:=rl-s0"], "rl-s0: option samples: expected a number in [1, 10000], got 0"),
     ("agent_node", ["-p", "robot:=robot_0", "-p", "method:=rl-s0"], "rl-s0: option samples: expected a number"),
+    # a checkpoint that is no file: the board died with a traceback; a portfolio agent took it
+    ("task_board", ["-p", "method:=rl", "-p", "checkpoint:=nosuch"], "nosuch: no such checkpoint (shipped: "),
+    ("agent_node", ["-p", "robot:=robot_0", "-p", "checkpoint:=nosuch"], "nosuch: no such checkpoint"),
+    ("agent_node", ["-p", "robot:=robot_0", "-p", "method:=rl", "-p", "checkpoint:=/etc/passwd"],
+     "/etc/passwd: not a readable hmrta checkpoint (not a torch checkpoint file)"),
 ])
 def test_bad_node_parameters_are_one_line_user_errors(exe, args, says, domain):
     example = ROOT / "policy" / "hmrta" / "data" / "example.yaml"

@@ -35,7 +35,7 @@ from typing import Any
 import torch
 
 from ..reading import short
-from .checkpoint_info import CheckpointError, checkpoint_path, cut_short, missing, sha256
+from .checkpoint_info import CheckpointError, checkpoint_path, cut_short, missing, sha256, torch_file
 
 FORMAT_VERSION = 1
 # the training counters a checkpoint holds (each an integer >= 0: :func:`counter`)
@@ -83,7 +83,8 @@ def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
                                   f"tensors and plain data)") from None
         raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({_torch_reason(e)})") from None
     except Exception as e:  # noqa: BLE001 - corrupt, truncated, not a torch file, ...
-        raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({cut_short(p) or _torch_reason(e)})") from None
+        why = cut_short(p) or (_torch_reason(e) if torch_file(p) else "not a torch checkpoint file")
+        raise CheckpointError(f"{p}: not a readable hmrta checkpoint ({why})") from None
     if not isinstance(ck, dict):
         raise CheckpointError(f"{p}: not an hmrta checkpoint (expected a dict, got {type(ck).__name__})")
     format_version(ck, p)

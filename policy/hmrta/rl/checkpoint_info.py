@@ -67,6 +67,18 @@ def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
     return path
 
 
+def torch_file(p: str | Path) -> bool:
+    """Whether a file begins as a torch checkpoint does: a zip archive (what torch.save writes) or a
+    pickle (its legacy form). Bytes that are neither get one reason, "not a torch checkpoint file",
+    where torch's readers fail on them with whatever they tripped on (an IndexError on a text file)."""
+    try:
+        with open(p, "rb") as f:
+            head = f.read(4)
+    except OSError:
+        return True  # (unreadable: the reader's own error says so)
+    return not head or head == b"PK\x03\x04" or head[:1] == b"\x80"  # (empty: the readers say "empty")
+
+
 def cut_short(p: str | Path) -> str | None:
     """Why a file that cannot be read as a checkpoint is not one, when it is a zip archive (as a
     torch checkpoint is) without the end of one: copied or downloaded in part. None otherwise."""
@@ -121,7 +133,8 @@ def _read(path: str, mtime_ns: int) -> dict:
                               f"({cut_short(path) or 'not a torch checkpoint file'})") from None
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
             IndexError, KeyError, RecursionError, MemoryError) as e:
-        raise CheckpointError(f"{path}: not a readable hmrta checkpoint ({type(e).__name__}: {e})") from None
+        why = f"{type(e).__name__}: {e}" if torch_file(path) else "not a torch checkpoint file"
+        raise CheckpointError(f"{path}: not a readable hmrta checkpoint ({why})") from None
     if not isinstance(data, dict) or not isinstance(data.get("config"), dict):
         raise CheckpointError(f"{path}: not an hmrta checkpoint (expected a dict with a 'config' mapping)")
     return data

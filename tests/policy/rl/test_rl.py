@@ -1408,22 +1408,41 @@ def test_an_unreadable_checkpoint_is_named_in_the_files_terms(tmp_path):
     import zipfile
 
     from hmrta.rl.checkpoint import load
+    from hmrta.rl.checkpoint_info import read_config
 
     with zipfile.ZipFile(tmp_path / "zip.pt", "w") as z:
         z.writestr("a/data.pkl", b"garbage")
     (tmp_path / "cut.pt").write_bytes(DEFAULT_CHECKPOINT.read_bytes()[:3000])
     (tmp_path / "text.pt").write_text("hello\n")
+    (tmp_path / "passwd.pt").write_text("root:x:0:0:root:/root:/bin/bash\n")  # torch's legacy reader: IndexError
     (tmp_path / "random.pt").write_bytes(random.Random(3).randbytes(100))
     (tmp_path / "empty.pt").write_bytes(b"")
     for name, want in (("zip", "a zip archive without a torch checkpoint's records"),
                        ("cut", "a zip archive cut short: copied or downloaded in part?"),
-                       ("text", "not a torch checkpoint file"), ("random", "not a torch checkpoint file"),
-                       ("empty", "empty, or cut short")):
+                       ("text", "not a torch checkpoint file"), ("passwd", "not a torch checkpoint file"),
+                       ("random", "not a torch checkpoint file"), ("empty", "empty, or cut short")):
         with pytest.raises(CheckpointError) as e:
             load(tmp_path / f"{name}.pt")
         msg = str(e.value)
         assert msg == f"{tmp_path / name}.pt: not a readable hmrta checkpoint ({want}" + (
             ", or a damaged one)" if "records" in want else ")"), msg
+    for name in ("text", "passwd", "random"):  # the torch-free reader (hmrta-mission, the nodes) alike
+        with pytest.raises(CheckpointError, match=r"not a readable hmrta checkpoint \(not a torch checkpoint file\)$"):
+            read_config(tmp_path / f"{name}.pt")
+
+
+def test_the_checkpoint_of_a_method_is_a_user_error_when_it_is_no_file(tmp_path):
+    """checkpoint_of (a board's and an agent's record of the policy they run) raised
+    FileNotFoundError on a name that is neither a file nor a shipped checkpoint: the board died
+    with a traceback."""
+    from hmrta.methods import checkpoint_of
+
+    with pytest.raises(CheckpointError, match="nosuch: no such checkpoint"):
+        checkpoint_of("rl", {"checkpoint": "nosuch"})
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        checkpoint_of("rl", {"checkpoint": str(tmp_path / "gone.pt")})
+    assert checkpoint_of("greedy", {"checkpoint": "nosuch"}) is None  # (a method that takes none)
+    assert checkpoint_of("rl", {"checkpoint": "broad"})["path"].endswith("broad.pt")
 
 
 def _same_state(a: Trainer, b: Trainer) -> None:
