@@ -148,6 +148,28 @@ class Block(nn.Module):
         out = F.scaled_dot_product_attention(qp, kp, vp, attn_mask=mask)  # [B, h, Lq, d/h]
         return mha.out_proj(out.transpose(1, 2).reshape(B, Lq, d))  # [B, Lq, d]
 
+    def forward_one(self, q: torch.Tensor, kv: torch.Tensor, kv_ignore: torch.Tensor) -> torch.Tensor:
+        """The block (built without feed-forward) for one query row ``q`` [B, 1, d], with the key
+        and value projections folded into the query side. Per head, the score q_h . (W_k,h x + b_k,h) is
+        (W_k,h^T q_h) . x plus a term equal for every row x, which the softmax cancels; and the
+        attention-weighted values sum(p x W_v,h + b_v,h) are W_v,h (sum p x) + b_v,h, the weights
+        summing to one. So the rows are read twice (scores, weighted sum) instead of being
+        projected, O(h L d) instead of O(L d^2): the same function as ``forward`` in exact
+        arithmetic, equal to float rounding (tests/policy/rl/test_rl.py). The decoder's two
+        layers over 126 context rows and 101 task rows were a fifth of a forward's arithmetic
+        (docs/results.md#scale-offline)."""
+        mha = self.mha
+        B, _, d = q.shape
+        h = mha.num_heads
+        w, b = mha.in_proj_weight, mha.in_proj_bias  # [3d, d], [3d]
+        qp = F.linear(q[:, 0], w[:d], b[:d]).view(B, h, d // h)  # [B, h, d/h]
+        u = torch.einsum("bhe,hed->bhd", qp, w[d:2 * d].view(h, d // h, d))  # [B, h, d]
+        s = torch.bmm(u, kv.transpose(1, 2)) / math.sqrt(d // h)  # [B, h, L]
+        p = torch.softmax(s.masked_fill(kv_ignore[:, None, :], float("-inf")), dim=-1)  # [B, h, L]
+        z = torch.bmm(p, kv)  # [B, h, d] the attention-weighted rows of each head
+        o = torch.einsum("bhd,hed->bhe", z, w[2 * d:].view(h, d // h, d)) + b[2 * d:].view(h, d // h)  # [B, h, d/h]
+        return self.ln1(q + mha.out_proj(o.reshape(B, 1, d)))  # [B, 1, d]
+
 
 class PolicyNet(nn.Module):
     def __init__(self, cfg: ModelConfig = ModelConfig()):
@@ -188,9 +210,10 @@ class PolicyNet(nn.Module):
         me = ax[torch.arange(ax.shape[0], device=decider.device), decider]  # [B, d]
         q = self.query(torch.cat([me, tg, ag], dim=-1)).unsqueeze(1)  # [B, 1, d]
         ctx = torch.cat([tx, ax], dim=1)  # [B, T + N, d]
-        q = self.dec1(q, ctx, torch.cat([t_ign, a_ign], dim=1))  # [B, 1, d]
-        q = self.dec2(q, tx, ~action_mask)  # [B, 1, d]
-        compat = torch.einsum("bd,btd->bt", self.wq(q[:, 0]), self.wk(tx)) / math.sqrt(self.cfg.d_model)  # [B, T]
+        q = self.dec1.forward_one(q, ctx, torch.cat([t_ign, a_ign], dim=1))  # [B, 1, d]
+        q = self.dec2.forward_one(q, tx, ~action_mask)  # [B, 1, d]
+        r = self.wq(q[:, 0]) @ self.wk.weight  # [B, d] wq(q) . wk(x) = (wk^T wq(q)) . x
+        compat = torch.bmm(tx, r[:, :, None])[:, :, 0] / math.sqrt(self.cfg.d_model)  # [B, T]
         logits = self.cfg.clip * torch.tanh(compat)  # [B, T]
         return logits.masked_fill(~action_mask, float("-inf"))
 

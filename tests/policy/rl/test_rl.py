@@ -101,6 +101,58 @@ def test_block_attention_is_torchs_multihead_attention(self_attention, with_bias
     assert torch.equal(alone, ref)
 
 
+def test_decoder_layers_fold_keys_and_values_into_the_query():
+    """Block.forward_one (the decoder's two layers: one query row, keys and values folded into
+    the query) is the block's own forward in exact arithmetic: equal to float rounding, with
+    padding and a masked prefix, and its gradients too (training runs it)."""
+    from hmrta.rl.model import Block
+
+    torch.manual_seed(1)
+    block = Block(32, 4, None)
+    with torch.no_grad():  # biases away from zero, so that dropping the key bias is tested
+        block.mha.in_proj_bias.normal_()
+    B, L = 3, 9
+    q = torch.randn(B, 1, 32, requires_grad=True)
+    kv = torch.randn(B, L, 32, requires_grad=True)
+    ignore = torch.zeros(B, L, dtype=torch.bool)
+    ignore[1, -3:] = True
+    ignore[2, :4] = True
+    got, want = block.forward_one(q, kv, ignore), block(q, kv, ignore)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    g_got = torch.autograd.grad(got.square().sum(), [q, kv, block.mha.in_proj_weight])
+    g_want = torch.autograd.grad(want.square().sum(), [q, kv, block.mha.in_proj_weight])
+    for a, b in zip(g_got, g_want):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    assert torch.equal(g_got[1][1, -3:], torch.zeros(3, 32))  # padding rows get no gradient
+
+
+def test_network_is_its_unfolded_definition(model):
+    """The network's decoder and pointer, folded (Block.forward_one; (wk^T wq q) . x), against
+    their definition written out: the blocks' own forward and wk applied to every task row."""
+    from hmrta.rl.model import _masked_mean
+
+    obs = batch_observations([MissionState(i, seed=0, rules=RULES) for i in _insts()])[0]
+    net = model
+
+    def unfolded(tasks, agents, task_valid, agent_valid, action_mask, decider):
+        t_ign, a_ign = ~task_valid, ~agent_valid
+        te = net.task_enc(*(2 * [net.task_embed(tasks)]), t_ign)
+        ae = net.agent_enc(*(2 * [net.agent_embed(agents)]), a_ign)
+        tx, ax = net.task_cross(te, ae, a_ign), net.agent_cross(ae, te, t_ign)
+        me = ax[torch.arange(ax.shape[0]), decider]
+        q = net.query(torch.cat([me, _masked_mean(tx, task_valid), _masked_mean(ax, agent_valid)], -1))
+        q = net.dec1(q[:, None], torch.cat([tx, ax], 1), torch.cat([t_ign, a_ign], 1))
+        q = net.dec2(q, tx, ~action_mask)
+        compat = torch.einsum("bd,btd->bt", net.wq(q[:, 0]), net.wk(tx)) / math.sqrt(net.cfg.d_model)
+        return (net.cfg.clip * torch.tanh(compat)).masked_fill(~action_mask, float("-inf"))
+
+    with torch.no_grad():
+        got, want = net(**obs), unfolded(**obs)
+    assert torch.equal(torch.isfinite(got), obs["action_mask"]) and torch.equal(torch.isfinite(want), obs["action_mask"])
+    m = obs["action_mask"]
+    torch.testing.assert_close(got[m], want[m], rtol=1e-5, atol=1e-5)
+
+
 def test_travel_bias_option(tmp_path):
     """model.travel_bias: with zero slopes the network computes exactly what it computed without
     the option (so older checkpoints resume into it); with slopes set it differs, keeps padding
