@@ -226,12 +226,15 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
     ("task_board", ["-p", "seed:=1", "--", "--method", "greedy"], "unrecognized arguments: --method greedy"),
     ("sim_robot", ["--", "--bogus"], "sim_robot: unrecognized arguments: --bogus (its settings are ROS parameters"),
     ("recorder", ["--", "--bogus"], "recorder: unrecognized arguments: --bogus"),
-    ("task_board", ["-p", "output:=/tmp"], "output: /tmp is a folder, expected the result's file"),
-    ("task_board", ["-p", "output:=/proc/nope/r.json"], "output: cannot make the folder /proc/nope"),
+    ("task_board", ["-p", "output:=/tmp"], "output: /tmp: is a folder, expected a file name"),
+    ("task_board", ["-p", "output:=/proc/nope/r.json"], "output: /proc/nope/r.json: cannot write in /proc"),
+    ("task_board", ["-p", "output:=/proc/r.json"], "output: /proc/r.json: cannot write in /proc"),  # (ran, then lost it)
+    ("task_board", ["-p", "journal:=/tmp"], "journal: /tmp: is a folder, expected a file name"),  # (a traceback)
+    ("task_board", ["-p", "journal:=/proc/j.jsonl"], "journal: /proc/j.jsonl: cannot write in /proc"),
     ("recorder", ["-p", "discovery_period:=.inf"], "discovery_period: expected a number of seconds > 0"),
     ("recorder", ["-p", "discovery_period:=.nan"], "discovery_period: expected a number of seconds > 0"),
     ("recorder", ["-p", "robots:=[1abc]"], "robots: '1abc' is not a robot name"),
-    ("recorder", ["-p", "output:=/proc/nope/x.mcap"], "output: cannot write /proc/nope/x.mcap.part"),
+    ("recorder", ["-p", "output:=/proc/nope/x.mcap"], "output: /proc/nope/x.mcap: cannot write in /proc"),
     ("task_board", ["-p", "instance:=/no/such/mission.yaml"], "instance: /no/such/mission.yaml: no such file"),
     ("task_board", ["-p", "method:=rl-s0"], "rl-s0: option samples: expected a number in [1, 10000], got 0"),
     ("agent_node", ["-p", "robot:=robot_0", "-p", "method:=rl-s0"], "rl-s0: option samples: expected a number"),
@@ -251,7 +254,9 @@ def test_bad_node_parameters_are_one_line_user_errors(exe, args, says, domain):
 
 @pytest.mark.parametrize("args,says", [
     (["--bogus"], "unrecognized arguments: --bogus"),
-    (["--torch-threads", "0"], "--torch-threads: expected a positive integer"),
+    (["--torch-threads", "0"], "--torch-threads: expected a number of threads in [1, 1024], got 0"),
+    (["--torch-threads", "99999"], "--torch-threads: expected a number of threads in [1, 1024], got 99999"),
+    (["--torch-threads", "2147483648"], "--torch-threads: expected a number of threads in [1, 1024], got 2147483648"),
     (["--robots", "a,a"], "argument --robots: expected distinct comma-separated robot names, got 'a,a'"),
 ])
 def test_agent_node_flags_are_one_line_user_errors(args, says, domain):
@@ -275,6 +280,25 @@ def test_a_recorder_output_that_is_a_folder_is_refused_and_nothing_is_left(tmp_p
         assert r.stderr.strip().splitlines()[-1].startswith("recorder: output: " if "work" in args[1] else
                                                             "recorder: discovery_period: "), r.stderr
         assert sorted(p.name for p in tmp_path.iterdir()) == ["work"], args
+
+
+def test_an_output_or_journal_that_is_a_fifo_is_refused_at_start(tmp_path, domain):
+    """A FIFO as the board's journal blocked its start until a signal; as the board's result or a
+    recording it was replaced by a regular file at the end. Each is one line at start now, and the
+    FIFO is left as it was."""
+    import stat
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    example = ROOT / "policy" / "hmrta" / "data" / "example.yaml"
+    for exe, args in (("task_board", ["-p", f"instance:={example}", "-p", f"journal:={fifo}"]),
+                      ("task_board", ["-p", f"instance:={example}", "-p", f"output:={fifo}"]),
+                      ("recorder", ["-p", f"output:={fifo}"])):
+        r = subprocess.run([str(BIN / exe), "--ros-args", *args], capture_output=True, text=True, timeout=60,
+                           env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(domain)))
+        name = args[-1].split(":=")[0]
+        assert r.returncode == 2 and r.stderr == f"{exe}: {name}: {fifo}: exists and is not a regular file\n", r.stderr
+        assert stat.S_ISFIFO(fifo.stat().st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["pipe"]
 
 
 def test_a_zero_agent_heartbeat_period_is_refused():

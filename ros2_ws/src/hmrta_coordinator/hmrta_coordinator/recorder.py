@@ -41,7 +41,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from hmrta_msgs_py import topics
-from hmrta_msgs_py.runtime import spin_nodes, starting
+from hmrta_msgs_py.runtime import spin_nodes, starting, writable_file
 
 RECORDING_FORMAT = "hmrta-recording/1"  # the MCAP metadata record "hmrta" names it
 HEARD = "recorder: heard the mission on"  # printed (stdout) once the first mission message is recorded
@@ -196,9 +196,7 @@ class Recorder(Node):
                              f"got {period}")
         for r in self.robot_names:  # each names topics <ns>/<robot>/...: refused here, by the parameter's name
             topics.check_robot_name(r, "robots")
-        self.output = Path(output or time.strftime("hmrta_%Y%m%d_%H%M%S.mcap")).absolute()
-        if self.output.is_dir():
-            raise ValueError(f"output: {self.output} is a folder, expected the recording's file (e.g. run.mcap)")
+        self.output = writable_file("output", output or time.strftime("hmrta_%Y%m%d_%H%M%S.mcap"))
         self.part = part_path(self.output)
         try:
             self.output.parent.mkdir(parents=True, exist_ok=True)

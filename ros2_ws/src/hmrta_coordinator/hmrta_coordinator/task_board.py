@@ -71,11 +71,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import sys
 import time
 from functools import partial
-from pathlib import Path
 from typing import Any
 
 from rclpy.duration import Duration
@@ -103,7 +101,7 @@ from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mis
                                  mission_to_msg, pose_from_msg, rejection_to_msg, request_id_of, result_to_msg,
                                  status_from_msg, task_event_to_msg, task_request_from_msg)
 from hmrta_msgs_py.console import signals_deferred
-from hmrta_msgs_py.runtime import closest, declare_method_parameters, spin_nodes, starting
+from hmrta_msgs_py.runtime import closest, declare_method_parameters, spin_nodes, starting, writable_file
 
 
 class TaskBoard(Node):
@@ -151,16 +149,11 @@ class TaskBoard(Node):
             raise ValueError("set the mission file: -p instance:=PATH")
         if not (scale > 0 and math.isfinite(scale)):
             raise ValueError(f"scale: expected a positive number of metres per mission unit, got {scale!r}")
-        if self.output:  # where the result goes, checked before the mission (a write that fails at its end loses it)
-            out = Path(self.output).absolute()
-            if out.is_dir():
-                raise ValueError(f"output: {out} is a folder, expected the result's file (e.g. result.json)")
-            try:
-                out.parent.mkdir(parents=True, exist_ok=True)
-            except OSError as e:
-                raise ValueError(f"output: cannot make the folder {out.parent} ({e.strerror})") from None
-            if not os.access(out.parent, os.W_OK):
-                raise ValueError(f"output: cannot write in {out.parent}")
+        # where the result and the journal go, checked before the mission (a write that fails at its end
+        # loses the result; a journal that is a FIFO would block the start)
+        for name, value in (("output", self.output), ("journal", journal)):
+            if value:
+                writable_file(name, value)
         for k, v in (("arrival_tolerance", tolerance), ("leg_timeout_factor", leg_timeout_factor),
                      ("leg_timeout_floor", leg_timeout_floor), ("startup_timeout", startup_timeout),
                      ("heartbeat_timeout", heartbeat_timeout), ("decision_timeout", decision_timeout),

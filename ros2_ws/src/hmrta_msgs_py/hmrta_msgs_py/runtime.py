@@ -145,6 +145,20 @@ def without_ros_args(prog: str, argv: list[str]) -> list[str]:
     return remove_ros_args(argv)
 
 
+def writable_file(param: str, path: str) -> Path:
+    """``path``, the file named by parameter ``param`` (a board's result or journal, a recording),
+    checked at start as every ``--out`` of the CLI is (:func:`hmrta.cli.common.writable`): not a
+    folder, not a FIFO or device, a place where a file can be made (a probe file is written and
+    removed). ValueError "PARAM: PATH: why" otherwise, so that no mission runs to its end to lose
+    its file, and no node blocks on a FIFO."""
+    from hmrta.cli.common import UserError, writable
+
+    try:
+        return writable(f"{param}:", Path(path).absolute())
+    except UserError as e:
+        raise ValueError(str(e)) from None
+
+
 def no_own_arguments(prog: str, argv: list[str]) -> None:
     """For a node whose settings are all ROS parameters: anything on its command line outside
     ``--ros-args`` (``task_board --method greedy``) is one line on stderr and exit 2, not silently
