@@ -96,10 +96,12 @@ def test_bad_threads_is_a_user_error(capsys):
 
     assert main(["solve", str(EXAMPLE), "--method", "greedy", "--threads", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--threads" in err[0] and "positive integer" in err[0]
+    assert err == ["hmrta: error: --threads: expected a number of threads in [1, 1024], got 0"]
+    assert main(["solve", str(EXAMPLE), "--method", "greedy", "--threads", "99999"]) == 2  # (no upper bound before)
+    assert capsys.readouterr().err.strip().endswith("expected a number of threads in [1, 1024], got 99999")
     assert main(["train", "--check", "--threads", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--threads" in err[0]
+    assert len(err) == 1 and "--threads: expected a number of threads in [1, 1024]" in err[0]
 
 
 @pytest.mark.parametrize("preset", [None, "ACTIVE"])

@@ -3,7 +3,17 @@ from __future__ import annotations
 
 import sys
 
-from .common import _positive
+from .common import UserError
+
+MAX_THREADS = 1024  # torch threads a process may ask for (99,999 exhausted the address space as rclpy loaded)
+
+
+def check_threads(flag: str, n: int | None) -> None:
+    """UserError naming ``flag`` unless ``n`` (None: not given) is a number of threads in [1, MAX_THREADS]."""
+    if n is None:
+        return
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_THREADS:
+        raise UserError(f"{flag}: expected a number of threads in [1, {MAX_THREADS}], got {n}")
 
 
 THREADS_HELP = ("torch CPU threads of the learned policy's methods (rl, rl-sample, rl-lookahead, portfolio). "
@@ -61,5 +71,5 @@ def _threads(args) -> TorchThreads | None:
     n = getattr(args, "threads", None)
     if n is None or args.cmd == "train":  # training sets its own (cmd_train)
         return None
-    _positive("--threads", n)
+    check_threads("--threads", n)
     return TorchThreads(n)

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from .common import CONFIGS, UserError, _jobs, _positive, _seconds, _seed, writable
+from .threads import check_threads
 from .progress import _progress_on
 
 
@@ -25,7 +26,7 @@ def cmd_train(args) -> int:
 
     from ..deps import require
 
-    _positive("--threads", args.threads)
+    check_threads("--threads", args.threads)
     _jobs(args)
     # idle OpenMP threads sleep instead of spinning: read once, when torch loads its OpenMP runtime
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

@@ -946,6 +946,8 @@ def main(args: list[str] | None = None) -> int:
     from hmrta_msgs_py.runtime import parameters_help, without_ros_args
 
     from hmrta.cli import Parser  # a bad command line: one line naming the flag (exit 2), like every user error
+    from hmrta.cli.common import UserError
+    from hmrta.cli.threads import check_threads
 
     p = Parser(prog="agent_node", description=__doc__.split("\n\n")[0],
                usage="agent_node [-h] [--robots ROBOTS] [--heartbeat-period S] [--torch-threads N] "
@@ -964,8 +966,10 @@ def main(args: list[str] | None = None) -> int:
                    help="testing: drop the board messages of version V once, as if they were lost (the process's "
                         "replica recovers from a keyframe); repeatable")
     cli = p.parse_args(without_ros_args("agent_node", argv)[1:])
-    if cli.torch_threads < 1:
-        p.error("--torch-threads: expected a positive integer")
+    try:
+        check_threads("--torch-threads", cli.torch_threads)
+    except UserError as e:
+        p.error(str(e))
     if not 0 < cli.heartbeat_period < float("inf"):
         p.error(f"--heartbeat-period: expected a number of seconds > 0, got {cli.heartbeat_period}")
     host = Host()
