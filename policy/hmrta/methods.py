@@ -424,11 +424,9 @@ def checkpoint_of(name: str, options: dict[str, Any]) -> dict[str, str] | None:
     takes none. CheckpointError (a MethodError) when it is not a file here. Torch-free."""
     if get(name).option("checkpoint") is None:
         return None
-    from .rl.checkpoint_info import CheckpointError, checkpoint_path, missing, sha256
+    from .rl.checkpoint_info import CheckpointError, checkpoint_path, existing, sha256
 
-    path = checkpoint_path(options.get("checkpoint"))
-    if not path.is_file():
-        raise missing(path)
+    path = existing(checkpoint_path(options.get("checkpoint")))
     try:
         return {"path": str(path), "sha256": sha256(path)}
     except OSError as e:

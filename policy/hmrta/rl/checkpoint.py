@@ -35,7 +35,7 @@ from typing import Any
 import torch
 
 from ..reading import short
-from .checkpoint_info import CheckpointError, checkpoint_path, cut_short, missing, sha256, torch_file
+from .checkpoint_info import CheckpointError, checkpoint_path, cut_short, existing, sha256, torch_file
 
 FORMAT_VERSION = 1
 # the training counters a checkpoint holds (each an integer >= 0: :func:`counter`)
@@ -64,13 +64,7 @@ def _torch_reason(e: Exception) -> str:
 def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
     """The checkpoint's top-level dict, unpickled weights-only (no code runs), of a format this
     version reads (``checkpoint_format`` 0 or 1). A bare shipped name (``broad``) is read too."""
-    p = checkpoint_path(path)
-    if not p.exists():
-        raise missing(p)
-    if p.is_dir():
-        raise CheckpointError(f"{p}: is a folder, expected a checkpoint file")
-    if not p.is_file():  # a FIFO or device would block or never end
-        raise CheckpointError(f"{p}: not a regular file")
+    p = existing(checkpoint_path(path))
     try:
         with warnings.catch_warnings():  # e.g. about the pickle protocol: the outcome is what counts
             warnings.simplefilter("ignore")

@@ -67,6 +67,18 @@ def checkpoint_path(checkpoint: str | Path | None = None) -> Path:
     return path
 
 
+def existing(path: Path) -> Path:
+    """``path`` when it is a regular file; else the CheckpointError that says what it is: not
+    there (:func:`missing`), a folder, or something else (a FIFO or device would block a read)."""
+    if path.is_file():
+        return path
+    if not path.exists():
+        raise missing(path)
+    if path.is_dir():
+        raise CheckpointError(f"{path}: is a folder, expected a checkpoint file")
+    raise CheckpointError(f"{path}: not a regular file, expected a checkpoint file")
+
+
 def torch_file(p: str | Path) -> bool:
     """Whether a file begins as a torch checkpoint does: a zip archive (what torch.save writes) or a
     pickle (its legacy form). Bytes that are neither get one reason, "not a torch checkpoint file",
@@ -142,9 +154,7 @@ def _read(path: str, mtime_ns: int) -> dict:
 
 def read_config(checkpoint: str | Path | None = None) -> dict:
     """The resolved training config stored in a checkpoint (no torch needed)."""
-    path = checkpoint_path(checkpoint)
-    if not path.is_file():
-        raise missing(path)
+    path = existing(checkpoint_path(checkpoint))
     return _read(str(path.resolve()), path.stat().st_mtime_ns)["config"]
 
 

@@ -1497,6 +1497,24 @@ def test_the_checkpoint_of_a_method_is_a_user_error_when_it_is_no_file(tmp_path)
     assert checkpoint_of("rl", {"checkpoint": "broad"})["path"].endswith("broad.pt")
 
 
+def test_a_checkpoint_that_is_a_fifo_or_a_folder_is_named_so_by_every_reader(tmp_path):
+    """A FIFO was 'no such checkpoint' in the torch-free readers (hmrta-mission, the nodes)."""
+    import os
+
+    from hmrta.methods import checkpoint_of
+    from hmrta.rl.checkpoint import load
+    from hmrta.rl.checkpoint_info import read_config
+
+    os.mkfifo(tmp_path / "pipe.pt")
+    for name, why in (("pipe.pt", "not a regular file, expected a checkpoint file"),
+                      (".", "is a folder, expected a checkpoint file")):
+        path = str(tmp_path / name)
+        for read in (load, read_config, lambda p: checkpoint_of("rl", {"checkpoint": p}),
+                     lambda p: load_policy(p)):
+            with pytest.raises(CheckpointError, match=f"{re.escape(why)}$"):
+                read(path)
+
+
 def _same_state(a: Trainer, b: Trainer) -> None:
     for (k, v), (_, v2) in zip(a.model.state_dict().items(), b.model.state_dict().items()):
         torch.testing.assert_close(v, v2, msg=k, rtol=0, atol=0)

@@ -255,7 +255,7 @@ def declare_method_parameters(node) -> tuple[str, dict]:
     or, for a method that chooses per mission (portfolio), that method and every option given.
     Raises MethodError for an unknown method or an option it does not take."""
     from hmrta.methods import MethodError, chooses, live_spec, node_options
-    from hmrta.rl.checkpoint_info import checkpoint_path, missing
+    from hmrta.rl.checkpoint_info import checkpoint_path, existing
 
     from .params import method_parameters
 
@@ -271,9 +271,8 @@ def declare_method_parameters(node) -> tuple[str, dict]:
             except MethodError as e:
                 raise MethodError(str(e).replace(f"{method}: option ", "", 1)) from None
     if chooses(method):  # portfolio: its options as given (the board chooses, agents adopt: hmrta.methods.adopt)
-        given = opts.get("checkpoint")
-        if given and not checkpoint_path(given).is_file():  # checked now, not when the board's choice runs it
-            raise missing(checkpoint_path(given))
+        if opts.get("checkpoint"):  # a file here, checked now rather than when the board's choice runs it
+            existing(checkpoint_path(opts["checkpoint"]))
         return method, opts
     # the spec's shorthand and own checkpoint (rl-s5: sampled decisions, live one per turn; rl@broad)
     name, options = live_spec(method, opts)  # (of the options given, those the method takes)
