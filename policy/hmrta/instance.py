@@ -435,11 +435,11 @@ def text_field(v: Any, where: str) -> str:
     except UnicodeEncodeError as e:
         raise _err(where, f"expected text, got an invalid character at position {e.start} "
                           f"(lone surrogate {t[e.start]!a})") from None
-    bad = _CONTROL.search(t)
+    bad = CONTROL.search(t)
     if bad:
         raise _err(where, f"expected text on one line, got a control character at position {bad.start()} "
                           f"({bad.group()!a}) in {short(t)}")
     return t
 
 
-_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f]")  # C0, DEL and C1 control characters
+CONTROL = re.compile("[\x00-\x1f\x7f-\x9f]")  # C0, DEL and C1 control characters (a newline, a terminal escape)

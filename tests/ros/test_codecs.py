@@ -491,6 +491,11 @@ def test_task_requests_and_events_carry_the_request_id():
     assert_valid("hmrta-task-event/1", d)
     with pytest.raises(C.DecodeError, match="request_id: expected str"):
         C.task_request_from_msg(_msg(json.dumps({**json.loads(C.task_request_to_msg(r).data), "request_id": 5})))
+    for bad in ("a\nb", "x\x1b[31m", "\x85"):  # ids are printed in logs and on consoles: one line
+        msg = C.task_request_to_msg(C.TaskRequest("cancel", bad))
+        with pytest.raises(C.DecodeError, match="id: expected an id on one line, got a control character"):
+            C.task_request_from_msg(msg)
+        assert any("id" in e for e in schema_errors("hmrta-task-request/1", json.loads(msg.data)))  # the schema too
     assert C.request_id_of('{"format": "hmrta-task-request/1", "op": "move", "request_id": "n-2"}') == "n-2"
     assert C.request_id_of("not json") == "" and C.request_id_of('{"request_id": 3}') == ""
 

@@ -191,6 +191,9 @@ def test_param_parse_rejects(typ, text):
     ("hmrta-task", ["add", "--location", "0.1,1.5", "--requirements", "1,0", "--duration", "1"],
      "(see hmrta-task add --help)"),  # the subcommand's help, where its options are
     ("hmrta-task", ["cancel", " "], "hmrta-task cancel: error: id: expected a task id"),
+    ("hmrta-task", ["add", "--location", "0.1,0.5", "--requirements", "1,0", "--duration", "1", "--id", "a\nb"],
+     "--id: expected a task id on one line, got a control character in 'a\\nb'"),  # (the board refuses it too)
+    ("hmrta-task", ["cancel", "x\x1by"], "id: expected a task id on one line, got a control character"),
     ("hmrta-task", [], "the following arguments are required: {add,cancel,list}"),
     ("agent_node", ["--robots", "robot_0,,robot_1"], "expected distinct comma-separated robot names"),
 ])

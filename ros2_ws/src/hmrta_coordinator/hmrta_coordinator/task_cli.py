@@ -86,7 +86,7 @@ def _spin_until(node, done, until: float, step: float = 0.05) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     from hmrta.cli import Parser  # bad arguments: one line
-    from hmrta.instance import MAX_VALUE
+    from hmrta.instance import CONTROL, MAX_VALUE
 
     p = Parser(prog="hmrta-task", description=__doc__.split("\n\n")[0])
     p.add_argument("--timeout", type=_number, default=10.0, help="seconds to wait for the board (default 10)")
@@ -141,6 +141,9 @@ def main(argv: list[str] | None = None) -> int:
             a.error("--id: expected a task id (leave the option out for a random one), got an empty one")
     if args.cmd == "cancel" and not args.id.strip():
         c.error("id: expected a task id (hmrta-task list shows them), got an empty one")
+    if args.cmd in ("add", "cancel") and args.id is not None and CONTROL.search(args.id):  # (the board refuses it)
+        (a if args.cmd == "add" else c).error(f"{'--id' if args.cmd == 'add' else 'id'}: expected a task id on one "
+                                              f"line, got a control character in {args.id!a}")
 
     import rclpy
     from rclpy.executors import ExternalShutdownException

@@ -39,7 +39,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from hmrta.board import BOARD_FORMAT, board_header
 from hmrta.core import STATE_FORMAT, Rules, parse_rules
-from hmrta.instance import Instance, InstanceError, instance_from_dict
+from hmrta.instance import CONTROL, Instance, InstanceError, instance_from_dict
 from hmrta.reading import short
 from hmrta.solution import FORMAT as RESULT_FORMAT
 
@@ -708,6 +708,8 @@ def task_request_from_msg(msg: String) -> TaskRequest:
     rid = _get(d, "id", str, w)
     if not rid or len(rid) > 256:
         raise DecodeError(f"{w}.id: expected a non-empty id of at most 256 characters")
+    if CONTROL.search(rid):  # (ids are printed in logs, answers and the operator's console)
+        raise DecodeError(f"{w}.id: expected an id on one line, got a control character in {_short(rid)}")
     task = _get(d, "task", dict, w, optional=(op == "cancel"))
     return TaskRequest(op, rid, task, _request_id(d, w))
 
