@@ -56,10 +56,23 @@ def candidate_methods(candidates: str | None) -> list[str]:
                               f"an rl method with a checkpoint of its own)") from None
         except MethodError as e:
             raise MethodError(f"portfolio: option candidates: {e}") from None
+        _check_checkpoint(f"portfolio: option candidates: {c}: ", methods.parse(c)[1].get("checkpoint"))
         if methods.get(name).decide is None:
             raise MethodError(f"portfolio: option candidates: {c} cannot be a candidate (it has no per-decision "
                               f"form; candidates: {', '.join(methods.live_methods())})")
     return names
+
+
+def _check_checkpoint(prefix: str, checkpoint: str | None) -> None:
+    """A checkpoint named to the portfolio (its own, or a candidate's ``rl@CHECKPOINT``) is a file
+    here, whether or not a candidate ends up reading it: MethodError ``prefix`` + why otherwise."""
+    from .rl.checkpoint_info import CheckpointError, checkpoint_path, existing
+
+    if checkpoint:
+        try:
+            existing(checkpoint_path(checkpoint))
+        except CheckpointError as e:
+            raise MethodError(f"{prefix}{e}") from None
 
 
 def _cannot_run(inst: Instance, spec: str) -> str | None:
@@ -91,6 +104,7 @@ def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
     out: dict[str, Solution] = {}
     missing: dict[str, str] = {}
     names = candidate_methods(candidates)
+    _check_checkpoint("portfolio: option checkpoint: ", checkpoint)
     for i, c in enumerate(names):
         why = None if candidates is not None else _cannot_run(view, c)  # named candidates: their own error
         if why is not None:

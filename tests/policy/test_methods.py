@@ -396,6 +396,11 @@ def test_portfolio_on_missions_that_change_and_its_candidates():
     assert methods.resolve(everything_late, "portfolio", candidates="greedy,rl")[:2] == ("greedy", {})
     with pytest.raises(MethodError, match="cpsat cannot be a candidate"):
         methods.solve(inst, "portfolio", candidates="greedy,cpsat")
+    # a checkpoint named to the portfolio is a file here, even when no candidate reads it (it was ignored)
+    with pytest.raises(MethodError, match="^portfolio: option checkpoint: nosuch: no such checkpoint"):
+        methods.solve(inst, "portfolio", candidates="greedy", checkpoint="nosuch")
+    with pytest.raises(MethodError, match="^portfolio: option candidates: rl@nosuch: nosuch: no such checkpoint"):
+        methods.solve(inst, "portfolio", candidates="greedy,rl@nosuch")
 
 
 def test_shorthand_live_and_in_conflict():

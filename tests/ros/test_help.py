@@ -244,6 +244,9 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
     # a checkpoint that is no file: the board died with a traceback; a portfolio agent took it
     ("task_board", ["-p", "method:=rl", "-p", "checkpoint:=nosuch"], "nosuch: no such checkpoint (shipped: "),
     ("agent_node", ["-p", "robot:=robot_0", "-p", "checkpoint:=nosuch"], "nosuch: no such checkpoint"),
+    ("agent_node", ["-p", "robot:=robot_0", "-p", "candidates:=cpsat,greedy"], "cpsat cannot be a candidate"),
+    ("agent_node", ["-p", "robot:=robot_0", "-p", "candidates:=rl@nosuch"],
+     "portfolio: option candidates: rl@nosuch: nosuch: no such checkpoint"),
     ("agent_node", ["-p", "robot:=robot_0", "-p", "method:=rl", "-p", "checkpoint:=/etc/passwd"],
      "/etc/passwd: not a readable hmrta checkpoint (not a torch checkpoint file)"),
 ])

@@ -188,7 +188,8 @@ def test_unknown_parameters_are_warned_with_the_closest_name(tmp_path, start):
     params.write_text("task_board:\n  ros__parameters:\n    progres_period: 1.0\n")
     board = start("task_board", "--ros-args", "-p", f"instance:={EXAMPLE}", "-p", "methd:=rl",
                   "-p", 'pose_types:=["robot_99:Odometry", "robot_1:Odometry"]', "--params-file", str(params),
-                  "-p", "real_time_departures:=true")  # real robots on the default 1 m x 1 m area
+                  "-p", "real_time_departures:=true",  # real robots on the default 1 m x 1 m area
+                  "-p", "method:=greedy", "-p", "candidates:=rl")  # an option the method does not take
     agent = start("agent_node", "--ros-args", "-p", "robot:=robot_0", "-p", "temprature:=0.2",
                   "-p", "instance:=x.yaml", "-p", "use_sim_time:=true")
     board.wait_for("unknown parameter 'progres_period'", 60)
@@ -197,6 +198,7 @@ def test_unknown_parameters_are_warned_with_the_closest_name(tmp_path, start):
     b, a = board.text(), agent.text()
     assert "unknown parameter 'methd' ignored: /task_board has no such parameter; did you mean method?" in b, b
     assert "unknown parameter 'progres_period' ignored" in b and "did you mean progress_period?" in b, b
+    assert "method greedy takes no candidates: it is ignored" in b, b
     assert "pose_types: 'robot_99' is not a robot of the mission" in b and "'robot_1' is not" not in b, b
     assert "its robots are robot_0, robot_1" in b
     assert "arrival_tolerance 0.25 m is 25% of the mission area's side (scale 1 m per mission unit)" in b, b

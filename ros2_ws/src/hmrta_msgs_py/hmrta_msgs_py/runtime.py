@@ -255,6 +255,7 @@ def declare_method_parameters(node) -> tuple[str, dict]:
     or, for a method that chooses per mission (portfolio), that method and every option given.
     Raises MethodError for an unknown method or an option it does not take."""
     from hmrta.methods import MethodError, chooses, live_spec, node_options
+    from hmrta.portfolio import candidate_methods
     from hmrta.rl.checkpoint_info import checkpoint_path, existing
 
     from .params import method_parameters
@@ -273,9 +274,15 @@ def declare_method_parameters(node) -> tuple[str, dict]:
     if chooses(method):  # portfolio: its options as given (the board chooses, agents adopt: hmrta.methods.adopt)
         if opts.get("checkpoint"):  # a file here, checked now rather than when the board's choice runs it
             existing(checkpoint_path(opts["checkpoint"]))
+        if "candidates" in opts:  # (a board's option: an agent refuses what its board would)
+            candidate_methods(opts["candidates"])
         return method, opts
     # the spec's shorthand and own checkpoint (rl-s5: sampled decisions, live one per turn; rl@broad)
     name, options = live_spec(method, opts)  # (of the options given, those the method takes)
+    ignored = sorted(k for k in opts if k not in options)
+    if ignored:  # (hmrta-mission refuses them; a launch file may set them for every node of a fleet)
+        node.get_logger().warning(f"method {method} takes no {', '.join(ignored)}: "
+                                  f"{'it is' if len(ignored) == 1 else 'they are'} ignored")
     return name, options
 
 
