@@ -22,6 +22,7 @@ ordinary method under its rules; ``portfolio`` itself has no per-decision form.
 from __future__ import annotations
 
 import dataclasses
+import os
 import logging
 from typing import Callable
 
@@ -72,7 +73,7 @@ def _check_checkpoint(prefix: str, checkpoint: str | None) -> None:
         try:
             existing(checkpoint_path(checkpoint))
         except CheckpointError as e:
-            raise MethodError(f"{prefix}{e}") from None
+            raise CheckpointError(f"{prefix}{e}") from None
 
 
 def _cannot_run(inst: Instance, spec: str) -> str | None:
@@ -105,6 +106,7 @@ def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
     missing: dict[str, str] = {}
     names = candidate_methods(candidates)
     _check_checkpoint("portfolio: option checkpoint: ", checkpoint)
+    _check_checkpoint("portfolio: ", None if checkpoint else os.environ.get("HMRTA_CHECKPOINT"))
     for i, c in enumerate(names):
         why = None if candidates is not None else _cannot_run(view, c)  # named candidates: their own error
         if why is not None:

@@ -358,6 +358,11 @@ def test_portfolio_never_ignores_a_checkpoint_the_user_named(monkeypatch, tmp_pa
     monkeypatch.setenv("HMRTA_CHECKPOINT", str(tmp_path / "missing.pt"))
     with pytest.raises(CheckpointError, match="missing.pt .named by .HMRTA_CHECKPOINT.: no such checkpoint"):
         methods.resolve(inst, "portfolio", 0)
+    with pytest.raises(CheckpointError, match="missing.pt .named by .HMRTA_CHECKPOINT.: no such checkpoint"):
+        methods.solve(inst, "portfolio", 0, candidates="greedy")  # (no candidate reads it: it ran)
+    monkeypatch.setenv("HMRTA_CHECKPOINT", str(tmp_path))
+    with pytest.raises(CheckpointError, match="named by .HMRTA_CHECKPOINT.: is a folder, expected a checkpoint file"):
+        methods.solve(inst, "rl", 0)
 
 
 def test_portfolio_leaves_out_the_learned_policy_on_a_mission_beyond_it():

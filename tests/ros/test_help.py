@@ -288,6 +288,18 @@ def test_a_recorder_output_that_is_a_folder_is_refused_and_nothing_is_left(tmp_p
         assert sorted(p.name for p in tmp_path.iterdir()) == ["work"], args
 
 
+def test_a_bad_hmrta_checkpoint_is_one_line_before_a_portfolio_simulates(domain):
+    """$HMRTA_CHECKPOINT naming no checkpoint: the board logged that it was simulating the
+    candidates, then failed; it is now the one line, naming the variable."""
+    example = ROOT / "policy" / "hmrta" / "data" / "example.yaml"
+    r = subprocess.run([str(BIN / "task_board"), "--ros-args", "-p", f"instance:={example}"], capture_output=True,
+                       text=True, timeout=60, env=dict(os.environ, HMRTA_CHECKPOINT="nosuch", ROS_DOMAIN_ID=str(domain),
+                                                       ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert r.returncode == 2 and r.stderr.startswith(
+        "task_board: nosuch (named by $HMRTA_CHECKPOINT): no such checkpoint") and r.stderr.count("\n") == 1, r.stderr
+    assert "simulating" not in r.stdout + r.stderr
+
+
 def test_an_output_or_journal_that_is_a_fifo_is_refused_at_start(tmp_path, domain):
     """A FIFO as the board's journal blocked its start until a signal; as the board's result or a
     recording it was replaced by a regular file at the end. Each is one line at start now, and the

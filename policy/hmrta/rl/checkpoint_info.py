@@ -42,11 +42,15 @@ def shipped_checkpoints() -> list[str]:
     return sorted(p.stem for p in SHIPPED_DIR.glob("*.pt"))
 
 
+def _via(path: Path) -> str:
+    """' (named by $HMRTA_CHECKPOINT)' when ``path`` is the checkpoint that variable names."""
+    env = os.environ.get("HMRTA_CHECKPOINT")
+    return " (named by $HMRTA_CHECKPOINT)" if env and checkpoint_path(env) == Path(path) else ""
+
+
 def missing(path: Path) -> CheckpointError:
     """The error for a checkpoint file that is not there (names the shipped ones)."""
-    env = os.environ.get("HMRTA_CHECKPOINT")
-    via = " (named by $HMRTA_CHECKPOINT)" if env and checkpoint_path(env) == Path(path) else ""
-    return CheckpointError(f"{path}{via}: no such checkpoint (shipped: {', '.join(shipped_checkpoints())}; "
+    return CheckpointError(f"{path}{_via(path)}: no such checkpoint (shipped: {', '.join(shipped_checkpoints())}; "
                            "or train one with `hmrta train`)")
 
 
@@ -75,8 +79,8 @@ def existing(path: Path) -> Path:
     if not path.exists():
         raise missing(path)
     if path.is_dir():
-        raise CheckpointError(f"{path}: is a folder, expected a checkpoint file")
-    raise CheckpointError(f"{path}: not a regular file, expected a checkpoint file")
+        raise CheckpointError(f"{path}{_via(path)}: is a folder, expected a checkpoint file")
+    raise CheckpointError(f"{path}{_via(path)}: not a regular file, expected a checkpoint file")
 
 
 def torch_file(p: str | Path) -> bool:

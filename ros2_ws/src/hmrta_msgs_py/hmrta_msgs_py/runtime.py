@@ -272,8 +272,9 @@ def declare_method_parameters(node) -> tuple[str, dict]:
             except MethodError as e:
                 raise MethodError(str(e).replace(f"{method}: option ", "", 1)) from None
     if chooses(method):  # portfolio: its options as given (the board chooses, agents adopt: hmrta.methods.adopt)
-        if opts.get("checkpoint"):  # a file here, checked now rather than when the board's choice runs it
-            existing(checkpoint_path(opts["checkpoint"]))
+        given = opts.get("checkpoint") or os.environ.get("HMRTA_CHECKPOINT")
+        if given:  # a file here, checked now rather than when the board's choice runs it
+            existing(checkpoint_path(given))
         if "candidates" in opts:  # (a board's option: an agent refuses what its board would)
             candidate_methods(opts["candidates"])
         return method, opts
