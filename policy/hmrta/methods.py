@@ -198,6 +198,8 @@ def parse(spec: str) -> tuple[str, dict[str, Any]]:
     ``METHOD@CHECKPOINT`` runs a method that takes a checkpoint with that one (a shipped name such
     as ``broad``, or a path): 'rl@broad' -> ('rl', {'checkpoint': 'broad'})."""
     base, at, checkpoint = spec.partition("@")
+    if at and not base.strip():
+        raise UnknownMethod(f"{spec}: expected a method before '@' (METHOD@CHECKPOINT, e.g. rl@broad)")
     m = re.fullmatch(r"rl-s(\d+)", base)
     name, implied = ("rl-sample", {"samples": int(m.group(1))}) if m else (base, {})
     method = get(name)

@@ -78,6 +78,8 @@ def test_shorthand_parses_in_one_place_and_labels_results():
             methods.parse(spec)
     with pytest.raises(MethodError, match="rl-s0"):
         methods.decider("rl-s0")
+    with pytest.raises(MethodError, match=r"^@broad: expected a method before '@' \(METHOD@CHECKPOINT"):
+        methods.parse("@broad")  # (it said: unknown method '')
     sol = methods.solve(load_instance(EXAMPLE), "random", seed=3)
     assert sol.method == "random"
 
