@@ -234,8 +234,14 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
     ("task_board", ["-p", "output:=/proc/r.json"], "output: /proc/r.json: cannot write in /proc"),  # (ran, then lost it)
     ("task_board", ["-p", "journal:=/tmp"], "journal: /tmp: is a folder, expected a file name"),  # (a traceback)
     ("task_board", ["-p", "journal:=/proc/j.jsonl"], "journal: /proc/j.jsonl: cannot write in /proc"),
-    ("recorder", ["-p", "discovery_period:=.inf"], "discovery_period: expected a number of seconds > 0"),
-    ("recorder", ["-p", "discovery_period:=.nan"], "discovery_period: expected a number of seconds > 0"),
+    ("recorder", ["-p", "discovery_period:=.inf"], "discovery_period: expected a number of seconds in [0.001, 86400]"),
+    ("recorder", ["-p", "discovery_period:=.nan"], "discovery_period: expected a number of seconds in [0.001, 86400]"),
+    # timer periods: 1e300 s overflowed rclpy's nanoseconds (a traceback); 1e-300 s spun, deaf to SIGINT
+    ("sim_robot", ["-p", "heartbeat_period:=1e300"], "heartbeat_period: expected a number of seconds in [0.001, 86400]"),
+    ("sim_robot", ["-p", "heartbeat_period:=1e-300"], "heartbeat_period: expected a number of seconds in [0.001, 86400]"),
+    ("sim_robot", ["-p", "rate:=1e9", "-p", "time_scale:=1.0"], "rate: expected a number of ticks per second in ["),
+    ("task_board", ["-p", "marker_period:=1e-300"], "marker_period: expected a number of seconds in [0.001, 86400] (0: none)"),
+    ("recorder", ["-p", "discovery_period:=1e300"], "discovery_period: expected a number of seconds in [0.001, 86400]"),
     ("recorder", ["-p", "robots:=[1abc]"], "robots: '1abc' is not a robot name"),
     ("recorder", ["-p", "output:=/proc/nope/x.mcap"], "output: /proc/nope/x.mcap: cannot write in /proc"),
     ("task_board", ["-p", "instance:=/no/such/mission.yaml"], "instance: /no/such/mission.yaml: no such file"),
@@ -319,7 +325,9 @@ def test_an_output_or_journal_that_is_a_fifo_is_refused_at_start(tmp_path, domai
         assert stat.S_ISFIFO(fifo.stat().st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["pipe"]
 
 
-def test_a_zero_agent_heartbeat_period_is_refused():
-    r = subprocess.run([str(BIN / "agent_node"), "--heartbeat-period", "0"], capture_output=True, text=True,
+@pytest.mark.parametrize("period", ["0", "1e300", "1e-300"])
+def test_an_agent_heartbeat_period_out_of_range_is_refused(period):
+    r = subprocess.run([str(BIN / "agent_node"), "--heartbeat-period", period], capture_output=True, text=True,
                        timeout=60, env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
-    assert r.returncode == 2 and "--heartbeat-period" in r.stderr
+    assert r.returncode == 2 and r.stderr.startswith(
+        "agent_node: error: --heartbeat-period: expected a number of seconds in [0.001, 86400]"), r.stderr

@@ -943,7 +943,7 @@ def main(args: list[str] | None = None) -> int:
     """Exit status: 0, 2 a user error or an agent that refused to take part, 130 Ctrl-C at start-up."""
     argv = sys.argv if args is None else args
     from hmrta_msgs_py.params import node_parameters
-    from hmrta_msgs_py.runtime import parameters_help, without_ros_args
+    from hmrta_msgs_py.runtime import check_period, parameters_help, without_ros_args
 
     from hmrta.cli import Parser  # a bad command line: one line naming the flag (exit 2), like every user error
     from hmrta.cli.common import UserError
@@ -970,8 +970,10 @@ def main(args: list[str] | None = None) -> int:
         check_threads("--torch-threads", cli.torch_threads)
     except UserError as e:
         p.error(str(e))
-    if not 0 < cli.heartbeat_period < float("inf"):
-        p.error(f"--heartbeat-period: expected a number of seconds > 0, got {cli.heartbeat_period}")
+    try:
+        check_period("--heartbeat-period", cli.heartbeat_period)
+    except ValueError as e:
+        p.error(str(e))
     host = Host()
     host.torch_threads = cli.torch_threads
     host.ignore.update(cli.ignore_board_version)

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import importlib
 import json
-import math
 import os
 import re
 import sys
@@ -41,7 +40,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from hmrta_msgs_py import topics
-from hmrta_msgs_py.runtime import spin_nodes, starting, writable_file
+from hmrta_msgs_py.runtime import check_period, spin_nodes, starting, writable_file
 
 RECORDING_FORMAT = "hmrta-recording/1"  # the MCAP metadata record "hmrta" names it
 HEARD = "recorder: heard the mission on"  # printed (stdout) once the first mission message is recorded
@@ -191,9 +190,7 @@ class Recorder(Node):
         self.clock_topic = self.topics.clock_topic(str(P("clock_topic", "").value))
         if compression not in COMPRESSION:
             raise ValueError(f"compression: expected one of {', '.join(COMPRESSION)}, got {compression!r}")
-        if not (math.isfinite(period) and period > 0):
-            raise ValueError(f"discovery_period: expected a number of seconds > 0 (at least 0.05 is used), "
-                             f"got {period}")
+        check_period("discovery_period", period)  # (at least 0.05 is used)
         for r in self.robot_names:  # each names topics <ns>/<robot>/...: refused here, by the parameter's name
             topics.check_robot_name(r, "robots")
         self.output = writable_file("output", output or time.strftime("hmrta_%Y%m%d_%H%M%S.mcap"))

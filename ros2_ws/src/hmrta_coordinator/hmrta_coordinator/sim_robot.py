@@ -50,7 +50,8 @@ from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (DecodeError, KeyframeRequest, Mission, board_from_msg, clock_to_msg,
                                  keyframe_request_to_msg, mission_from_msg, pose_from_msg, pose_to_msg)
-from hmrta_msgs_py.runtime import BoardSilence, mission_namespaces, spin_nodes, starting
+from hmrta_msgs_py.runtime import (MAX_PERIOD, MIN_PERIOD, BoardSilence, check_period, mission_namespaces, spin_nodes,
+                                   starting)
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 EPS = 1e-6
@@ -112,11 +113,12 @@ class SimRobot(Node):
         silence = P("board_silence_warning", 10.0).value
         for k, v, ok, want in (("time_scale", self.time_scale, self.time_scale >= 0, "a number >= 0 (0: as fast "
                                                                                     "as possible)"),
-                               ("rate", rate, rate > 0, "a number of ticks per second > 0"),
-                               ("heartbeat_period", heartbeat, heartbeat > 0, "a number of seconds > 0"),
+                               ("rate", rate, 1 / MAX_PERIOD <= rate <= 1 / MIN_PERIOD,
+                                f"a number of ticks per second in [{1 / MAX_PERIOD:.3g}, {1 / MIN_PERIOD:g}]"),
                                ("board_silence_warning", silence, silence >= 0, "a number of seconds >= 0 (0: never)")):
             if not ok or not math.isfinite(v):
                 raise ValueError(f"{k}: expected {want}, got {v!r}")
+        check_period("heartbeat_period", heartbeat)
         if self.external and self.time_scale <= 0:  # real robots on a clock that jumps: tasks take no time
             self.get_logger().warning(
                 f"external robots ({', '.join(sorted(self.external)[:5])}) on a mission clock run as fast as "

@@ -101,7 +101,8 @@ from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mis
                                  mission_to_msg, pose_from_msg, rejection_to_msg, request_id_of, result_to_msg,
                                  status_from_msg, task_event_to_msg, task_request_from_msg)
 from hmrta_msgs_py.console import signals_deferred
-from hmrta_msgs_py.runtime import closest, declare_method_parameters, spin_nodes, starting, writable_file
+from hmrta_msgs_py.runtime import (check_period, closest, declare_method_parameters, spin_nodes, starting,
+                                   writable_file)
 
 
 class TaskBoard(Node):
@@ -161,6 +162,7 @@ class TaskBoard(Node):
                      ("progress_period", self.progress_period)):
             if not (v >= 0 and math.isfinite(v)):
                 raise ValueError(f"{k}: expected a finite number >= 0, got {v!r}")
+        check_period("marker_period", marker_period, off=True)
         if queue_depth < 1:
             raise ValueError(f"queue_depth: expected a number of messages >= 1, got {queue_depth}")
         if tolerance == 0:  # a pose is never exactly on its goal (localisation noise, the controller's own tolerance)

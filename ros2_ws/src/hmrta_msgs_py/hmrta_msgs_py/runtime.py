@@ -145,6 +145,22 @@ def without_ros_args(prog: str, argv: list[str]) -> list[str]:
     return remove_ros_args(argv)
 
 
+# the periods a node's timers may take (seconds): rclpy keeps a period in int64 nanoseconds (1e300 s
+# overflowed), and a period of ~0 ns fires without end, starving the signal handlers (1e-300 s left a
+# node that no SIGINT stopped)
+MIN_PERIOD, MAX_PERIOD = 1e-3, 86400.0
+
+
+def check_period(name: str, seconds: float, off: bool = False) -> None:
+    """ValueError naming ``name`` unless ``seconds`` is a timer period in [MIN_PERIOD, MAX_PERIOD]
+    (``off``: 0 too, meaning no timer)."""
+    if off and seconds == 0:
+        return
+    if not MIN_PERIOD <= seconds <= MAX_PERIOD:  # (NaN fails too)
+        raise ValueError(f"{name}: expected a number of seconds in [{MIN_PERIOD:g}, {MAX_PERIOD:g}]"
+                         f"{' (0: none)' if off else ''}, got {seconds!r}")
+
+
 def writable_file(param: str, path: str) -> Path:
     """``path``, the file named by parameter ``param`` (a board's result or journal, a recording),
     checked at start as every ``--out`` of the CLI is (:func:`hmrta.cli.common.writable`): not a
