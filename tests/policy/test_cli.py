@@ -154,6 +154,22 @@ def test_convert_writes_the_robot_mapping(tmp_path, capsys):
 # ---------------------------------------------------------------------------------------------
 # evaluate and bound accept folders
 # ---------------------------------------------------------------------------------------------
+def test_bound_says_cpsat_needs_a_mission_known_at_the_start(tmp_path, capsys):
+    """A mission with tasks released later has bounds (one of them the releases'), but no CP-SAT
+    bound: --time-limit said 'method cpsat is an offline solver ... (use portfolio, ...)'."""
+    import dataclasses
+
+    inst = load_instance(EXAMPLE)
+    late = dataclasses.replace(inst, tasks=(dataclasses.replace(inst.tasks[0], release=2.0), *inst.tasks[1:]))
+    path = tmp_path / "late.yaml"
+    path.write_text(late.to_yaml())
+    assert main(["bound", str(path), "--time-limit", "1"]) == 2
+    assert capsys.readouterr().err == (f"hmrta: error: --time-limit: {path}: CP-SAT plans a mission known at the "
+                                       f"start, and this one has tasks released later; run without --time-limit "
+                                       f"for its other bounds\n")
+    assert main(["bound", str(path)]) == 0 and "release" in capsys.readouterr().out
+
+
 def test_evaluate_and_bound_accept_folders(tmp_path, capsys):
     folder = _missions(tmp_path)
     sols = tmp_path / "sols"

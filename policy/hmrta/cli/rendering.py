@@ -35,6 +35,10 @@ def cmd_bound(args) -> int:
             sols.append(_solution_or_routes(inst, path))
             check_planned_for(inst, sols[-1], path)  # a solution of another instance has no gap here
             check_solution(inst, sols[-1], path)
+        if args.time_limit is not None and inst.dynamic:  # (checked before any CP-SAT run)
+            raise UserError(f"--time-limit: {f}: CP-SAT plans a mission known at the start, and this one "
+                            f"has tasks released later; run without --time-limit "
+                            f"for its other bounds")
         work.append((inst, sols))
     reports = []
     for inst, sols in tqdm(work, desc="bound", disable=not many or not _progress_on(args), unit="instance",
