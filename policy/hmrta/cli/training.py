@@ -206,6 +206,9 @@ def cmd_checkpoint(args) -> int:
     from ..rl.checkpoint import average
     from ..rl.checkpoint_info import checkpoint_path
 
+    if args.window is not None and not all(1 <= n <= 100_000 for n in args.window):  # (ModelConfig's range)
+        raise UserError(f"--window: expected TASKS ROBOTS, each an integer in [1, 100000], got "
+                        f"{' '.join(map(str, args.window))}")
     out = writable("--out", args.out)
     if out.exists():
         for src in map(checkpoint_path, args.checkpoints):

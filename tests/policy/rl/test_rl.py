@@ -1306,7 +1306,8 @@ def test_the_observation_window_is_the_checkpoints_and_every_inference_path_uses
         main(["checkpoint", "average", str(a), "--out", str(out), "--window", "8"])
     capsys.readouterr()
     assert main(["checkpoint", "average", str(a), "--out", str(tmp_path / "bad.pt"), "--window", "0", "3"]) == 2
-    assert "window.window_tasks: expected an integer" in capsys.readouterr().err
+    assert "hmrta: error: --window: expected TASKS ROBOTS, each an integer in [1, 100000], got 0 3" in \
+        capsys.readouterr().err
     assert not (tmp_path / "bad.pt").exists()
 
 
