@@ -193,6 +193,8 @@ class Recorder(Node):
         check_period("discovery_period", period)  # (at least 0.05 is used)
         for r in self.robot_names:  # each names topics <ns>/<robot>/...: refused here, by the parameter's name
             topics.check_robot_name(r, "robots")
+        for t in self.extra:  # (matched against the graph's names, which are absolute: another never records)
+            topics.check_absolute_topic(t, "topics")
         self.output = writable_file("output", output or time.strftime("hmrta_%Y%m%d_%H%M%S.mcap"))
         self.part = part_path(self.output)
         try:
