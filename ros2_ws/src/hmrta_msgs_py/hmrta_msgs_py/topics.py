@@ -189,25 +189,8 @@ def check_robot_name(name: str, what: str = "robot") -> str:
     return name
 
 
-def check_absolute_topic(name: str, what: str) -> str:
-    """``name`` if it is an absolute topic name as the ROS graph lists topics (``/ns/name``); else
-    a ValueError naming ``what`` (a node's parameter)."""
-    from rclpy.validate_topic_name import validate_topic_name
-
-    if not isinstance(name, str) or not name.startswith("/") or "//" in name or name.endswith("/"):
-        raise ValueError(f"{what}: expected absolute topic names such as /scan, got {name!r}")
-    try:
-        validate_topic_name(name)
-    except Exception as e:  # noqa: BLE001 - rclpy's InvalidTopicNameException: its first line says why
-        raise ValueError(f"{what}: {name!r} is not a topic name ({str(e).splitlines()[0].rstrip(':')})") from None
-    return name
-
-
-def check_clock_topic(name: str, what: str = "clock_topic") -> str:
-    """``name`` if it can name the mission clock (an absolute, valid topic other than /clock, a
-    simulator's); else a ValueError naming ``what`` (the nodes' parameter, ``hmrta-task``'s option)."""
-    if not isinstance(name, str) or not name.startswith("/") or name.rstrip("/") == "/clock":
-        raise ValueError(f"{what}: expected an absolute topic other than /clock, got {name!r}")
+def _valid_topic(name: str, what: str) -> str:
+    """``name`` if rclpy takes it as a topic name; else a ValueError naming ``what`` with rclpy's reason."""
     from rclpy.validate_topic_name import validate_topic_name
 
     try:
@@ -215,3 +198,19 @@ def check_clock_topic(name: str, what: str = "clock_topic") -> str:
     except Exception as e:  # noqa: BLE001 - rclpy's InvalidTopicNameException: its first line says why
         raise ValueError(f"{what}: {name!r} is not a topic name ({str(e).splitlines()[0]})") from None
     return name
+
+
+def check_absolute_topic(name: str, what: str) -> str:
+    """``name`` if it is an absolute topic name as the ROS graph lists topics (``/ns/name``); else
+    a ValueError naming ``what`` (a node's parameter)."""
+    if not isinstance(name, str) or not name.startswith("/") or "//" in name or name.endswith("/"):
+        raise ValueError(f"{what}: expected absolute topic names such as /scan, got {name!r}")
+    return _valid_topic(name, what)
+
+
+def check_clock_topic(name: str, what: str = "clock_topic") -> str:
+    """``name`` if it can name the mission clock (an absolute, valid topic other than /clock, a
+    simulator's); else a ValueError naming ``what`` (the nodes' parameter, ``hmrta-task``'s option)."""
+    if not isinstance(name, str) or not name.startswith("/") or name.rstrip("/") == "/clock":
+        raise ValueError(f"{what}: expected an absolute topic other than /clock, got {name!r}")
+    return _valid_topic(name, what)
