@@ -162,6 +162,7 @@ def test_param_parse_rejects(typ, text):
     ("hmrta-mission", ["--timeout", "-5"], "--timeout"),
     ("hmrta-mission", ["--timeout", "nan"], "--timeout"),
     ("hmrta-mission", ["--heartbeat-timeout", "0"], "--heartbeat-timeout"),
+    ("hmrta-mission", ["--plot", "x.png", "--no-plot"], "--plot and --no-plot: give one of them, not both"),
     ("hmrta-mission", ["--agents-per-process", "0"], "hmrta-mission: error: --agents-per-process: expected an "
                                                      "integer >= 1, got 0"),
     ("hmrta-mission", ["--method", "foo"], "hmrta-mission: error: unknown method 'foo'"),

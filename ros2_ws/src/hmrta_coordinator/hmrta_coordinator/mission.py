@@ -622,6 +622,8 @@ def _main(argv: list[str] | None = None) -> int:
 
     if args.scenario and args.instance:
         p.error("give the instance argument or --scenario, not both")
+    if args.plot and args.no_plot:
+        p.error("--plot and --no-plot: give one of them, not both")
     path = Path(args.scenario or args.instance) if (args.scenario or args.instance) else default_instance()
     if args.agents_per_process < 1:
         p.error(f"--agents-per-process: expected an integer >= 1, got {args.agents_per_process}")
