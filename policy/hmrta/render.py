@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -625,16 +626,19 @@ def render(inst: Instance, solution: Solution, out_path: str | Path, gif: bool =
     if out.parent and not out.parent.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
     written = []
-    if out.suffix.lower() != ".gif":
-        f = _figure(inst, solution, ch)
-        with _atomic(out) as tmp:
-            f.fig.savefig(tmp, dpi=dpi)
-        plt.close(f.fig)
-        written.append(out)
-    if gif or out.suffix.lower() == ".gif":
-        g = out if out.suffix.lower() == ".gif" else out.with_suffix(".gif")
-        _animate(inst, solution, ch, g, frames, fps, progress)
-        written.append(g)
+    with warnings.catch_warnings():  # a name in a script the font lacks (CJK, say) is drawn with empty
+        # boxes, and matplotlib warned once per character and figure (a dozen lines for one name)
+        warnings.filterwarnings("ignore", message=r"Glyph \d+ .*missing from font", category=UserWarning)
+        if out.suffix.lower() != ".gif":
+            f = _figure(inst, solution, ch)
+            with _atomic(out) as tmp:
+                f.fig.savefig(tmp, dpi=dpi)
+            plt.close(f.fig)
+            written.append(out)
+        if gif or out.suffix.lower() == ".gif":
+            g = out if out.suffix.lower() == ".gif" else out.with_suffix(".gif")
+            _animate(inst, solution, ch, g, frames, fps, progress)
+            written.append(g)
     return written
 
 

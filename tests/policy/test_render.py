@@ -31,6 +31,18 @@ def test_png(tmp_path, case):
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20000
 
 
+def test_a_name_in_a_script_the_font_lacks_draws_without_a_warning_per_character(tmp_path, case):
+    import dataclasses
+    import warnings
+
+    inst, sol = case
+    inst = dataclasses.replace(inst, name="倉庫の点検")
+    sol = dataclasses.replace(sol, instance=inst.name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (matplotlib warned once per missing glyph and figure)
+        assert render(inst, sol, tmp_path / "fig.png") == [tmp_path / "fig.png"]
+
+
 def test_gif(tmp_path, case):
     from PIL import Image
 
