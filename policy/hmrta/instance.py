@@ -325,12 +325,12 @@ def _vector(v: Any, n: int, where: str, *, unit: bool = False, nonneg: bool = Tr
     out = []
     for i, x in enumerate(v):
         f = _number(x, f"{where}[{i}]")
+        if unit and not 0.0 <= f <= 1.0:  # (a coordinate says so, whatever its size)
+            raise _err(f"{where}[{i}]", f"expected a coordinate in the unit square [0, 1], got {short(x)}")
         if nonneg and f < 0:
             raise _err(f"{where}[{i}]", f"expected a value >= 0, got {short(x)}")
         if f > MAX_VALUE:
             raise _err(f"{where}[{i}]", f"expected a value <= {MAX_VALUE:g}, got {short(x)}")
-        if unit and not 0.0 <= f <= 1.0:
-            raise _err(f"{where}[{i}]", f"expected a coordinate in the unit square [0, 1], got {short(x)}")
         out.append(f)
     return tuple(out)
 

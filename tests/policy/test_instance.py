@@ -294,6 +294,9 @@ def test_value_limits_keep_every_time_finite(valid_dict):
         (("velocity",), 1e-300, "velocity: expected a number in [1e-09, 1e+09]"),
         (("tasks", 0, "duration"), 1e308, "tasks[0].duration: expected a value >= 0 and <= 1e+09"),
         (("species", 0, "traits"), [1e300, 0, 1], "species[0].traits[0]: expected a value <= 1e+09"),
+        # a coordinate says so at any size (1e15 read 'a value <= 1e+09', 1e9 'the unit square')
+        (("species", 0, "depot"), [1e15, 0.5], "species[0].depot[0]: expected a coordinate in the unit square"),
+        (("tasks", 0, "location"), [0.5, -1e15], "tasks[0].location[1]: expected a coordinate in the unit square"),
         (("species", 0, "count"), MAX_AGENTS + 1, f"species[0].count: expected a positive integer (at most {MAX_AGENTS})"),
         (("tasks", 1, "duration"), 10**400, "tasks[1].duration: expected a finite number, got <an integer of"),
         (("name",), "\ud800", "name: expected text, got an invalid character at position 0"),
