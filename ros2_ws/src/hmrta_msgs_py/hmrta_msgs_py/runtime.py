@@ -269,7 +269,9 @@ def declare_method_parameters(node) -> tuple[str, dict]:
     :func:`hmrta_msgs_py.params.method_parameters`, generated from :data:`hmrta.methods.METHODS`)
     on ``node``; return the live method and the options given that it takes (unset ones omitted),
     or, for a method that chooses per mission (portfolio), that method and every option given.
-    Raises MethodError for an unknown method or an option it does not take."""
+    Raises MethodError for an unknown method, an option value out of range, or a portfolio's
+    checkpoint (its own or ``$HMRTA_CHECKPOINT``) or candidates that cannot run here; an option
+    given that the method does not take is logged as ignored."""
     from hmrta.methods import MethodError, chooses, live_spec, node_options
     from hmrta.portfolio import candidate_methods
     from hmrta.rl.checkpoint_info import checkpoint_path, existing
