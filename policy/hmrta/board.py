@@ -269,6 +269,10 @@ class MissionBoard(BoardCore):
         self._join_slowed = False  # warned that joins come faster than JOIN_RATE
         self.robots_changed = False  # robots were added since the node last published the mission
         self.task_events: list[dict[str, Any]] = []  # hmrta-task-event/1 bodies not yet published
+        # robots a scenario adds or loses at time 0, applied as the state is built (robots_changed:
+        # the node publishes the mission again with them before its first version)
+        self._sync_robots()
+        self._scenario_losses()
         self.journal: Journal | None = None
         if journal is not None:
             self._open_journal(Path(journal))

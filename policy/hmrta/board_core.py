@@ -44,6 +44,7 @@ class BoardState(MissionState):
         self.touched: set[int] = set()  # robots given legs since a reader last took this set (agent hosts)
         self.until = 0.0  # live: the state never runs ahead of the mission clock (MissionState.advance_to)
         super().__init__(inst, seed=seed, rules=rules)
+        self.grow_legs()  # robots a scenario adds at time 0, before the first decision
 
     @classmethod
     def from_keyframe(cls, inst: Instance, snap: dict[str, Any], legs: Sequence[Any], until: float) -> "BoardState":
@@ -287,13 +288,18 @@ class BoardCore:
         for b in moved.tolist():
             if b != skip and st.leg_seqs[b] == n_legs[b]:  # ... with no new leg: stopped short
                 st.log_leg(b, HOLD)
-        for b in np.flatnonzero(st.mode[:B] == LOST).tolist():
-            if b not in self.lost:  # lost by a scenario event
-                self.lost[b] = "lost (scenario event)"
+        self._scenario_losses()
         self._sync_robots()
         if bump:
             self.rev += 1
         return out
+
+    def _scenario_losses(self) -> None:
+        """Robots the state lost that the board did not drop: lost by a scenario event (one at
+        time 0 is applied as the state is built)."""
+        for b in np.flatnonzero(self.state.mode == LOST).tolist():
+            if b not in self.lost:
+                self.lost[b] = "lost (scenario event)"
 
     def _sync_robots(self) -> None:
         """Robots the state added get their leg logs."""

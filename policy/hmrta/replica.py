@@ -158,6 +158,7 @@ class Replica(BoardCore):
         self.session = session
         self._reset()
         self.state = BoardState(inst, seed=seed, rules=rules)
+        self._scenario_losses()  # (robots a scenario loses at time 0, as the board counts them)
         self.version, self.rev, self.digest = 0, 0, state_digest(self.state)
         self.why = "at version 0 (the mission's initial state): waiting for version 1"
 

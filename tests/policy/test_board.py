@@ -1039,6 +1039,29 @@ def test_scenario_robots_are_named_by_their_order_and_joined_robots_keep_their_n
     assert b.names[A:] == ["scout", f"robot_{A}", f"robot_{A + 1}"] and b.result().success
 
 
+def test_robots_a_scenario_adds_at_time_0_are_on_the_board_from_its_first_version(tmp_path):
+    """A scenario's add_robot at t=0 is applied as the state is built: the board's first version
+    crashed (IndexError in state_digest: the leg counts of the robots at the start only), and so
+    did every restart on its journal."""
+    inst = dataclasses.replace(INST, events=({"type": "add_agent", "t": 0.0, "species": 0},
+                                             {"type": "drop_agent", "t": 0.0, "agent": 1},
+                                             {"type": "add_agent", "t": 1.0, "species": 2}), _cache={})
+    A = INST.n_agents
+    j = tmp_path / "journal.jsonl"
+    b = MissionBoard(inst, seed=SEED, rules=RULES, wait_for_robots=False, now=FakeTime(), journal=j)
+    assert b.names[A:] == [f"robot_{A}"] and len(b.state.leg_seqs) == A + 1 and b.poll() is not None
+    assert b.robots_changed and b.lost == {1: "lost (scenario event)"}  # (the node republishes the mission)
+    # (replicas built from version 0 alike: tests/policy/test_replica.py)
+    drive(b, steps=3)
+    b.close()
+    again = MissionBoard(inst, seed=SEED, rules=RULES, wait_for_robots=False, now=FakeTime(), journal=j)
+    assert again.names[:A + 1] == b.names[:A + 1] and again.restarts == 1
+    drive(again)
+    sol = again.result()
+    assert sol.success and again.names[A:] == [f"robot_{A}", f"robot_{A + 1}"]
+    same(sol, solve(inst, "greedy", SEED))
+
+
 def test_task_answers_echo_the_request_id():
     b = started_board()
     task = {"location": [0.5, 0.5], "requirements": [1, 0, 0], "duration": 1.0}

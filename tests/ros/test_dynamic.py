@@ -63,6 +63,25 @@ def test_a_live_scenario_equals_the_offline_run(tmp_path, domain):
     assert out.with_suffix(".png").stat().st_size > 10000 and f"wrote {out.with_suffix('.png')}" in proc.stdout
 
 
+def test_robots_added_and_lost_at_time_0_run_live_as_offline(tmp_path, domain):
+    """A scenario's add_robot at t=0 is applied as the board builds its state: the board crashed
+    on its first version (and on every restart), and then, mended, waited its start-up timeout
+    for the added robot, which no mission message named."""
+    p = tmp_path / "start.yaml"
+    p.write_text("\n".join(["format: hmrta-scenario/1", f"instance: {json.dumps(str(EXAMPLE))}", "events:",
+                            "  - {t: 0.0, type: add_robot, species: 0}", "  - {t: 0.0, type: lose_robot, robot: 0}",
+                            "  - {t: 0.0, type: cancel_task, id: 19}", ""]))
+    out = tmp_path / "mission.json"
+    proc = subprocess.run([str(BIN / "hmrta-mission"), "--scenario", str(p), "--method", "greedy", "--out", str(out),
+                           "--quiet", "--no-plot", "--check-offline", "--domain-id", str(domain),
+                           "--agents-per-process", "16", "--timeout", "100"],
+                          capture_output=True, text=True, timeout=160, env=dict(os.environ))
+    assert proc.returncode == 0 and "same routes and makespan: yes" in proc.stdout, proc.stdout + proc.stderr
+    live, A = json.loads(out.read_text()), load_instance(EXAMPLE).n_agents
+    assert live["robots"][A] == f"robot_{A}" and live["routes"][A] and live["lost_robots"] == ["robot_0"]
+    assert live["routes"] == solve(load_instance(p), "greedy", seed=0).routes
+
+
 def test_a_robot_joins_a_running_mission_by_starting_its_agent(tmp_path, domain, graph, mission_procs):
     """A robot that is not in the mission starts its agent with its species: the board adds it,
     republishes the mission, sim_robot simulates it, and it does work."""
