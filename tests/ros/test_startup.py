@@ -141,6 +141,39 @@ def test_ctrl_c_or_sigterm_at_any_moment_of_start_up_is_one_line(exe, args, sig,
     print(f"{exe}: exit statuses after {name} {outcomes}")
 
 
+@pytest.mark.parametrize("exe,module,args", [
+    ("task_board", "hmrta_coordinator.task_board", ["--ros-args", "-p", f"instance:={EXAMPLE}"]),
+    ("agent_node", "hmrta_agent.agent_node", ["--ros-args", "-p", "robot:=robot_0"]),
+])
+def test_a_node_as_hmrta_mission_starts_it_says_a_ctrl_c_at_start_up_in_one_line(exe, module, args, tmp_path, domain):
+    """hmrta-mission's children (``python -m hmrta_msgs_py.run_node``, SIGINT ignored until its
+    first line): a Ctrl-C in their first second left a KeyboardInterrupt traceback in their logs
+    when they were started as ``python -m MODULE``. One lost while the interpreter starts is
+    followed by the launcher's SIGTERM, as here."""
+    from hmrta_coordinator.mission import _die_with_parent
+
+    outcomes = []
+    for k, delay in enumerate((0.2, 0.35, 0.5, 0.7, 0.9, 1.2)):
+        log = tmp_path / f"{exe}_{k}.log"
+        with open(log, "w") as fh:
+            p = subprocess.Popen([sys.executable, "-u", "-m", "hmrta_msgs_py.run_node", exe, module, *args], stdout=fh,
+                                 stderr=subprocess.STDOUT, env=_env(domain, tmp_path), preexec_fn=_die_with_parent)
+            time.sleep(delay)
+            p.send_signal(signal.SIGINT)
+            try:
+                rc = p.wait(timeout=10)
+            except subprocess.TimeoutExpired:  # the SIGINT came while the interpreter started: ignored
+                p.send_signal(signal.SIGTERM)
+                rc = p.wait(timeout=30)
+        out = log.read_text()
+        outcomes.append(rc)
+        assert "Traceback" not in out and "terminate called" not in out, f"SIGINT after {delay} s:\n{out}"
+        assert (rc == 130 and out.splitlines()[-1] == f"{exe}: interrupted during start-up") or (
+            rc == 0 and "stopped by SIG" in out), f"SIGINT after {delay} s: rc {rc}\n{out}"
+    assert 130 in outcomes, outcomes
+    print(f"{exe}: exit statuses {outcomes}")
+
+
 # ---- 2. malformed --ros-args ------------------------------------------------------------------
 @pytest.mark.parametrize("exe", NODES)
 @pytest.mark.parametrize("args,says", [

@@ -49,7 +49,11 @@ def default_instance() -> Path:
 
 
 def _die_with_parent() -> None:
-    """In the child: get SIGTERM when the launcher dies, however it dies (Linux)."""
+    """In the child: get SIGTERM when the launcher dies, however it dies (Linux). SIGINT is
+    ignored until the child's first line (:mod:`hmrta_msgs_py.run_node`) takes it over: a Ctrl-C
+    while the interpreter itself starts (its site packages) left a traceback in the child's log;
+    one lost there is followed by the launcher's SIGTERM."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         import ctypes
 
@@ -131,7 +135,8 @@ class MissionProcesses:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log = self.log_dir / f"{name}.log"
         fh = open(log, "w")
-        cmd = [sys.executable, "-u", "-m", module, *args]
+        # through console.run, as the node's console script: a signal in its first second is one line
+        cmd = [sys.executable, "-u", "-m", "hmrta_msgs_py.run_node", module.rsplit(".", 1)[1], module, *args]
         proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=self.env,
                                 start_new_session=True, preexec_fn=_die_with_parent if sys.platform == "linux" else None)
         return Child(name, cmd, proc, log, fh)
