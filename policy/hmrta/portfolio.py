@@ -22,8 +22,8 @@ ordinary method under its rules; ``portfolio`` itself has no per-decision form.
 from __future__ import annotations
 
 import dataclasses
-import os
 import logging
+import os
 from typing import Callable
 
 from .errors import MethodError
@@ -61,6 +61,17 @@ def candidate_methods(candidates: str | None) -> list[str]:
         if methods.get(name).decide is None:
             raise MethodError(f"portfolio: option candidates: {c} cannot be a candidate (it has no per-decision "
                               f"form; candidates: {', '.join(methods.live_methods())})")
+    return names
+
+
+def checked(checkpoint: str | None, candidates: str | None) -> list[str]:
+    """The candidate methods (:func:`candidate_methods`), once every checkpoint named to the
+    portfolio is a file here: its own, or else ``$HMRTA_CHECKPOINT``, and the candidates'
+    ``rl@CHECKPOINT`` ones, whether or not a candidate ends up reading them. What a board and the
+    agents started with the portfolio check at start, before anything is simulated."""
+    names = candidate_methods(candidates)
+    _check_checkpoint("portfolio: option checkpoint: ", checkpoint)
+    _check_checkpoint("", None if checkpoint else os.environ.get("HMRTA_CHECKPOINT"))  # (the error names it)
     return names
 
 
@@ -104,9 +115,7 @@ def evaluate(inst: Instance, seed: int = 0, checkpoint: str | None = None,
     view = initial_view(inst)
     out: dict[str, Solution] = {}
     missing: dict[str, str] = {}
-    names = candidate_methods(candidates)
-    _check_checkpoint("portfolio: option checkpoint: ", checkpoint)
-    _check_checkpoint("portfolio: ", None if checkpoint else os.environ.get("HMRTA_CHECKPOINT"))
+    names = checked(checkpoint, candidates)
     for i, c in enumerate(names):
         why = None if candidates is not None else _cannot_run(view, c)  # named candidates: their own error
         if why is not None:

@@ -968,11 +968,8 @@ def main(args: list[str] | None = None) -> int:
     cli = p.parse_args(without_ros_args("agent_node", argv)[1:])
     try:
         check_threads("--torch-threads", cli.torch_threads)
-    except UserError as e:
-        p.error(str(e))
-    try:
         check_period("--heartbeat-period", cli.heartbeat_period)
-    except ValueError as e:
+    except (UserError, ValueError) as e:
         p.error(str(e))
     host = Host()
     host.torch_threads = cli.torch_threads

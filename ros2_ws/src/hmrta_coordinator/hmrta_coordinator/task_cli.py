@@ -139,11 +139,13 @@ def main(argv: list[str] | None = None) -> int:
             a.error(f"--location: expected x,y {want}, got {args.location[0]:g},{args.location[1]:g}")
         if args.id is not None and not args.id.strip():
             a.error("--id: expected a task id (leave the option out for a random one), got an empty one")
-    if args.cmd == "cancel" and not args.id.strip():
-        c.error("id: expected a task id (hmrta-task list shows them), got an empty one")
-    if args.cmd in ("add", "cancel") and args.id is not None and CONTROL.search(args.id):  # (the board refuses it)
-        (a if args.cmd == "add" else c).error(f"{'--id' if args.cmd == 'add' else 'id'}: expected a task id on one "
-                                              f"line, got a control character in {args.id!a}")
+        if args.id is not None and CONTROL.search(args.id):  # (the board refuses it)
+            a.error(f"--id: expected a task id on one line, got a control character in {args.id!a}")
+    if args.cmd == "cancel":
+        if not args.id.strip():
+            c.error("id: expected a task id (hmrta-task list shows them), got an empty one")
+        if CONTROL.search(args.id):
+            c.error(f"id: expected a task id on one line, got a control character in {args.id!a}")
 
     import rclpy
     from rclpy.executors import ExternalShutdownException

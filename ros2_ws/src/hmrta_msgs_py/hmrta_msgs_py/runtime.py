@@ -273,8 +273,7 @@ def declare_method_parameters(node) -> tuple[str, dict]:
     checkpoint (its own or ``$HMRTA_CHECKPOINT``) or candidates that cannot run here; an option
     given that the method does not take is logged as ignored."""
     from hmrta.methods import MethodError, chooses, live_spec, node_options
-    from hmrta.portfolio import candidate_methods
-    from hmrta.rl.checkpoint_info import checkpoint_path, existing
+    from hmrta.portfolio import checked
 
     from .params import method_parameters
 
@@ -290,11 +289,7 @@ def declare_method_parameters(node) -> tuple[str, dict]:
             except MethodError as e:
                 raise MethodError(str(e).replace(f"{method}: option ", "", 1)) from None
     if chooses(method):  # portfolio: its options as given (the board chooses, agents adopt: hmrta.methods.adopt)
-        given = opts.get("checkpoint") or os.environ.get("HMRTA_CHECKPOINT")
-        if given:  # a file here, checked now rather than when the board's choice runs it
-            existing(checkpoint_path(given))
-        if "candidates" in opts:  # (a board's option: an agent refuses what its board would)
-            candidate_methods(opts["candidates"])
+        checked(opts.get("checkpoint"), opts.get("candidates"))  # now, not when the board's choice runs
         return method, opts
     # the spec's shorthand and own checkpoint (rl-s5: sampled decisions, live one per turn; rl@broad)
     name, options = live_spec(method, opts)  # (of the options given, those the method takes)
