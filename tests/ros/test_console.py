@@ -70,6 +70,21 @@ def test_an_extension_interrupted_while_it_initialises_is_one_line_and_130(tmp_p
     assert out.returncode == 1 and "ImportError: no module named nothing" in out.stderr
 
 
+def test_an_interrupt_inside_an_extensions_own_python_code_still_ends_with_130(tmp_path):
+    """rclpy's pybind11 module runs Python code with ``PyRun_String`` while it loads: a Ctrl-C
+    there left CPython's note of an unhandled KeyboardInterrupt set although start-up handled it,
+    and a node started as ``python -m hmrta_msgs_py.run_node`` (by hmrta-mission) then died of
+    SIGINT (-2) after its one line. Deterministic: the module raises it through PyRun_String."""
+    (tmp_path / "pyrun_node.py").write_text(
+        "import ctypes\nrun = ctypes.pythonapi.PyRun_String\nrun.restype = ctypes.py_object\n"
+        "run.argtypes = [ctypes.c_char_p, ctypes.c_int, ctypes.py_object, ctypes.py_object]\n"
+        "run(b'raise KeyboardInterrupt', 257, {'__builtins__': __builtins__}, {})\n")
+    env = dict(os.environ, PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    out = subprocess.run([sys.executable, "-m", "hmrta_msgs_py.run_node", "some_node", "pyrun_node"],
+                         capture_output=True, text=True, timeout=60, env=env)
+    assert (out.returncode, out.stderr) == (130, "some_node: interrupted during start-up\n")
+
+
 def test_run_exits_with_what_main_returns(tmp_path):
     (tmp_path / "node_a.py").write_text("def main():\n    return 3\n")
     (tmp_path / "node_b.py").write_text("def main():\n    print('ran')\n")
