@@ -17,3 +17,19 @@ def caused_by_interrupt(e: BaseException | None) -> bool:
         seen.add(id(e))
         e = e.__cause__ or e.__context__
     return False
+
+
+def forget_handled_interrupt() -> None:
+    """Clear CPython's note of an unhandled KeyboardInterrupt once it has been handled.
+
+    A KeyboardInterrupt raised inside code that a C extension runs with ``PyRun_String`` (rclpy's
+    pybind11 module does while it loads, and Ray's) sets that note even when the interrupt is
+    caught further up; a process started as ``python -m ...`` then ends by killing itself with
+    SIGINT (status -2) instead of exiting with the status it chose (130 for a Ctrl-C). Any
+    successful ``PyRun_String`` resets the note, so an empty one is run."""
+    try:
+        import ctypes
+
+        ctypes.pythonapi.PyRun_SimpleString(b"")
+    except (ImportError, AttributeError, OSError):  # not CPython, or no ctypes: nothing to clear
+        pass

@@ -101,22 +101,6 @@ def _quiet_unraisable(u) -> None:
     _quiet_unraisable.previous(u)
 
 
-def forget_handled_interrupt() -> None:
-    """Clear CPython's note of an unhandled KeyboardInterrupt once it has been handled here.
-
-    A KeyboardInterrupt raised inside code that a C extension runs with ``PyRun_String`` (rclpy's
-    pybind11 module does, while it loads) sets that note, even though the interrupt is caught
-    further up; a process started as ``python -m ...`` (how ``hmrta-mission`` starts its
-    children) then ends by killing itself with SIGINT (status -2) instead of with the status
-    it chose. Any successful ``PyRun_String`` resets the note, so an empty one is run."""
-    try:
-        import ctypes
-
-        ctypes.pythonapi.PyRun_SimpleString(b"")
-    except (ImportError, AttributeError, OSError):  # not CPython, or no ctypes: nothing to clear
-        pass
-
-
 def _interrupted(prog: str):
     runtime = sys.modules.get("hmrta_msgs_py.runtime")  # (not imported here: it loads rclpy)
     late = runtime is not None and getattr(runtime, "SPUN", False)  # a second Ctrl-C while the nodes stop
@@ -127,8 +111,10 @@ def stopped(prog: str, when: str = " during start-up"):
     """One line on stderr and the exit status of a process stopped by a signal before it ran:
     Ctrl-C (SIGINT) ``interrupted``, 130; SIGTERM ``terminated``, 143 (128 + the signal, as a
     shell reports a process the signal ended)."""
+    from hmrta.errors import forget_handled_interrupt  # a leaf module: nothing heavy
+
     quiet_half_built_loggers()
-    forget_handled_interrupt()
+    forget_handled_interrupt()  # (a process run as python -m would end with SIGINT, not this status)
     if INTERRUPTED and INTERRUPTED[-1] == signal.SIGTERM:
         print(f"{prog}: terminated{when} (SIGTERM)", file=sys.stderr)
         raise SystemExit(128 + signal.SIGTERM) from None
