@@ -32,6 +32,8 @@ def cmd_train(args) -> int:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     torch = require("torch", "hmrta train")
 
+    from ..rl.checkpoint_info import CheckpointError
+    from ..rl.config import teacher_checkpoint
     from ..rl.train import Trainer, load_config, write_config
 
     if not Path(args.config).exists() and (CONFIGS / f"{args.config}.yaml").is_file():
@@ -50,6 +52,14 @@ def cmd_train(args) -> int:
         if not Path(f).is_file():
             raise UserError(f"{args.config}: pretrain.schedules: {f}: no such file (a config's paths are relative "
                             f"to the working folder, {Path.cwd()}; the shipped configs' to the repository root)")
+    teacher = teacher_checkpoint(cfg["pretrain"].get("teacher"))  # a checkpoint to distil: loaded before any run folder
+    if teacher is not None and cfg["pretrain"].get("iterations"):
+        from ..rl.inference import load_policy
+
+        try:
+            load_policy(teacher)
+        except CheckpointError as e:
+            raise UserError(f"{args.config}: pretrain.teacher: {e}") from None
     _train_device(torch, args.device)
     if (args.init or args.reseed) and not args.resume:
         raise UserError("--init and --reseed only apply with --resume")

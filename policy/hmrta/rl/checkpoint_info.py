@@ -194,14 +194,17 @@ def describe(checkpoint: str | Path | None = None) -> dict:
 def lineage_lines(lineage: list, depth: int = 0) -> list[str]:
     """A lineage as indented lines, newest step first: each step's operation, its settings and
     its sources (path, sha256 prefix, weights, code version), their own lineage below them.
-    Entries that are not what ``checkpoint average`` writes are shown as unreadable."""
+    A ``teacher`` step is the checkpoint whose decisions were cloned (``pretrain.teacher:
+    rl@CHECKPOINT``). Entries that are not what ``checkpoint average`` or training writes are
+    shown as unreadable."""
     lines = []
     for e in lineage:
         if not isinstance(e, dict) or not isinstance(e.get("sources"), list):
             lines.append("  " * depth + "(unreadable lineage entry)")
             continue
         sets = [f"{k} {e[k]}" for k in ("window", "greedy_depot") if k in e]
-        lines.append("  " * depth + f"{e.get('op', '?')}" + (f" ({', '.join(sets)})" if sets else "") + " of")
+        head = "taught by" if e.get("op") == "teacher" else f"{e.get('op', '?')}" + (f" ({', '.join(sets)})" if sets else "") + " of"
+        lines.append("  " * depth + head)
         for s in e["sources"]:
             if not isinstance(s, dict):
                 lines.append("  " * (depth + 1) + "(unreadable source)")

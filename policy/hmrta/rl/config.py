@@ -27,6 +27,15 @@ CONFIG_VERSION = 1
 TEACHERS = BASELINES  # behaviour-cloning / lookahead teachers, by method name
 
 
+def teacher_checkpoint(name: object) -> str | None:
+    """The checkpoint of a behaviour-cloning teacher named ``rl@CHECKPOINT`` (a shipped name such
+    as ``default``, or a path): that policy's greedy decoding labels the decisions (distilling it
+    into the network trained, e.g. a narrower one). None for any other name."""
+    if isinstance(name, str) and name.startswith("rl@") and name[3:].strip():
+        return name[3:]
+    return None
+
+
 # ---- value checks: each returns an error text or None ------------------------------------------
 def _paths(v: Any) -> list[str] | None:
     """A path or a non-empty list of paths, as a list (None: neither)."""
@@ -239,7 +248,9 @@ class PretrainConfig:
     lr: float = _f(1.0e-3, _number(0, lo_open=True))
     epochs: int = _f(2, _integer(0))
     batch: int = _f(512, _integer(1))
-    teacher: str = "greedy"  # greedy | greedy-coalition (the baseline whose choices are cloned)
+    # whose choices are cloned: a baseline (greedy | greedy-coalition), or rl@CHECKPOINT: a
+    # checkpoint's greedy decoding (a shipped name or a path; distillation into this network)
+    teacher: str = "greedy"
     # share of instances whose visited states come from the policy's greedy rollout
     dagger: float = _f(0.0, _number(0, 1, hi_open=False, text="expected a share in [0, 1]"))
     # who labels them: ``teacher`` at every state the policy visits, or ``solver``: the policy
@@ -287,9 +298,10 @@ class PretrainConfig:
                              "winning sample's labels replace its mission's)")
         if self.schedules is not None and self.tau > 0:
             raise ValueError("pretrain.tau: soft targets are not defined for pretrain.schedules (use tau: 0)")
-        if not isinstance(self.teacher, str) or self.teacher not in TEACHERS:
-            raise ValueError(f"pretrain.teacher: expected one of {', '.join(TEACHERS)}, got {short(self.teacher)}")
-        if self.tau > 0 and not hasattr(TEACHERS[self.teacher], "estimates"):
+        if self.teacher not in TEACHERS and not teacher_checkpoint(self.teacher):
+            raise ValueError(f"pretrain.teacher: expected one of {', '.join(TEACHERS)} or rl@CHECKPOINT (a shipped "
+                             f"checkpoint's name or a path), got {short(self.teacher)}")
+        if self.tau > 0 and not hasattr(TEACHERS.get(self.teacher), "estimates"):
             raise ValueError(f"pretrain.tau: soft targets need a teacher with start estimates "
                              f"(greedy-coalition), not {self.teacher!r}")
         if self.samples and self.tau > 0:

@@ -1,7 +1,8 @@
 """Behaviour cloning of a baseline (``pretrain``), with DAgger and expert iteration.
 
 Cross-entropy on a baseline's choices (``pretrain.teacher``: ``greedy`` or the coalition-aware
-``greedy-coalition``), so that later phases start from a baseline-level policy. With
+``greedy-coalition``), so that later phases start from a baseline-level policy; or on a trained
+policy's greedy decoding (``rl@CHECKPOINT``: distillation, e.g. into a narrower network). With
 ``pretrain.dagger`` > 0 that share of the instances is driven by the policy's own greedy
 decoding and labelled by the teacher (DAgger, Ross et al. 2011), so the policy also learns to
 recover from its own mistakes; with ``pretrain.dagger_teacher: solver`` the policy drives each
@@ -29,7 +30,7 @@ import torch
 
 from ..core import MissionState, Rules
 from ..solvers.fromstate import plan_from_state
-from .config import TEACHERS
+from .config import TEACHERS, teacher_checkpoint
 from .features import collate, observe
 from .rollout import makespans, returns, rollout
 from .schedules import RouteTeacher
@@ -55,7 +56,10 @@ class Imitation:
         insts = [inst for inst, _ in items]
         own = []  # generated_teacher: policy: the missions its greedy decoding drives
         labels = Labels()
-        teacher = TEACHERS[p.teacher]()
+        name = resolved_teacher(p.teacher)  # (a checkpoint by its absolute path: Ray workers read the same file)
+        teacher = make_teacher(name)
+        if teacher_checkpoint(name) is not None:
+            run.note_teacher(teacher.pol)
         tau, view = p.tau, lr_.model.cfg.view()
         on_policy, jobs = [], []  # DAgger states; the teacher-driven missions (LabelJob)
         estimates = []  # [len(on_policy)] decisions expected in each DAgger mission
@@ -68,7 +72,7 @@ class Imitation:
                 on_policy.append(MissionState(inst, seed=seed, rules=run.train_rules))  # the policy drives
                 estimates.append(sum(map(len, routes)) if routes is not None else 2 * inst.n_tasks)
                 continue
-            jobs.append(LabelJob(inst, routes, seed, run.train_rules, p.teacher, tau, view))
+            jobs.append(LabelJob(inst, routes, seed, run.train_rules, name, tau, view))
         followed = [0, 0]  # decisions labelled by a schedule's routes, by the fallback teacher
         pool = []  # (the teacher's finished state, its label range) per teacher-driven mission
         mission: list[int] = []  # [n] the mission of each label (label_weight: mission)
@@ -150,7 +154,8 @@ class Imitation:
                     reached[i] = on_policy[i].clone()
         rollout(lr_.model, on_policy, sample=False, before_step=cut)
         order = sorted(reached)
-        jobs = [PlanJob(reached[i], p.dagger_evals, int(lr_.np_rng.integers(2**31)), p.teacher, p.tau,
+        name = resolved_teacher(p.teacher)
+        jobs = [PlanJob(reached[i], p.dagger_evals, int(lr_.np_rng.integers(2**31)), name, p.tau,
                         lr_.model.cfg.view()) for i in order]
         ratios = []
         for i, done in zip(order, run.fan_out(plan_labels, jobs)):
@@ -270,7 +275,7 @@ class LabelResult:
 def teacher_labels(job: LabelJob) -> LabelResult:
     """Drive ``job``'s mission to the end by its teacher (a schedule's routes, falling back to the
     named baseline), labelling every decision. ``hmrta train --jobs N`` runs these as Ray tasks."""
-    teacher = TEACHERS[job.teacher]()
+    teacher = make_teacher(job.teacher)
     decide = teacher if job.routes is None else RouteTeacher(job.routes, teacher)
     st = MissionState(job.inst, seed=job.seed, rules=job.rules)
     labels = Labels()
@@ -296,7 +301,7 @@ def plan_labels(job: PlanJob) -> LabelResult:
     """Plan the rest of ``job``'s mission from its state (:func:`plan_from_state`) and drive it to
     the end by the plan's routes (the teacher where a planned choice is not admissible, or where
     the teacher's own continuation was the better plan), labelling every decision."""
-    teacher = TEACHERS[job.teacher]()
+    teacher = make_teacher(job.teacher)
     plan = plan_from_state(job.state, job.evals, job.seed)
     decide = teacher if plan.routes is None else RouteTeacher(plan.routes, teacher)
     st = job.state.clone()
@@ -306,6 +311,29 @@ def plan_labels(job: PlanJob) -> LabelResult:
     hits, misses = (decide.hits, decide.misses) if plan.routes is not None else (0, 0)
     ratio = plan.makespan / plan.greedy_coalition if plan.greedy_coalition > 0 else 1.0
     return LabelResult(labels, st, hits, misses, ratio)
+
+
+def resolved_teacher(name: str) -> str:
+    """``pretrain.teacher`` with a checkpoint teacher's file as an absolute path (``rl@/...``):
+    the name the label jobs carry, the same file wherever they run."""
+    ck = teacher_checkpoint(name)
+    if ck is None:
+        return name
+    from .checkpoint_info import checkpoint_path, existing
+
+    return f"rl@{existing(checkpoint_path(ck)).resolve()}"
+
+
+def make_teacher(name: str) -> Callable[[MissionState], int]:
+    """The teacher named ``name``: a baseline (``TEACHERS``), or ``rl@CHECKPOINT``: that
+    checkpoint's greedy decoding, decision by decision as a live agent runs it (loaded once per
+    process; CheckpointError if it cannot be)."""
+    ck = teacher_checkpoint(name)
+    if ck is None:
+        return TEACHERS[name]()
+    from .inference import RLDecider, load_policy
+
+    return RLDecider(load_policy(ck), sample=False, seed=0)
 
 
 def soft_target(teacher, st: MissionState, nodes: np.ndarray, row: int, tau: float) -> np.ndarray:

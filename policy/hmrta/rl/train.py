@@ -124,6 +124,18 @@ class Trainer:
         self.distill = Distill(self)
         self.reinforce = Reinforce(self)
 
+    def note_teacher(self, pol) -> None:
+        """Record a checkpoint teacher (``pretrain.teacher: rl@CHECKPOINT``, a LoadedPolicy) in the
+        lineage, once per file: its path, sha256 and code version, as ``--init`` records a source."""
+        for e in self.lineage:
+            src = e.get("sources") if isinstance(e, dict) and e.get("op") == "teacher" else None
+            if isinstance(src, list) and src and isinstance(src[0], dict) and src[0].get("sha256") == pol.sha256:
+                return
+        code = pol.meta.get("code_version")
+        self.lineage.insert(0, {"op": "teacher", "sources": [{  # (newest step first)
+            "path": pol.path, "sha256": pol.sha256, "weights": "model",
+            "code_version": code if isinstance(code, str) else None, "lineage": []}]})
+
     # ---- the learner's state, by its old names -------------------------------------------------
     model = property(lambda self: self.learner.model)
     opt = property(lambda self: self.learner.opt)

@@ -451,32 +451,70 @@ def test_behaviour_cloning_learns_the_coalition_teacher(tmp_path, dagger, tau):
     """BC of greedy-coalition, on the teacher's own trajectories or (DAgger) the policy's: the
     argmax policy agrees with the teacher more often afterwards."""
     from hmrta.baselines import CoalitionGreedy
-    from hmrta.rl.features import collate, observe
 
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
     cfg = _tiny_cfg(pretrain={"iterations": 12, "instances_per_iter": 2, "lr": 3e-3, "epochs": 2, "batch": 64,
                               "teacher": "greedy-coalition", "dagger": dagger, "tau": tau})
     tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
     teacher = CoalitionGreedy()
-
-    def agreement():  # share of the teacher's decisions (its own trajectories) the argmax policy copies
-        hits = total = 0
-        for seed in range(4):
-            st = MissionState(FixedTrainer.fixed, seed=seed, rules=RULES)
-            while not st.done:
-                tf, af, mask, nodes, row = observe(st)
-                with torch.inference_mode():
-                    mine = int(nodes[int(tr.model.eval()(**collate([(tf, af, mask)], [row])).argmax())])
-                n = teacher(st)
-                hits, total = hits + (mine == n), total + 1
-                st.step(n)
-        return hits / total
-
-    before = agreement()
+    before = _agreement(tr, teacher)
     rows = [tr.pretrain_step() for _ in range(12)]
     assert tr.pretrain_done == 12 and all(r["labels"] > 0 for r in rows)
     assert rows[-1]["bc_loss"] < rows[0]["bc_loss"]
-    assert agreement() > before
+    assert _agreement(tr, teacher) > before
+
+
+def _agreement(tr, teacher) -> float:
+    """The share of ``teacher``'s decisions, on its own trajectories of the fixed mission (four
+    seeds), that the trainer's network copies by its argmax."""
+    from hmrta.rl.features import collate, observe
+
+    hits = total = 0
+    for seed in range(4):
+        st = MissionState(FixedTrainer.fixed, seed=seed, rules=RULES)
+        while not st.done:
+            tf, af, mask, nodes, row = observe(st)
+            with torch.inference_mode():
+                mine = int(nodes[int(tr.model.eval()(**collate([(tf, af, mask)], [row])).argmax())])
+            n = teacher(st)
+            hits, total = hits + (mine == n), total + 1
+            st.step(n)
+    return hits / total
+
+
+def test_a_checkpoint_teacher_labels_its_greedy_decoding_and_is_learned(tmp_path):
+    """pretrain.teacher: rl@CHECKPOINT (distilling a trained policy, e.g. into a narrower network):
+    its label jobs drive a mission as ``hmrta solve --method rl`` with that checkpoint does, every
+    decision labelled, and a student's agreement with it grows."""
+    from pathlib import Path
+
+    from hmrta.rl.imitation import LabelJob, make_teacher, resolved_teacher, teacher_labels
+    from hmrta.rl.inference import solve_rl
+    from hmrta.solution import solution_from_state
+
+    pol = load_policy("default")
+    name = resolved_teacher("rl@default")
+    assert name == f"rl@{Path(pol.path).resolve()}"  # the file Ray workers read, wherever they run
+    inst = ScenarioGenerator("MA-AT", 6, 2, 12, 3).instance(7, 0)
+    done = teacher_labels(LabelJob(inst, None, 0, pol.rules, name, 0.0, SMALL.view()))
+    assert solution_from_state(done.state, "rl", 0, 0.0).routes == solve_rl(inst, 0, "default").routes
+    assert len(done.labels.acts) == done.state.decisions
+
+    FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
+    cfg = _tiny_cfg(pretrain={"iterations": 10, "instances_per_iter": 2, "lr": 3e-3, "epochs": 2, "batch": 64,
+                              "teacher": "rl@default", "dagger": 0.5})
+    tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
+    teacher = make_teacher(name)
+    before = _agreement(tr, teacher)
+    rows = [tr.pretrain_step() for _ in range(10)]
+    assert all(r["labels"] > 0 for r in rows) and rows[-1]["bc_loss"] < rows[0]["bc_loss"]
+    assert _agreement(tr, teacher) > before
+    # the teacher is in the lineage once, by its file and sha256 (hmrta checkpoint info shows it)
+    from hmrta.rl.checkpoint_info import lineage_lines
+
+    assert [e["op"] for e in tr.lineage] == ["teacher"]
+    assert tr.lineage[0]["sources"][0]["sha256"] == pol.sha256
+    assert lineage_lines(tr.lineage)[0] == "taught by"
 
 
 def _farthest_labels(inst):
@@ -677,6 +715,11 @@ def test_train_finds_the_shipped_configs_by_name_from_any_directory(tmp_path, mo
     assert "pretrain.schedules: policy/datasets/" in capsys.readouterr().err
     assert main(["train", "--config", "schedules", "--run-dir", str(tmp_path / "run")]) == 2
     assert not (tmp_path / "run").exists()
+    # so is a checkpoint to distil (pretrain.teacher: rl@CHECKPOINT)
+    (tmp_path / "distil.yaml").write_text("version: 1\npretrain: {iterations: 1, teacher: rl@nosuch.pt}\n")
+    assert main(["train", "--config", "distil.yaml", "--run-dir", str(tmp_path / "run")]) == 2
+    assert "distil.yaml: pretrain.teacher: nosuch.pt: no such checkpoint" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
 
 
 def test_a_continuation_under_another_validation_set_or_rules_needs_reseed(tmp_path, capsys):
@@ -865,6 +908,8 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\npretrain: {teacher: oracle}\n", "pretrain.teacher: expected one of greedy, greedy-coalition"),
     ("version: 1\npretrain: {dagger: 2}\n", "pretrain.dagger: expected a share in [0, 1]"),
     ("version: 1\npretrain: {tau: 1}\n", "pretrain.tau: soft targets need a teacher with start estimates"),
+    ("version: 1\npretrain: {teacher: 'rl@'}\n", "or rl@CHECKPOINT (a shipped checkpoint's name or a path), got 'rl@'"),
+    ("version: 1\npretrain: {teacher: rl@default, tau: 1}\n", "pretrain.tau: soft targets need a teacher with start"),
     ("version: 1\npretrain: {samples: -1}\n", "pretrain.samples: expected an integer >= 0"),
     ("version: 1\npretrain: {samples: 4, select: regret}\n", "pretrain.select: expected return or makespan"),
     ("version: 1\ntrain: {ema: 1.0}\n", "train.ema: expected a decay in [0, 1)"),
