@@ -203,8 +203,8 @@ def lineage_lines(lineage: list, depth: int = 0) -> list[str]:
             lines.append("  " * depth + "(unreadable lineage entry)")
             continue
         sets = [f"{k} {e[k]}" for k in ("window", "greedy_depot") if k in e]
-        head = "taught by" if e.get("op") == "teacher" else f"{e.get('op', '?')}" + (f" ({', '.join(sets)})" if sets else "") + " of"
-        lines.append("  " * depth + head)
+        head = f"{e.get('op', '?')}" + (f" ({', '.join(sets)})" if sets else "") + " of"
+        lines.append("  " * depth + ("taught by" if e.get("op") == "teacher" else head))
         for s in e["sources"]:
             if not isinstance(s, dict):
                 lines.append("  " * (depth + 1) + "(unreadable source)")

@@ -298,7 +298,7 @@ class PretrainConfig:
                              "winning sample's labels replace its mission's)")
         if self.schedules is not None and self.tau > 0:
             raise ValueError("pretrain.tau: soft targets are not defined for pretrain.schedules (use tau: 0)")
-        if self.teacher not in TEACHERS and not teacher_checkpoint(self.teacher):
+        if not isinstance(self.teacher, str) or (self.teacher not in TEACHERS and not teacher_checkpoint(self.teacher)):
             raise ValueError(f"pretrain.teacher: expected one of {', '.join(TEACHERS)} or rl@CHECKPOINT (a shipped "
                              f"checkpoint's name or a path), got {short(self.teacher)}")
         if self.tau > 0 and not hasattr(TEACHERS.get(self.teacher), "estimates"):

@@ -274,7 +274,7 @@ class LabelResult:
 
 def teacher_labels(job: LabelJob) -> LabelResult:
     """Drive ``job``'s mission to the end by its teacher (a schedule's routes, falling back to the
-    named baseline), labelling every decision. ``hmrta train --jobs N`` runs these as Ray tasks."""
+    named teacher), labelling every decision. ``hmrta train --jobs N`` runs these as Ray tasks."""
     teacher = make_teacher(job.teacher)
     decide = teacher if job.routes is None else RouteTeacher(job.routes, teacher)
     st = MissionState(job.inst, seed=job.seed, rules=job.rules)

@@ -908,6 +908,7 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\npretrain: {teacher: oracle}\n", "pretrain.teacher: expected one of greedy, greedy-coalition"),
     ("version: 1\npretrain: {dagger: 2}\n", "pretrain.dagger: expected a share in [0, 1]"),
     ("version: 1\npretrain: {tau: 1}\n", "pretrain.tau: soft targets need a teacher with start estimates"),
+    ("version: 1\npretrain: {teacher: [rl@default]}\n", "pretrain.teacher: expected one of greedy, greedy-coalition"),
     ("version: 1\npretrain: {teacher: 'rl@'}\n", "or rl@CHECKPOINT (a shipped checkpoint's name or a path), got 'rl@'"),
     ("version: 1\npretrain: {teacher: rl@default, tau: 1}\n", "pretrain.tau: soft targets need a teacher with start"),
     ("version: 1\npretrain: {samples: -1}\n", "pretrain.samples: expected an integer >= 0"),
