@@ -258,7 +258,9 @@ class PretrainConfig:
     # ``dagger_evals`` annealing decodes) and its plan labels every decision from there on
     dagger_teacher: str = _f("teacher", lambda v: None if v in ("teacher", "solver") else "expected teacher or solver")
     dagger_evals: int = _f(2000, _integer(0))
-    tau: float = _f(0.0, _number(0))  # > 0 (greedy-coalition): soft targets from its start estimates
+    # > 0: soft targets; greedy-coalition: from its start estimates; rl@CHECKPOINT: its own
+    # distribution softmax(logits / tau)
+    tau: float = _f(0.0, _number(0))
     # expert iteration: > 0 policy samples compete with the teacher's trajectory, the best is cloned
     samples: int = _f(0, _integer(0))
     temperature: float = _f(1.0, _number(0, lo_open=True))
@@ -301,9 +303,9 @@ class PretrainConfig:
         if not isinstance(self.teacher, str) or (self.teacher not in TEACHERS and not teacher_checkpoint(self.teacher)):
             raise ValueError(f"pretrain.teacher: expected one of {', '.join(TEACHERS)} or rl@CHECKPOINT (a shipped "
                              f"checkpoint's name or a path), got {short(self.teacher)}")
-        if self.tau > 0 and not hasattr(TEACHERS.get(self.teacher), "estimates"):
+        if self.tau > 0 and not (hasattr(TEACHERS.get(self.teacher), "estimates") or teacher_checkpoint(self.teacher)):
             raise ValueError(f"pretrain.tau: soft targets need a teacher with start estimates "
-                             f"(greedy-coalition), not {self.teacher!r}")
+                             f"(greedy-coalition) or a checkpoint teacher (rl@CHECKPOINT), not {self.teacher!r}")
         if self.samples and self.tau > 0:
             raise ValueError("pretrain.samples needs hard targets (pretrain.tau: 0)")
         if self.generated_teacher == "policy" and not self.samples:

@@ -326,19 +326,60 @@ def resolved_teacher(name: str) -> str:
 
 def make_teacher(name: str) -> Callable[[MissionState], int]:
     """The teacher named ``name``: a baseline (``TEACHERS``), or ``rl@CHECKPOINT``: that
-    checkpoint's greedy decoding, decision by decision as a live agent runs it (loaded once per
-    process; CheckpointError if it cannot be)."""
+    checkpoint's greedy decoding (:class:`CheckpointTeacher`; loaded once per process,
+    CheckpointError if it cannot be)."""
     ck = teacher_checkpoint(name)
     if ck is None:
         return TEACHERS[name]()
-    from .inference import RLDecider, load_policy
+    from .inference import load_policy
 
-    return RLDecider(load_policy(ck), sample=False, seed=0)
+    return CheckpointTeacher(load_policy(ck))
+
+
+class CheckpointTeacher:
+    """A trained policy as a behaviour-cloning teacher (``pretrain.teacher: rl@CHECKPOINT``): its
+    choice at a state is its greedy decoding, the same bits as a live agent's
+    (:class:`~hmrta.rl.inference.RLDecider`); for soft targets, :meth:`distribution` gives its
+    probabilities at that state from the same forward pass."""
+
+    def __init__(self, pol):
+        self.pol = pol  # a LoadedPolicy
+        self._last: tuple | None = None  # (state, its decision count, nodes [T], logits [T]) of the latest call
+
+    def __call__(self, st: MissionState) -> int:
+        from .features import batch_observations
+        from .rollout import forward_threads, greedy_rows
+
+        with torch.inference_mode(), forward_threads(1):
+            obs, nodes = batch_observations([st], **self.pol.model.cfg.view())
+            logits = self.pol.model(**obs)[0]  # [T]
+        self._last = (st, st.decisions, nodes[0], logits)
+        return int(nodes[0][int(greedy_rows(logits[None], self.pol.model.cfg.greedy_depot)[0])])
+
+    def distribution(self, st: MissionState, tau: float) -> tuple[np.ndarray, np.ndarray]:
+        """(the nodes it observes [T], ascending; softmax(logits / tau) over them [T]) at ``st``."""
+        if self._last is None or self._last[0] is not st or self._last[1] != st.decisions:
+            self(st)
+        _, _, nodes, logits = self._last
+        return nodes, torch.softmax(logits / tau, dim=-1).numpy()
 
 
 def soft_target(teacher, st: MissionState, nodes: np.ndarray, row: int, tau: float) -> np.ndarray:
-    """[1+W] half on the teacher's choice, half spread by its coalition-start estimates:
-    softmax(-(start - earliest) / tau) over the admissible tasks in the observation."""
+    """[1+W] the soft target at ``st`` over the observation's rows ``nodes`` (the teacher's choice
+    at ``row``). A checkpoint teacher: its distribution softmax(logits / tau), on the rows both
+    observe (renormalised; all on ``row`` if they share none). greedy-coalition: half on its
+    choice, half spread by its coalition-start estimates, softmax(-(start - earliest) / tau) over
+    the admissible tasks in the observation."""
+    if isinstance(teacher, CheckpointTeacher):
+        tnodes, p = teacher.distribution(st, tau)  # [T'] ascending, [T']
+        at = np.minimum(np.searchsorted(tnodes, nodes), len(tnodes) - 1)  # [1+W] (nodes ascending too)
+        q = np.where(tnodes[at] == nodes, p[at], 0.0).astype(np.float32)  # [1+W]
+        total = float(q.sum())
+        if not total > 0:
+            q[:] = 0.0
+            q[row] = 1.0
+            return q
+        return q / total
     q = np.zeros(len(nodes), dtype=np.float32)
     q[row] = 0.5
     cand, start, _ = teacher.estimates(st)

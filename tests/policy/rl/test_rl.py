@@ -464,6 +464,42 @@ def test_behaviour_cloning_learns_the_coalition_teacher(tmp_path, dagger, tau):
     assert _agreement(tr, teacher) > before
 
 
+def test_a_checkpoint_teachers_soft_targets_are_its_distribution_on_the_students_rows():
+    """pretrain.tau > 0 with rl@CHECKPOINT: each target is the teacher's softmax(logits / tau) at
+    that state, carried onto the rows the student observes (the same rows under the same window;
+    a narrower student window keeps the shared rows, renormalised)."""
+    from hmrta.rl.features import observe
+    from hmrta.rl.imitation import CheckpointTeacher, soft_target
+
+    pol = load_policy("default")
+    teacher = CheckpointTeacher(pol)
+    inst = ScenarioGenerator("MA-AT", 20, 4, 120, 3).instance(3, 0)  # wider than a 50-task window
+    st = MissionState(inst, seed=0, rules=pol.rules)
+    checked = 0
+    while not st.done and checked < 12:
+        n = teacher(st)
+        nodes, p = teacher.distribution(st, 1.0)
+        assert abs(p.sum() - 1) < 1e-5
+        best = int(np.argmax(p))  # the choice is the distribution's, decoded by the depot rule
+        if pol.model.cfg.greedy_depot == "majority" and best == 0 and p[0] < 0.5 and p[1:].max() > 0:
+            best = 1 + int(np.argmax(p[1:]))
+        assert nodes[best] == n
+        tf, af, mask, same, row = observe(st, **pol.model.cfg.view())
+        r = int(np.flatnonzero(same == n)[0])
+        q = soft_target(teacher, st, same, r, 1.0)
+        assert np.array_equal(same, nodes) and np.allclose(q, p, atol=1e-6)
+        assert (q[~mask] == 0).all()
+        sharp = soft_target(teacher, st, same, r, 0.05)  # a lower temperature sharpens it
+        assert sharp.max() >= q.max() - 1e-6
+        narrow = observe(st, max_tasks=50, max_agents=25, scale=pol.model.cfg.scale)[3]  # [51]: the nearest of them
+        assert np.isin(narrow, nodes).all()
+        shared = p[np.searchsorted(nodes, narrow)]  # [51]
+        assert np.allclose(soft_target(teacher, st, narrow, 0, 1.0), shared / shared.sum(), atol=1e-6)
+        st.step(n)
+        checked += 1
+    assert checked == 12
+
+
 def _agreement(tr, teacher) -> float:
     """The share of ``teacher``'s decisions, on its own trajectories of the fixed mission (four
     seeds), that the trainer's network copies by its argmax."""
@@ -482,7 +518,8 @@ def _agreement(tr, teacher) -> float:
     return hits / total
 
 
-def test_a_checkpoint_teacher_labels_its_greedy_decoding_and_is_learned(tmp_path):
+@pytest.mark.parametrize("tau", [0.0, 1.0])
+def test_a_checkpoint_teacher_labels_its_greedy_decoding_and_is_learned(tmp_path, tau):
     """pretrain.teacher: rl@CHECKPOINT (distilling a trained policy, e.g. into a narrower network):
     its label jobs drive a mission as ``hmrta solve --method rl`` with that checkpoint does, every
     decision labelled, and a student's agreement with it grows."""
@@ -502,7 +539,7 @@ def test_a_checkpoint_teacher_labels_its_greedy_decoding_and_is_learned(tmp_path
 
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
     cfg = _tiny_cfg(pretrain={"iterations": 10, "instances_per_iter": 2, "lr": 3e-3, "epochs": 2, "batch": 64,
-                              "teacher": "rl@default", "dagger": 0.5})
+                              "teacher": "rl@default", "dagger": 0.5, "tau": tau})
     tr = FixedTrainer(cfg, tmp_path, device="cpu", log=lambda s: None)
     teacher = make_teacher(name)
     before = _agreement(tr, teacher)
@@ -910,7 +947,6 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\npretrain: {tau: 1}\n", "pretrain.tau: soft targets need a teacher with start estimates"),
     ("version: 1\npretrain: {teacher: [rl@default]}\n", "pretrain.teacher: expected one of greedy, greedy-coalition"),
     ("version: 1\npretrain: {teacher: 'rl@'}\n", "or rl@CHECKPOINT (a shipped checkpoint's name or a path), got 'rl@'"),
-    ("version: 1\npretrain: {teacher: rl@default, tau: 1}\n", "pretrain.tau: soft targets need a teacher with start"),
     ("version: 1\npretrain: {samples: -1}\n", "pretrain.samples: expected an integer >= 0"),
     ("version: 1\npretrain: {samples: 4, select: regret}\n", "pretrain.select: expected return or makespan"),
     ("version: 1\ntrain: {ema: 1.0}\n", "train.ema: expected a decay in [0, 1)"),
