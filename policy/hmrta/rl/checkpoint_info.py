@@ -203,8 +203,11 @@ def lineage_lines(lineage: list, depth: int = 0) -> list[str]:
             lines.append("  " * depth + "(unreadable lineage entry)")
             continue
         sets = [f"{k} {e[k]}" for k in ("window", "greedy_depot") if k in e]
-        head = f"{e.get('op', '?')}" + (f" ({', '.join(sets)})" if sets else "") + " of"
-        lines.append("  " * depth + ("taught by" if e.get("op") == "teacher" else head))
+        if e.get("op") == "teacher":
+            head = "taught by"
+        else:
+            head = f"{e.get('op', '?')}" + (f" ({', '.join(sets)})" if sets else "") + " of"
+        lines.append("  " * depth + head)
         for s in e["sources"]:
             if not isinstance(s, dict):
                 lines.append("  " * (depth + 1) + "(unreadable source)")

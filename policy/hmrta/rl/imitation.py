@@ -13,8 +13,8 @@ each teacher-driven instance (with ``pretrain.generated_teacher: policy``, on th
 missions, with the policy's own greedy decoding: self-improvement), and the best of them (by
 return, or by makespan with ``pretrain.select: makespan``) is cloned: the targets are never worse
 than the teacher, and where the policy won they are its own, learnable choices. With ``pretrain.tau`` > 0
-(greedy-coalition) the targets are soft: half on the teacher's choice, half spread by its
-coalition-start estimates.
+the targets are soft: with greedy-coalition half on the teacher's choice, half spread by its
+coalition-start estimates; with a checkpoint teacher its own distribution.
 
 The teacher-driven missions are labelled by :func:`teacher_labels`, a pure function of a
 :class:`LabelJob`, mapped through the run's fan-out (``Trainer.fan_out``: Ray tasks with
@@ -87,7 +87,7 @@ class Imitation:
         lr_.model.eval()
         plan_stats = {}
         if on_policy and p.dagger_teacher == "solver":  # DAgger: the solver plans from a state the policy reached
-            plan_stats = self.solver_dagger(on_policy, estimates, labels, mission, len(jobs))
+            plan_stats = self.solver_dagger(on_policy, estimates, labels, mission, len(jobs), name)
         elif on_policy:  # DAgger: the teacher labels the states the policy visits
             def label(idx, o, nodes, act) -> None:
                 for i in idx:
@@ -137,12 +137,13 @@ class Imitation:
                 "tasks": insts[0].n_tasks, "agents": insts[0].n_agents, **pool_stats, **plan_stats, **extra}
 
     def solver_dagger(self, on_policy: list[MissionState], estimates: list[int], labels: "Labels",
-                      mission: list[int], first: int) -> dict:
+                      mission: list[int], first: int, teacher: str) -> dict:
         """``pretrain.dagger_teacher: solver``: the policy drives each DAgger mission to a decision
         drawn uniformly below its expected count (``estimates``); the solver plans the rest from
         that state (:func:`plan_from_state`) and the plan labels every decision from there on
-        (:func:`plan_labels`, fanned out like the teacher's missions). Returns the plans' mean
-        makespan ratio to greedy-coalition's continuation from the same states."""
+        (:func:`plan_labels`, fanned out like the teacher's missions; ``teacher``: the teacher's
+        name as the jobs carry it, :func:`resolved_teacher`). Returns the plans' mean makespan
+        ratio to greedy-coalition's continuation from the same states."""
         run, lr_ = self.run, self.run.learner
         p = run.cfg.pretrain
         cuts = [int(lr_.np_rng.integers(0, max(1, e))) for e in estimates]
@@ -154,8 +155,7 @@ class Imitation:
                     reached[i] = on_policy[i].clone()
         rollout(lr_.model, on_policy, sample=False, before_step=cut)
         order = sorted(reached)
-        name = resolved_teacher(p.teacher)
-        jobs = [PlanJob(reached[i], p.dagger_evals, int(lr_.np_rng.integers(2**31)), name, p.tau,
+        jobs = [PlanJob(reached[i], p.dagger_evals, int(lr_.np_rng.integers(2**31)), teacher, p.tau,
                         lr_.model.cfg.view()) for i in order]
         ratios = []
         for i, done in zip(order, run.fan_out(plan_labels, jobs)):
@@ -326,42 +326,14 @@ def resolved_teacher(name: str) -> str:
 
 def make_teacher(name: str) -> Callable[[MissionState], int]:
     """The teacher named ``name``: a baseline (``TEACHERS``), or ``rl@CHECKPOINT``: that
-    checkpoint's greedy decoding (:class:`CheckpointTeacher`; loaded once per process,
+    checkpoint's greedy decoding (:class:`~hmrta.rl.inference.CheckpointTeacher`; loaded once per process,
     CheckpointError if it cannot be)."""
     ck = teacher_checkpoint(name)
     if ck is None:
         return TEACHERS[name]()
-    from .inference import load_policy
+    from .inference import CheckpointTeacher, load_policy
 
     return CheckpointTeacher(load_policy(ck))
-
-
-class CheckpointTeacher:
-    """A trained policy as a behaviour-cloning teacher (``pretrain.teacher: rl@CHECKPOINT``): its
-    choice at a state is its greedy decoding, the same bits as a live agent's
-    (:class:`~hmrta.rl.inference.RLDecider`); for soft targets, :meth:`distribution` gives its
-    probabilities at that state from the same forward pass."""
-
-    def __init__(self, pol):
-        self.pol = pol  # a LoadedPolicy
-        self._last: tuple | None = None  # (state, its decision count, nodes [T], logits [T]) of the latest call
-
-    def __call__(self, st: MissionState) -> int:
-        from .features import batch_observations
-        from .rollout import forward_threads, greedy_rows
-
-        with torch.inference_mode(), forward_threads(1):
-            obs, nodes = batch_observations([st], **self.pol.model.cfg.view())
-            logits = self.pol.model(**obs)[0]  # [T]
-        self._last = (st, st.decisions, nodes[0], logits)
-        return int(nodes[0][int(greedy_rows(logits[None], self.pol.model.cfg.greedy_depot)[0])])
-
-    def distribution(self, st: MissionState, tau: float) -> tuple[np.ndarray, np.ndarray]:
-        """(the nodes it observes [T], ascending; softmax(logits / tau) over them [T]) at ``st``."""
-        if self._last is None or self._last[0] is not st or self._last[1] != st.decisions:
-            self(st)
-        _, _, nodes, logits = self._last
-        return nodes, torch.softmax(logits / tau, dim=-1).numpy()
 
 
 def soft_target(teacher, st: MissionState, nodes: np.ndarray, row: int, tau: float) -> np.ndarray:
@@ -370,7 +342,7 @@ def soft_target(teacher, st: MissionState, nodes: np.ndarray, row: int, tau: flo
     observe (renormalised; all on ``row`` if they share none). greedy-coalition: half on its
     choice, half spread by its coalition-start estimates, softmax(-(start - earliest) / tau) over
     the admissible tasks in the observation."""
-    if isinstance(teacher, CheckpointTeacher):
+    if hasattr(teacher, "distribution"):  # a checkpoint teacher
         tnodes, p = teacher.distribution(st, tau)  # [T'] ascending, [T']
         at = np.minimum(np.searchsorted(tnodes, nodes), len(tnodes) - 1)  # [1+W] (nodes ascending too)
         q = np.where(tnodes[at] == nodes, p[at], 0.0).astype(np.float32)  # [1+W]

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 
 from ..core import IN_PROGRESS, MissionState, Rules
@@ -186,16 +187,43 @@ class RLDecider:
         self.gen = torch.Generator().manual_seed(seed)
         self.name = "rl-sample" if sample else "rl"
 
-    def __call__(self, state: MissionState) -> int:
+    def scores(self, state: MissionState) -> tuple[np.ndarray, torch.Tensor]:
+        """(the nodes the policy observes at ``state`` [T], its logits over them [T])."""
         with torch.inference_mode(), forward_threads(1):  # the same bits as a rollout of one mission
             obs, nodes = batch_observations([state], **self.pol.model.cfg.view())
-            logits = self.pol.model(**obs)[0]  # [T]
+            return nodes[0], self.pol.model(**obs)[0]
+
+    def __call__(self, state: MissionState) -> int:
+        nodes, logits = self.scores(state)  # [T], [T]
+        with torch.inference_mode():
             if self.sample:
                 probs = torch.softmax(logits / self.temperature, -1)  # [T] as in a sampled rollout
                 row = int(torch.multinomial(probs, 1, generator=self.gen)[0])
             else:
                 row = int(greedy_rows(logits[None], self.pol.model.cfg.greedy_depot)[0])
-            return int(nodes[0][row])
+        return int(nodes[row])
+
+
+class CheckpointTeacher(RLDecider):
+    """A trained policy as a behaviour-cloning teacher (``pretrain.teacher: rl@CHECKPOINT``): its
+    greedy decoding, as a live agent's; for soft targets, :meth:`distribution` gives its
+    probabilities at a state from the forward pass of its choice there."""
+
+    def __init__(self, pol: LoadedPolicy):
+        super().__init__(pol, sample=False, seed=0)
+        self._last: tuple | None = None  # (state, its decision count, nodes [T], logits [T]) of the latest call
+
+    def scores(self, state: MissionState) -> tuple[np.ndarray, torch.Tensor]:
+        nodes, logits = super().scores(state)
+        self._last = (state, state.decisions, nodes, logits)
+        return nodes, logits
+
+    def distribution(self, state: MissionState, tau: float) -> tuple[np.ndarray, np.ndarray]:
+        """(the nodes it observes [T], ascending; softmax(logits / tau) over them [T]) at ``state``."""
+        if self._last is None or self._last[0] is not state or self._last[1] != state.decisions:
+            self.scores(state)
+        _, _, nodes, logits = self._last
+        return nodes, torch.softmax(logits / tau, dim=-1).numpy()
 
 
 def rl_decider(seed: int = 0, checkpoint: str | None = None) -> RLDecider:

@@ -469,7 +469,8 @@ def test_a_checkpoint_teachers_soft_targets_are_its_distribution_on_the_students
     that state, carried onto the rows the student observes (the same rows under the same window;
     a narrower student window keeps the shared rows, renormalised)."""
     from hmrta.rl.features import observe
-    from hmrta.rl.imitation import CheckpointTeacher, soft_target
+    from hmrta.rl.imitation import soft_target
+    from hmrta.rl.inference import CheckpointTeacher
 
     pol = load_policy("default")
     teacher = CheckpointTeacher(pol)
