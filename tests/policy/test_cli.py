@@ -305,7 +305,9 @@ def test_solve_progress_bar(monkeypatch, capsys):
     assert "rl-lookahead x" in capsys.readouterr().err  # on stderr
     with SolveProgress("cpsat x") as prog:  # time bars advance between the solver's calls
         prog(0.0, 30.0, "s", "heuristic")
-        time.sleep(1.2)
+        deadline = time.monotonic() + 20.0  # (its ticker thread: 0.5 s a tick, later on a busy machine)
+        while prog.bar.n < 0.5 and time.monotonic() < deadline:
+            time.sleep(0.05)
         assert 0.5 <= prog.bar.n < 30
     capsys.readouterr()
     monkeypatch.setattr(SolveProgress, "DELAY", 0.5)

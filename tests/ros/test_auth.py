@@ -243,8 +243,8 @@ def test_agent_sends_a_choice_again_while_the_board_waits_for_it(graph, monkeypa
         return C.Board("s1", version, 0, phase, decider, 0.0, 0.0, 0, 0, inst.n_tasks)
 
     agent._send(5, 3, 1.5)
+    agent.resend(board(5))  # too early (before RESEND_AFTER, however long delivery takes): nothing
     graph.spin_until(lambda: len(got) == 1, 10, "the choice")
-    agent.resend(board(5))  # too early: nothing
     time.sleep(0.25)
     for b in (board(6), board(5, decider=2), board(5, phase="wait")):  # the board moved on: nothing
         agent.resend(b)

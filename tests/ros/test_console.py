@@ -180,19 +180,30 @@ def test_sigusr1_prints_every_threads_stack_and_the_process_goes_on(tmp_path):
     import signal
     import time
 
-    (tmp_path / "sleepy_node.py").write_text(
-        "import time\ndef main():\n    print('up', flush=True)\n    time.sleep(2.0)\n    return 0\n")
+    import threading
+
+    (tmp_path / "sleepy_node.py").write_text(  # blocked on line 4 until the test writes a line
+        "import sys\ndef main():\n    print('up', flush=True)\n    sys.stdin.readline()\n    return 0\n")
     env = dict(os.environ, PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
     p = subprocess.Popen([sys.executable, "-c", "from hmrta_msgs_py.console import run; run('some_node', 'sleepy_node')"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(p.stderr.readline, "")), daemon=True)
     try:
         assert p.stdout.readline() == "up\n"
-        time.sleep(0.2)
+        reader.start()
         p.send_signal(signal.SIGUSR1)
-        out, err = p.communicate(timeout=30)
+        deadline = time.monotonic() + 30.0
+        while not any("in main" in line for line in lines) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        p.stdin.write("go on\n")  # the dump is on stderr: let the node finish
+        p.stdin.close()
+        p.wait(timeout=30)
+        reader.join(timeout=10)
     finally:
         if p.poll() is None:
             p.kill()
+    err = "".join(lines)
     assert p.returncode == 0, err
     assert "most recent call first" in err and "sleepy_node.py\", line 4 in main" in err, err
 

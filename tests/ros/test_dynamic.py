@@ -89,7 +89,8 @@ def test_a_robot_joins_a_running_mission_by_starting_its_agent(tmp_path, domain,
     from test_mission import BoardWatch, robots_of, wait_board_exit
 
     inst = load_instance(EXAMPLE)
-    procs = mission_procs(EXAMPLE, robots_of(inst), seed=0, time_scale=2.0,
+    # (time scale 1: the mission lasts about 30 s, room for the new agent's start and discovery)
+    procs = mission_procs(EXAMPLE, robots_of(inst), seed=0, time_scale=1.0,
                           board_params={"progress_period": 0.0, "heartbeat_timeout": 20.0})
     watch = BoardWatch(graph.node("join_watch"))
     graph.spin_until(lambda: watch.board is not None and watch.board.phase in ("decide", "wait"), 90, "the start")

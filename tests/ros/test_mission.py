@@ -453,7 +453,11 @@ def test_hostile_traffic_never_changes_the_board_and_late_joiners_get_it(tmp_pat
     graph.spin_until(lambda: len(rejections) > len(hostile), 30, "the duplicate to be rejected")
     assert rejections[-1].reason == "duplicate"
     # the mission goes on until it needs me again; then the board stays put
-    graph.spin_until(lambda: watch.stable(2.0), 90, "the board to wait for me")
+    # (held for my choice: 2 s unchanged; held otherwise, e.g. for my robot that no agent drives: 5 s,
+    # which a busy machine's pause does not reach while the mission moves)
+    graph.spin_until(lambda: watch.stable(2.0) and (
+        (watch.board.phase == "decide" and watch.board.decider == d) or watch.stable(5.0)), 90,
+                     "the board to wait for me")
     latest = watch.board.version
     expected["duplicate"] += 1
     b = watch.board
