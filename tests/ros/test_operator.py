@@ -62,8 +62,15 @@ def test_a_task_added_in_map_metres(tmp_path, domain, graph, mission_procs):
 
 
 def test_tasks_added_and_cancelled_at_run_time(tmp_path, domain, graph, mission_procs):
+    """Added first and cancelled last, the long 'spare' task keeps the mission (about 22 s at
+    1.5x) running through every hmrta-task run, however long each takes to start and discover
+    the board (added fifth and cancelled at once, it kept nothing running: where the runs before
+    it were slow, the mission could end first and `list` find no board)."""
     inst, procs, node, watch, events = watched_mission(tmp_path, graph, mission_procs, 1.5, "operator_watch")
     graph.spin_until(lambda: watch.board is not None and watch.board.phase in ("decide", "wait"), 60, "the start")
+    extra = task_cli(domain, tmp_path, "add", "--location", "0.9,0.1", "--requirements", "0,1,0", "--duration", "500",
+                     "--id", "spare")
+    assert extra.returncode == 0, extra.stderr
     add = task_cli(domain, tmp_path, "add", "--location", "0.3,0.7", "--requirements", "1,0,0", "--duration", "1",
                    "--id", "inspect-7")
     assert add.returncode == 0 and "inspect-7: add accepted" in add.stdout, add.stdout + add.stderr
@@ -73,16 +80,13 @@ def test_tasks_added_and_cancelled_at_run_time(tmp_path, domain, graph, mission_
     big = task_cli(domain, tmp_path, "add", "--location", "0.3,0.7", "--requirements", "99,0,0", "--duration", "1")
     assert big.returncode == 3 and "skill 0" in big.stderr
     assert task_cli(domain, tmp_path, "cancel", "nope").returncode == 3
-    extra = task_cli(domain, tmp_path, "add", "--location", "0.9,0.1", "--requirements", "0,1,0", "--duration", "500",
-                     "--id", "spare")
-    assert extra.returncode == 0, extra.stderr
-    cancel = task_cli(domain, tmp_path, "cancel", "spare")
-    assert cancel.returncode == 0, cancel.stderr
     listed = task_cli(domain, tmp_path, "list")
     assert listed.returncode == 0 and "inspect-7" in listed.stdout and "spare" in listed.stdout
     assert "mission clock " in listed.stdout and "not heard" not in listed.stdout, listed.stdout
     bad = task_cli(domain, tmp_path, "add", "--location", "x", "--requirements", "1", "--duration", "1")
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    cancel = task_cli(domain, tmp_path, "cancel", "spare")
+    assert cancel.returncode == 0, cancel.stderr
     wait_board_exit(graph, procs, 120)
     graph.spin_until(lambda: any(e.id == "inspect-7" and e.event == "done" for e in events), 10, "inspect-7 done")
     mine = [(e.id, e.event) for e in events if e.id == "inspect-7"]
@@ -90,8 +94,8 @@ def test_tasks_added_and_cancelled_at_run_time(tmp_path, domain, graph, mission_
     assert ("spare", "cancelled") in [(e.id, e.event) for e in events]
     result = json.loads((tmp_path / "result.json").read_text())
     assert len(result["tasks"]) == inst.n_tasks + 2
-    assert result["tasks"][inst.n_tasks]["finish"] is not None
-    assert result["undone_tasks"] == [inst.n_tasks + 1]  # the cancelled one
+    assert result["tasks"][inst.n_tasks + 1]["finish"] is not None  # inspect-7 (spare is task n_tasks)
+    assert result["undone_tasks"] == [inst.n_tasks]  # the cancelled one
 
 
 def test_a_task_added_while_the_robots_drive_home_is_done(tmp_path, domain, graph, mission_procs):

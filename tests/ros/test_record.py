@@ -23,6 +23,7 @@ from hmrta.formats import load_instance  # noqa: E402
 from hmrta.methods import solve  # noqa: E402
 from hmrta.replay import read_recording  # noqa: E402
 from hmrta_coordinator.mission import default_instance  # noqa: E402
+from hmrta_coordinator.recorder import HEARD  # noqa: E402
 from hmrta_msgs_py import topics  # noqa: E402
 
 BIN = Path(sys.executable).parent
@@ -84,36 +85,51 @@ def test_recorded_sim_mission_reads_back_with_the_same_routes(tmp_path, domain):
 
 def test_recorder_executable_gets_latched_topics_and_finishes_on_sigterm(tmp_path, graph):
     """Started after the mission was published (latched: it still gets it), follows the robots
-    the mission names, and on SIGTERM finishes and renames its file."""
+    the mission names, and on SIGTERM finishes and renames its file.
+
+    The pose (recorded best effort) is lost if sent before the recorder's reader has matched
+    its publisher: the publishers come before the mission's, so that the recorder, once it has
+    heard the mission (its line), has discovered them too (a node's endpoints are announced in
+    order), and its pose reader, made as it reads the mission, matches at once. The choices are
+    reliable: acknowledged, they are in the recorder's reader before the SIGTERM. (The recorder
+    says nothing per message and does not drain its readers before it closes the file: a grace
+    remains for its executor to take what they hold.)"""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.duration import Duration
+
     node = graph.node("publisher")
+    pose_pub = node.create_publisher(PoseStamped, "/bot_a/pose", topics.POSE_PUB_QOS)
+    choice_pub = node.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
     mission_pub = node.create_publisher(String, topics.MISSION, topics.MISSION_QOS)
     mission_pub.publish(String(data=json.dumps({"format": "hmrta-mission/1", "robots": ["bot_a"]})))
-    out = tmp_path / "rec" / "run.mcap"
-    proc = subprocess.Popen([str(BIN / "recorder"), "--ros-args", "-p", f"output:={out}", "-p", "discovery_period:=0.2"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=_env(graph.domain, tmp_path), start_new_session=True)
+    out, log = tmp_path / "rec" / "run.mcap", tmp_path / "recorder.log"
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([str(BIN / "recorder"), "--ros-args", "-p", f"output:={out}",
+                                 "-p", "discovery_period:=0.2"],
+                                stdout=fh, stderr=subprocess.STDOUT, env=_env(graph.domain, tmp_path),
+                                start_new_session=True)
     try:
-        from geometry_msgs.msg import PoseStamped
-
-        pose_pub = node.create_publisher(PoseStamped, "/bot_a/pose", topics.POSE_PUB_QOS)
-        choice_pub = node.create_publisher(String, topics.CHOICE, topics.CHOICE_QOS)
+        graph.spin_until(lambda: HEARD in log.read_text() or proc.poll() is not None, 60,
+                         "the recorder to hear the mission")
+        assert proc.poll() is None, log.read_text()
         graph.spin_until(lambda: pose_pub.get_subscription_count() > 0 and choice_pub.get_subscription_count() > 0,
                          60, "the recorder to subscribe to the mission's robot and the choices")
-        time.sleep(0.5)  # DDS matching on the recorder's side
         for i in range(5):
             choice_pub.publish(String(data=f"c{i}"))
             msg = PoseStamped()
             msg.pose.position.x = float(i)
             pose_pub.publish(msg)
             graph.executor.spin_once(timeout_sec=0.05)
-        time.sleep(1.0)
+        assert choice_pub.wait_for_all_acked(Duration(seconds=30)), "the recorder did not acknowledge the choices"
+        time.sleep(2.0)  # for the recorder's executor to take what its readers hold
         assert Path(str(out) + ".part").exists() and not out.exists()
         proc.send_signal(signal.SIGTERM)
-        text, _ = proc.communicate(timeout=30)
+        proc.wait(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10)
+    text = log.read_text()
     assert proc.returncode in (0, -signal.SIGTERM), text
     assert out.exists() and not Path(str(out) + ".part").exists(), text
     with open(out, "rb") as f:
