@@ -8,7 +8,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -91,9 +90,8 @@ def test_recorder_executable_gets_latched_topics_and_finishes_on_sigterm(tmp_pat
     its publisher: the publishers come before the mission's, so that the recorder, once it has
     heard the mission (its line), has discovered them too (a node's endpoints are announced in
     order), and its pose reader, made as it reads the mission, matches at once. The choices are
-    reliable: acknowledged, they are in the recorder's reader before the SIGTERM. (The recorder
-    says nothing per message and does not drain its readers before it closes the file: a grace
-    remains for its executor to take what they hold.)"""
+    reliable: acknowledged, they are in the recorder's reader before the SIGTERM, and a stopped
+    recorder records what its readers hold before it closes the file (``spin_nodes(drain=...)``)."""
     from geometry_msgs.msg import PoseStamped
     from rclpy.duration import Duration
 
@@ -121,7 +119,6 @@ def test_recorder_executable_gets_latched_topics_and_finishes_on_sigterm(tmp_pat
             pose_pub.publish(msg)
             graph.executor.spin_once(timeout_sec=0.05)
         assert choice_pub.wait_for_all_acked(Duration(seconds=30)), "the recorder did not acknowledge the choices"
-        time.sleep(2.0)  # for the recorder's executor to take what its readers hold
         assert Path(str(out) + ".part").exists() and not out.exists()
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)

@@ -43,6 +43,7 @@ from hmrta_msgs_py import topics
 from hmrta_msgs_py.runtime import check_period, spin_nodes, starting, writable_file
 
 RECORDING_FORMAT = "hmrta-recording/1"  # the MCAP metadata record "hmrta" names it
+DRAIN_SECONDS = 0.5  # on a stop signal: the messages already received are recorded for up to this long
 HEARD = "recorder: heard the mission on"  # printed (stdout) once the first mission message is recorded
 PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32", "uint32",
               "int64", "uint64", "string", "wstring"}
@@ -363,7 +364,8 @@ def main(args: list[str] | None = None) -> None:
         node = Recorder()
     # the single-threaded executor: the experimental events executor does not deliver raw messages
     os.environ["HMRTA_EXECUTOR"] = "single"
-    spin_nodes([node], on_exit=node.close)
+    # on Ctrl-C / SIGTERM the messages its readers already hold are recorded first (0.5 s at most)
+    spin_nodes([node], on_exit=node.close, drain=DRAIN_SECONDS)
 
 
 if __name__ == "__main__":

@@ -411,7 +411,7 @@ def teardown_watchdog(prog: str, exit_status: Callable[[], int | None] | None = 
 
 def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], None] | None = None,
                stopped: Callable[[str], str] | None = None,
-               exit_status: Callable[[], int | None] | None = None) -> str | None:
+               exit_status: Callable[[], int | None] | None = None, drain: float = 0.0) -> str | None:
     """Spin nodes on one executor until ``until`` completes, Ctrl-C / SIGTERM or external
     shutdown; then destroy the nodes and shut rclpy down (ros2/demos style). Returns the name of
     the signal that stopped it (SIGINT, SIGTERM), or None.
@@ -422,6 +422,8 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
 
     First warns about parameters given that no node declares. A signal before ``until`` is done
     is logged as one line (``stopped(signal)``, if given, says what was left undone).
+    ``drain`` > 0: after a signal, the callbacks of what has already arrived run for up to that
+    many seconds before ``on_exit`` (a recorder keeps the messages its readers hold).
     Spins in bounded slices (a signal is acted on within 0.5 s): the experimental events
     executor busy-waits and ignores signals when asked to spin without a timeout."""
     global SPUN
@@ -452,6 +454,8 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
         if sig is not None and not until.done() and nodes:
             text = stopped(sig) if stopped is not None else f"stopped by {sig}"
             nodes[0].get_logger().info(text)
+        if drain > 0 and sig is not None and executor is not None and rclpy.ok():
+            _drain(executor, drain)
         if on_exit is not None:
             on_exit()
         if console.SCRIPT:  # (a process of someone else's that hosts nodes is left alone)
@@ -462,6 +466,19 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
             executor.shutdown()
         rclpy.try_shutdown()
     return sig
+
+
+def _drain(executor, seconds: float) -> None:
+    """Run the callbacks ready on ``executor`` (messages already received) for up to ``seconds``;
+    a second signal (KeyboardInterrupt) or a failing callback ends it early, logged."""
+    deadline = time.monotonic() + seconds
+    try:
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=min(0.02, max(0.0, deadline - time.monotonic())))
+    except KeyboardInterrupt:
+        pass
+    except Exception as e:  # noqa: BLE001 (the stop goes on: what was received is kept)
+        sys.stderr.write(f"while taking the messages already received: {type(e).__name__}: {e}\n")
 
 
 def _stop_on_signals() -> dict[str, str]:
