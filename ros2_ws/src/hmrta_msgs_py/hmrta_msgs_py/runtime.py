@@ -470,7 +470,8 @@ def spin_nodes(nodes: list, until: Future | None = None, on_exit: Callable[[], N
 
 def _drain(executor, seconds: float) -> None:
     """Run the callbacks ready on ``executor`` (messages already received) for up to ``seconds``;
-    a second signal (KeyboardInterrupt) or a failing callback ends it early, logged."""
+    a second signal (KeyboardInterrupt) ends it early, and so does a failing callback (said on
+    stderr)."""
     deadline = time.monotonic() + seconds
     try:
         while time.monotonic() < deadline:
