@@ -285,7 +285,7 @@ def test_a_teardown_that_hangs_ends_the_process_with_its_status(tmp_path, where,
 
 
 @pytest.mark.parametrize("drain", [0.0, 3.0])
-def test_a_stopped_node_takes_what_it_already_received_when_asked_to_drain(tmp_path, drain):
+def test_a_stopped_node_takes_what_it_already_received_when_asked_to_drain(tmp_path, drain, graph):
     """``spin_nodes(drain=S)``: on SIGTERM the messages already in the node's reader are taken
     (what the recorder asks for, so that a stopped recording keeps them); without it the spin
     ends after the callback that runs. A slow callback (0.2 s a message) leaves a backlog when
@@ -294,12 +294,10 @@ def test_a_stopped_node_takes_what_it_already_received_when_asked_to_drain(tmp_p
     import threading
     import time
 
-    import rclpy
     from std_msgs.msg import String
 
     from hmrta_msgs_py import topics
 
-    domain = 95  # (outside the fixture's 100..199)
     (tmp_path / "slow_node.py").write_text(
         "import time\n"
         "import rclpy\n"
@@ -319,28 +317,21 @@ def test_a_stopped_node_takes_what_it_already_received_when_asked_to_drain(tmp_p
         f"    spin_nodes([node], on_exit=lambda: print('got', len(got), flush=True), drain={drain})\n"
         "    return 0\n")
     env = dict(os.environ, PYTHONPATH=f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
-               ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               ROS_DOMAIN_ID=str(graph.domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                HMRTA_EXECUTOR="single")  # (the recorder's)
     p = subprocess.Popen([sys.executable, "-c", "from hmrta_msgs_py.console import run; run('slow_node', 'slow_node')"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(iter(p.stdout.readline, "")), daemon=True)
     reader.start()
     try:
-        node = rclpy.create_node("sender", context=context, enable_rosout=False, start_parameter_services=False)
-        pub = node.create_publisher(String, "/slow", topics.CHOICE_QOS)
-        deadline = time.monotonic() + 60
-        while not (lines and pub.get_subscription_count() > 0):
-            assert time.monotonic() < deadline and p.poll() is None, (lines, p.poll())
-            time.sleep(0.05)
+        pub = graph.node("sender").create_publisher(String, "/slow", topics.CHOICE_QOS)
+        graph.spin_until(lambda: p.poll() is not None or (lines and pub.get_subscription_count() > 0), 60,
+                         "the slow node to start and subscribe")
         time.sleep(0.5)  # (the reader's side of the matching)
         for i in range(8):  # (a burst: all in the node's reader within milliseconds)
             pub.publish(String(data=str(i)))
-        while "took 0\n" not in lines:
-            assert time.monotonic() < deadline and p.poll() is None, (lines, p.poll())
-            time.sleep(0.01)
+        graph.spin_until(lambda: p.poll() is not None or "took 0\n" in lines, 60, "the first message taken")
         p.send_signal(signal.SIGTERM)  # the first message taken, seven waiting
         assert p.wait(timeout=60) == 0, p.stderr.read()
         reader.join(timeout=10)
@@ -348,7 +339,6 @@ def test_a_stopped_node_takes_what_it_already_received_when_asked_to_drain(tmp_p
         if p.poll() is None:
             p.kill()
             p.wait()
-        rclpy.try_shutdown(context=context)
     got = int(next(line for line in lines if line.startswith("got")).split()[1])
     if drain:
         assert got == 8, lines
