@@ -19,8 +19,8 @@ rclpy = pytest.importorskip("rclpy")
 from test_crash import assert_same_as_offline, children, finish, kill_mid_mission, launch, launched  # noqa: E402,F401
 
 
-def test_killed_board_is_restarted_on_its_journal_and_the_mission_equals_offline(tmp_path, domain, graph, launched):
-    launcher, out = launch(tmp_path, domain, graph)
+def test_killed_board_is_restarted_on_its_journal_and_the_mission_equals_offline(tmp_path, graph, launched):
+    launcher, out = launch(tmp_path, graph)
     launched.append(launcher)
     pid, done_then, seen = kill_mid_mission(graph, launcher, "hmrta_coordinator.task_board", 6)
     version_then = seen["b"].version
@@ -45,11 +45,11 @@ def test_killed_board_is_restarted_on_its_journal_and_the_mission_equals_offline
     assert "restarted by hmrta-mission" in log and "resumed from journal" in log
 
 
-def test_a_board_stopped_by_a_plain_kill_is_restarted_on_its_journal(tmp_path, domain, graph, launched):
+def test_a_board_stopped_by_a_plain_kill_is_restarted_on_its_journal(tmp_path, graph, launched):
     """SIGTERM (kill's default) stops the board cleanly, exit status 0, before the mission
     finished: hmrta-mission restarts it on its journal like a crashed one, and the mission
     completes as offline."""
-    launcher, out = launch(tmp_path, domain, graph)
+    launcher, out = launch(tmp_path, graph)
     launched.append(launcher)
     kill_mid_mission(graph, launcher, "hmrta_coordinator.task_board", 6, sig=signal.SIGTERM)
     rc, so, se = finish(launcher, 90)
@@ -61,12 +61,12 @@ def test_a_board_stopped_by_a_plain_kill_is_restarted_on_its_journal(tmp_path, d
     assert "stopped by SIGTERM before the mission finished" in (tmp_path / "mission_logs" / "task_board.log").read_text()
 
 
-def test_a_board_stopped_longer_than_the_heartbeat_timeout_resumes_without_dropping_anyone(tmp_path, domain, graph,
+def test_a_board_stopped_longer_than_the_heartbeat_timeout_resumes_without_dropping_anyone(tmp_path, graph,
                                                                                           launched):
     """SIGSTOP the board for three heartbeat timeouts, then SIGCONT: the heartbeats sent meanwhile
     wait in its queues (or are repaired by the middleware), so nobody is lost and the mission
     completes."""
-    launcher, out = launch(tmp_path, domain, graph, "--heartbeat-timeout", "5")
+    launcher, out = launch(tmp_path, graph, "--heartbeat-timeout", "5")
     launched.append(launcher)
     pid, done_then, _ = kill_mid_mission(graph, launcher, "hmrta_coordinator.task_board", 4, sig=signal.SIGSTOP)
     try:

@@ -33,7 +33,7 @@ BIN = Path(sys.executable).parent
 TIME_SCALE = 8.0  # sim seconds per wall second: the example mission (makespan ~33) lasts ~4 s
 
 
-def launch(tmp_path: Path, domain: int, graph, *extra: str) -> tuple[subprocess.Popen, Path]:
+def launch(tmp_path: Path, graph, *extra: str) -> tuple[subprocess.Popen, Path]:
     """Start ``hmrta-mission`` on the example; its output is read as it comes (``proc.lines``:
     {"out": [...], "err": [...]}), so a test can wait for what the launcher reports. The test's
     own board subscription (``proc.seen``, :func:`kill_mid_mission`) is made first, so that its
@@ -51,7 +51,7 @@ def launch(tmp_path: Path, domain: int, graph, *extra: str) -> tuple[subprocess.
     env.pop("ROS_DOMAIN_ID", None)
     proc = subprocess.Popen([str(BIN / "hmrta-mission"), "--method", "greedy", "--agents-per-process", "5",
                              "--time-scale", str(TIME_SCALE),
-                             "--out", str(out), "--no-plot", "--domain-id", str(domain), "--timeout", "90",
+                             "--out", str(out), "--no-plot", "--domain-id", str(graph.domain), "--timeout", "90",
                              "--heartbeat-timeout", "20", *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                             start_new_session=True)
@@ -148,9 +148,8 @@ def assert_same_as_offline(result: dict) -> None:
         assert result[k] == ref[k], f"{k}: the mission differs from the offline rollout"
 
 
-def test_killed_sim_robot_is_restarted_resynchronises_and_the_mission_equals_offline(tmp_path, domain, graph,
-                                                                                      launched):
-    launcher, out = launch(tmp_path, domain, graph)
+def test_killed_sim_robot_is_restarted_resynchronises_and_the_mission_equals_offline(tmp_path, graph, launched):
+    launcher, out = launch(tmp_path, graph)
     launched.append(launcher)
     pid, done_then, seen = kill_mid_mission(graph, launcher, "hmrta_coordinator.sim_robot", 6)
     t_kill = time.monotonic()
@@ -172,8 +171,8 @@ def test_killed_sim_robot_is_restarted_resynchronises_and_the_mission_equals_off
     assert_same_as_offline(result)
 
 
-def test_killed_agent_process_is_restarted_and_the_mission_completes(tmp_path, domain, graph, launched):
-    launcher, out = launch(tmp_path, domain, graph)
+def test_killed_agent_process_is_restarted_and_the_mission_completes(tmp_path, graph, launched):
+    launcher, out = launch(tmp_path, graph)
     launched.append(launcher)
     kill_mid_mission(graph, launcher, "--robots robot_5,robot_6,robot_7,robot_8,robot_9", 6)
     rc, so, se = finish(launcher, 60)
@@ -185,8 +184,8 @@ def test_killed_agent_process_is_restarted_and_the_mission_completes(tmp_path, d
     assert_same_as_offline(result)
 
 
-def test_killed_board_ends_the_launcher_with_a_partial_result(tmp_path, domain, graph, launched):
-    launcher, out = launch(tmp_path, domain, graph, "--no-journal")  # with its journal the board is restarted
+def test_killed_board_ends_the_launcher_with_a_partial_result(tmp_path, graph, launched):
+    launcher, out = launch(tmp_path, graph, "--no-journal")  # with its journal the board is restarted
     launched.append(launcher)
     _, done_then, seen = kill_mid_mission(graph, launcher, "hmrta_coordinator.task_board", 6)
     t_kill = time.monotonic()
