@@ -24,6 +24,7 @@ from .features import K_MAX
 from .model import ModelConfig
 
 CONFIG_VERSION = 1
+DISTRIBUTIONS = ("ma-at", "broad", "mixed")  # train.distribution.generator
 TEACHERS = BASELINES  # behaviour-cloning / lookahead teachers, by method name
 
 
@@ -155,10 +156,12 @@ def _section(cls: type) -> Any:
 @dataclass
 class Distribution:
     """``train.distribution``: the training missions. ``generator: ma-at`` (the paper's: task,
-    species and robots-per-species ranges) or ``broad`` (:class:`hmrta.families.BroadGenerator`
+    species and robots-per-species ranges), ``broad`` (:class:`hmrta.families.BroadGenerator`
     over the ``tasks`` range: every family axis, teams grown by a factor in ``team_scale``;
-    ``species``, ``per_species`` and ``skills`` unused)."""
-    generator: str = _f("ma-at", lambda v: None if v in ("ma-at", "broad") else "expected ma-at or broad")
+    ``species``, ``per_species`` and ``skills`` unused) or ``mixed``: each mission from one of
+    ``broad``, ``ma-at`` and the single-skill teams (:class:`hmrta.rl.schedules.SingleSkillTraining`)
+    with equal odds, all over the ``tasks`` range."""
+    generator: str = _f("ma-at", lambda v: None if v in DISTRIBUTIONS else "expected ma-at, broad or mixed")
     tasks: list = _f([15, 50], _range(1))
     species: list = _f([3, 5], _range(1))
     per_species: list = _f([3, 5], _range(1))
@@ -371,7 +374,7 @@ class TrainConfig:
             raise ValueError(f"rules: expected a mapping, got {type(self.rules).__name__}")
         self.rule_set()
         dist = self.train.distribution
-        if dist.generator == "ma-at" and dist.species[1] > 2 ** dist.skills - 1:
+        if dist.generator in ("ma-at", "mixed") and dist.species[1] > 2 ** dist.skills - 1:
             raise ValueError(f"train.distribution.species: at most {2 ** dist.skills - 1} species have distinct "
                              f"trait vectors with {dist.skills} skills, got {short(dist.species)}")
 

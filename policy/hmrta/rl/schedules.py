@@ -76,6 +76,13 @@ class SingleSkillTraining:
         import numpy as np
 
         rng = np.random.default_rng([seed, index, 0x73696e67])  # "sing"
+        try:
+            return self.sample(rng)
+        except ValueError as e:
+            raise ValueError(f"{e} (seed {seed}, index {index})") from None
+
+    def sample(self, rng) -> Instance:
+        """One mission drawn from ``rng`` (a numpy Generator)."""
         for _ in range(100):  # a team too small for the drawn requirements is redrawn
             s, n = int(rng.integers(3, 6)), int(rng.integers(2, 11))
             m = int(rng.integers(self.min_tasks, self.max_tasks + 1))
@@ -84,7 +91,7 @@ class SingleSkillTraining:
                 return ScenarioGenerator(scenario, s * n, s, m, s).sample(rng, f"single-skill_{s * n}-{s}-{m}")
             except ValueError:
                 continue
-        raise ValueError(f"single-skill generator: no feasible mission in 100 draws (seed {seed}, index {index})")
+        raise ValueError("single-skill generator: no feasible mission in 100 draws")
 
     def generate(self, count: int, seed: int) -> list[Instance]:
         return [self.instance(seed, i) for i in range(count)]

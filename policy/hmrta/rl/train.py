@@ -359,11 +359,25 @@ class Trainer:
         dist = self.cfg.train.distribution
         lo, hi = task_range or self._task_range()
         rng = self.np_rng
-        if dist.generator == "broad":  # a mission family per instance, every axis of the suite
-            from ..families import BroadGenerator
+        if dist.generator == "ma-at":  # one team shape and size for the whole batch
+            return self._ma_at(n, lo, hi)
+        from ..families import BroadGenerator
+        from .schedules import SingleSkillTraining
 
-            broad = BroadGenerator(max_tasks=hi, min_tasks=lo, team_scale=tuple(map(float, dist.team_scale)))
+        broad = BroadGenerator(max_tasks=hi, min_tasks=lo, team_scale=tuple(map(float, dist.team_scale)))
+        if dist.generator == "broad":  # a mission family per instance, every axis of the suite
             return [broad.sample(rng) for _ in range(n)]
+        single = SingleSkillTraining(max_tasks=hi, min_tasks=lo)
+        out = []
+        for kind in rng.integers(0, 3, size=n):  # mixed: broad, ma-at or single-skill, equal odds
+            out.append(broad.sample(rng) if kind == 0 else self._ma_at(1, lo, hi)[0] if kind == 1
+                       else single.sample(rng))
+        return out
+
+    def _ma_at(self, n: int, lo: int, hi: int) -> list:
+        """``n`` missions of the paper's distribution (``train.distribution``'s species, robots per
+        species and skills; ``lo..hi`` tasks), one team shape and size for all of them."""
+        dist, rng = self.cfg.train.distribution, self.np_rng
         s = int(rng.integers(dist.species[0], dist.species[1] + 1))
         per = int(rng.integers(dist.per_species[0], dist.per_species[1] + 1))
         m = int(rng.integers(lo, hi + 1))

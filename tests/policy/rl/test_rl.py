@@ -402,6 +402,24 @@ def test_reinforce_on_the_broad_distribution_with_relative_advantages(tmp_path):
     assert any(not torch.equal(a, b) for a, b in zip(before, tr.learner.model.parameters()))
 
 
+def test_the_mixed_distribution_draws_broad_paper_and_single_skill_missions(tmp_path):
+    """generator: mixed: each mission from the broad generator, the paper's MA-AT distribution or
+    the single-skill teams, over the task range; seeded by the run's seed."""
+    cfg = _tiny_cfg(train={"distribution": {"generator": "mixed", "tasks": [5, 12], "skills": 3,
+                                            "species": [2, 3], "per_species": [2, 2]}})
+    insts = Trainer(cfg, tmp_path / "a", device="cpu", log=lambda s: None)._instances(30)
+    kinds = [i.name.split("_")[0].split("-5-12")[0] for i in insts]
+    assert set(kinds) == {"broad", "MA-AT", "single-skill"}
+    assert all(5 <= i.n_tasks <= 12 for i in insts)
+    for i, kind in zip(insts, kinds):
+        if kind == "MA-AT":  # the distribution's team ranges and skills
+            assert i.skills == 3 and i.n_species in (2, 3) and i.n_agents == 2 * i.n_species
+        if kind == "single-skill":  # one skill per species
+            assert (i.traits.sum(1) == 1).all() and i.skills == i.n_species
+    again = Trainer(cfg, tmp_path / "b", device="cpu", log=lambda s: None)._instances(30)
+    assert [i.to_dict() for i in again] == [i.to_dict() for i in insts]
+
+
 def test_self_imitation_with_partial_rescoring_improves(tmp_path):
     FixedTrainer.fixed = ScenarioGenerator("MA-AT", 6, 2, 8, 3).instance(5, 3)
     cfg = _tiny_cfg(train={"rescore_fraction": 0.3, "sil": {"coef": 1.0, "steps": 2, "batch": 64, "buffer": 3}})
@@ -957,7 +975,7 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\ntrain: 3\n", "train: expected a mapping"),
     ("version: 1\nrules: {max_open: teams}\n", "rules.max_open: expected a positive integer, null (no limit) or 'team'"),
     ("version: 1\nrules: {max_open: 0}\n", "rules.max_open: expected a positive integer"),
-    ("version: 1\ntrain: {distribution: {generator: paper}}\n", "train.distribution.generator: expected ma-at or broad"),
+    ("version: 1\ntrain: {distribution: {generator: paper}}\n", "train.distribution.generator: expected ma-at, broad or mixed"),
     ("version: 1\ntrain: {advantage: scaled}\n", "train.advantage: expected raw or relative"),
     ("version: 2\n", "version: expected 1"),
     ("[1, 2]\n", "expected a mapping"),
