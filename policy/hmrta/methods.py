@@ -68,7 +68,8 @@ class Option:
         if isinstance(v, float) and not math.isfinite(v):
             raise MethodError(f"{method}: {self.label}: expected a finite number{self._range()}, got {value!r}")
         if (self.minimum is not None and v < self.minimum) or (self.maximum is not None and v > self.maximum):
-            raise MethodError(f"{method}: {self.label}: expected a number{self._range()}, got {value!r}")
+            kind = "an integer" if self.type is int else "a number"
+            raise MethodError(f"{method}: {self.label}: expected {kind}{self._range()}, got {value!r}")
         return v
 
     def _range(self) -> str:

@@ -364,7 +364,7 @@ def test_bench_suite_default_out_is_not_the_committed_tables(tmp_path, monkeypat
     assert "wrote bench-paper/results.json" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bench-paper"]
     assert (tmp_path / "bench-paper" / "results.md").is_file()
-    assert "--out docs/results/<suite>" in " ".join(build_parser()._subparsers._group_actions[0]
+    assert "--out docs/results/families, and for the paper's tables docs/results/sa, ma and large" in " ".join(build_parser()._subparsers._group_actions[0]
                                                    .choices["bench"].format_help().split())
 
 
@@ -372,7 +372,7 @@ def test_bench_suite_default_out_is_not_the_committed_tables(tmp_path, monkeypat
     (["--method", "rl-sample", "--temperature", "inf"], "option temperature: expected a finite number >= 0.01"),
     (["--method", "rl-sample", "--temperature", "nan"], "option temperature: expected a finite number >= 0.01"),
     (["--method", "rl-sample", "--temperature", "0"], "option temperature: expected a number >= 0.01"),
-    (["--method", "rl-sample", "--samples", "10001"], "option samples: expected a number in [1, 10000]"),
+    (["--method", "rl-sample", "--samples", "10001"], "option samples: expected an integer in [1, 10000]"),
     (["--method", "cpsat", "--time-limit", "inf"], "option time_limit (--time-limit): expected a finite number >= 0.01"),
     (["--method", "cpsat", "--time-limit", "nan"], "option time_limit (--time-limit): expected a finite number >= 0.01"),
     # the heuristic phase is a part of the time limit

@@ -47,9 +47,9 @@ def test_option_errors_name_the_method():
     inst = load_instance(EXAMPLE)
     with pytest.raises(MethodError, match="method greedy takes no option 'time_limit'"):
         methods.solve(inst, "greedy", time_limit=3)
-    with pytest.raises(MethodError, match=r"rl-sample: option samples: expected a number in \[1, 10000\], got 0"):
+    with pytest.raises(MethodError, match=r"rl-sample: option samples: expected an integer in \[1, 10000\], got 0"):
         methods.solve(inst, "rl-sample", samples=0)
-    with pytest.raises(MethodError, match=r"rl-s10001: option samples: expected a number in \[1, 10000\]"):
+    with pytest.raises(MethodError, match=r"rl-s10001: option samples: expected an integer in \[1, 10000\]"):
         methods.solve(inst, "rl-s10001")  # (the spec as written)
     for bad in (math.inf, -math.inf, math.nan):
         with pytest.raises(MethodError, match="rl-sample: option temperature: expected a finite number >= 0.01"):
@@ -74,7 +74,7 @@ def test_shorthand_parses_in_one_place_and_labels_results():
     with pytest.raises(MethodError):
         methods.parse("rl-sx")
     for spec in ("rl-s0", "rl-s10001", "rl-s0@broad"):  # no method, offline or live (ROS agents, boards)
-        with pytest.raises(MethodError, match=r"rl-s\d+: option samples: expected a number in \[1, 10000\]"):
+        with pytest.raises(MethodError, match=r"rl-s\d+: option samples: expected an integer in \[1, 10000\]"):
             methods.parse(spec)
     with pytest.raises(MethodError, match="rl-s0"):
         methods.decider("rl-s0")

@@ -249,8 +249,8 @@ def test_bad_values_are_user_errors_before_anything_starts(exe, args, flag, tmp_
     ("recorder", ["-p", "topics:=[scan]"], "topics: expected absolute topic names such as /scan, got 'scan'"),
     ("recorder", ["-p", "output:=/proc/nope/x.mcap"], "output: /proc/nope/x.mcap: cannot write in /proc"),
     ("task_board", ["-p", "instance:=/no/such/mission.yaml"], "instance: /no/such/mission.yaml: no such file"),
-    ("task_board", ["-p", "method:=rl-s0"], "rl-s0: option samples: expected a number in [1, 10000], got 0"),
-    ("agent_node", ["-p", "robot:=robot_0", "-p", "method:=rl-s0"], "rl-s0: option samples: expected a number"),
+    ("task_board", ["-p", "method:=rl-s0"], "rl-s0: option samples: expected an integer in [1, 10000], got 0"),
+    ("agent_node", ["-p", "robot:=robot_0", "-p", "method:=rl-s0"], "rl-s0: option samples: expected an integer"),
     # a checkpoint that is no file: the board died with a traceback; a portfolio agent took it
     ("task_board", ["-p", "method:=rl", "-p", "checkpoint:=nosuch"], "nosuch: no such checkpoint (shipped: "),
     ("agent_node", ["-p", "robot:=robot_0", "-p", "checkpoint:=nosuch"], "nosuch: no such checkpoint"),

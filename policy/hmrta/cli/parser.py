@@ -164,7 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default=None,
                    help="folder for results.md, results.json, results.csv and a resumable cache "
                         "(--suite default: bench-<suite> in the current folder; the committed tables are "
-                        "regenerated with --out docs/results/<suite>)")
+                        "regenerated with --out docs/results/families, and for the paper's tables "
+                        "docs/results/sa, ma and large: docs/results.md)")
     b.add_argument("--json", action="store_true", help="print the results as JSON instead of Markdown")
     b.add_argument("--no-progress", action="store_true", help="no progress bar (drawn only when stderr is a terminal)")
     _fanout_args(b, "solve the uncached items", " (not to be confused with --workers, CP-SAT's search workers "

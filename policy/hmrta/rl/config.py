@@ -374,6 +374,9 @@ class TrainConfig:
             raise ValueError(f"rules: expected a mapping, got {type(self.rules).__name__}")
         self.rule_set()
         dist = self.train.distribution
+        if dist.generator == "ma-at" and [float(x) for x in dist.team_scale] != [1.0, 1.0]:
+            raise ValueError(f"train.distribution.team_scale: grows the teams of broad missions only "
+                             f"(generator broad or mixed), got {short(dist.team_scale)} with generator ma-at")
         if dist.generator in ("ma-at", "mixed") and dist.species[1] > 2 ** dist.skills - 1:
             raise ValueError(f"train.distribution.species: at most {2 ** dist.skills - 1} species have distinct "
                              f"trait vectors with {dist.skills} skills, got {short(dist.species)}")

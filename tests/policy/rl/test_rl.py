@@ -976,6 +976,7 @@ def test_shipped_checkpoint_lookahead_method_and_decider():
     ("version: 1\nrules: {max_open: teams}\n", "rules.max_open: expected a positive integer, null (no limit) or 'team'"),
     ("version: 1\nrules: {max_open: 0}\n", "rules.max_open: expected a positive integer"),
     ("version: 1\ntrain: {distribution: {generator: paper}}\n", "train.distribution.generator: expected ma-at, broad or mixed"),
+    ("version: 1\ntrain: {distribution: {team_scale: [1, 3]}}\n", "train.distribution.team_scale: grows the teams of broad missions only"),
     ("version: 1\ntrain: {advantage: scaled}\n", "train.advantage: expected raw or relative"),
     ("version: 2\n", "version: expected 1"),
     ("[1, 2]\n", "expected a mapping"),
