@@ -171,6 +171,12 @@ class Distribution:
 
     def __post_init__(self) -> None:
         _validate(self, "train.distribution.")
+        if self.generator == "ma-at" and [float(x) for x in self.team_scale] != [1.0, 1.0]:
+            raise ValueError(f"train.distribution.team_scale: grows the teams of broad missions only "
+                             f"(generator broad or mixed), got {short(self.team_scale)} with generator ma-at")
+        if self.generator in ("ma-at", "mixed") and self.species[1] > 2 ** self.skills - 1:
+            raise ValueError(f"train.distribution.species: at most {2 ** self.skills - 1} species have distinct "
+                             f"trait vectors with {self.skills} skills, got {short(self.species)}")
 
 
 @dataclass
@@ -373,13 +379,6 @@ class TrainConfig:
         if not isinstance(self.rules, dict):
             raise ValueError(f"rules: expected a mapping, got {type(self.rules).__name__}")
         self.rule_set()
-        dist = self.train.distribution
-        if dist.generator == "ma-at" and [float(x) for x in dist.team_scale] != [1.0, 1.0]:
-            raise ValueError(f"train.distribution.team_scale: grows the teams of broad missions only "
-                             f"(generator broad or mixed), got {short(dist.team_scale)} with generator ma-at")
-        if dist.generator in ("ma-at", "mixed") and dist.species[1] > 2 ** dist.skills - 1:
-            raise ValueError(f"train.distribution.species: at most {2 ** dist.skills - 1} species have distinct "
-                             f"trait vectors with {dist.skills} skills, got {short(dist.species)}")
 
     def rule_set(self) -> Rules:
         """State-machine rules of the config (the same in training and at inference). A config

@@ -370,8 +370,12 @@ class Trainer:
         single = SingleSkillTraining(max_tasks=hi, min_tasks=lo)
         out = []
         for kind in rng.integers(0, 3, size=n):  # mixed: broad, ma-at or single-skill, equal odds
-            out.append(broad.sample(rng) if kind == 0 else self._ma_at(1, lo, hi)[0] if kind == 1
-                       else single.sample(rng))
+            if kind == 0:
+                out.append(broad.sample(rng))
+            elif kind == 1:
+                out += self._ma_at(1, lo, hi)
+            else:
+                out.append(single.sample(rng))
         return out
 
     def _ma_at(self, n: int, lo: int, hi: int) -> list:
