@@ -175,7 +175,7 @@ def test_classification_catches_what_the_fuzzer_must_find(tmp_path):
 def test_shipped_checkpoints_load_weights_only():
     """The shipped checkpoints hold only weights and plain data (nothing else may be unpickled)."""
     names = sorted(p.name for p in (fz.ROOT / "policy" / "hmrta" / "checkpoints").glob("*.pt"))
-    assert {"default.pt", "coalition-open.pt", "broad.pt", "coalition-team.pt"} <= set(names)
+    assert {"default.pt", "coalition-open.pt", "broad.pt", "coalition-team.pt", "compact.pt"} <= set(names)
     for name in names:
         p = fz.ROOT / "policy" / "hmrta" / "checkpoints" / name
         ck = torch.load(p, weights_only=True)

@@ -896,7 +896,8 @@ def test_rl_sample_temperature_option():
         solve(inst, "rl-s2", temperature=0)
 
 
-CHECKPOINTS = [("default.pt", None), ("coalition-open.pt", None), ("broad.pt", None), ("coalition-team.pt", "team")]
+CHECKPOINTS = [("default.pt", None), ("coalition-open.pt", None), ("broad.pt", None), ("coalition-team.pt", "team"),
+               ("compact.pt", None)]
 
 
 @pytest.mark.parametrize("name,max_open", CHECKPOINTS)
