@@ -10,6 +10,7 @@ from .data import cmd_convert, cmd_generate, cmd_keys
 from .rendering import cmd_bound, cmd_render
 from .solving import cmd_demo, cmd_evaluate, cmd_solve
 from .threads import THREADS_HELP
+from ..rl.checkpoint_info import shipped_checkpoints
 from .training import cmd_checkpoint, cmd_checkpoint_info, cmd_schedules, cmd_train
 
 
@@ -233,8 +234,8 @@ def build_parser() -> argparse.ArgumentParser:
                                        "code version, network, greedy decoding, rules, training counters, lineage",
                           formatter_class=F)
     ci.add_argument("checkpoint", nargs="?", default=None, metavar="CHECKPOINT",
-                    help="checkpoint file, or the name of a shipped one (default, broad, coalition-team, "
-                         "coalition-open; default: the shipped default.pt or $HMRTA_CHECKPOINT)")
+                    help=f"checkpoint file, or the name of a shipped one ({', '.join(shipped_checkpoints())}); "
+                         "default: the shipped default.pt or $HMRTA_CHECKPOINT")
     ci.add_argument("--json", action="store_true", help="print everything as JSON (the whole resolved config "
                                                         "and lineage)")
     ci.set_defaults(fn=cmd_checkpoint_info)
