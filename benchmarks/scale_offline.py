@@ -19,8 +19,12 @@ this CPU. Costs are CPU times of this (single) thread, which other processes on 
 disturb less than wall times (also printed); the machine load (``os.getloadavg``) is printed
 before and after. Greedy keeps the best of ``--repeat`` rollouts of each mission.
 
+``--checkpoint A B ...`` runs the learned policy with each checkpoint, one after the other on
+every size of every round, and prints each one's time against the first's, round by round: on a
+machine whose speed drifts, a comparison of checkpoints made minutes apart is on the same footing.
+
 usage: python benchmarks/scale_offline.py [--sizes 25,5,50 150,10,500 ...] [--count N ...]
-       [--methods greedy rl] [--repeat R] [--rounds N] [--seed S] [--json PATH]
+       [--methods greedy rl] [--repeat R] [--rounds N] [--seed S] [--checkpoint CK ...] [--json PATH]
 """
 from __future__ import annotations
 
@@ -177,7 +181,9 @@ def main() -> int:
                          "rounds, and each round's ratio of 600/2000 to 25/50: on a machine whose speed "
                          "drifts, sizes measured in the same round are compared on the same footing)")
     ap.add_argument("--seed", type=int, default=1, help="instance set seed (the missions' own seed is 0)")
-    ap.add_argument("--checkpoint", default=None, help="policy checkpoint (default: the shipped one)")
+    ap.add_argument("--checkpoint", nargs="+", default=None,
+                    help="policy checkpoint (default: the shipped one); several: each runs as rl@NAME, "
+                         "alternating on every size, and each is compared with the first")
     ap.add_argument("--json", default=None, help="also write the figures here")
     args = ap.parse_args()
     sizes = [tuple(int(x) for x in s.split(",")) for s in args.sizes]
@@ -199,32 +205,35 @@ def main() -> int:
           f"{torch.get_num_threads()} thread; {cpu_model()} x{os.cpu_count()}; python "
           f"{platform.python_version()}, numpy {np.__version__}; code {code_version()}")
     print(f"# load average at start {load0}\n")
-    pol = None
+    pols: dict[str, object] = {}  # rl method name -> loaded policy
     if "rl" in args.methods:
         from hmrta.rl.inference import load_policy
 
-        pol = load_policy(args.checkpoint)
-    results: dict[str, list[dict]] = {m: [] for m in args.methods}
+        cks = args.checkpoint or [None]
+        for ck in cks:
+            pols["rl" if len(cks) == 1 else f"rl@{ck}"] = load_policy(ck)
+    methods = [x for m in args.methods for x in (list(pols) if m == "rl" else [m])]
+    results: dict[str, list[dict]] = {m: [] for m in methods}
     growth: dict[str, dict[str, float]] = {}
     missions = {size: ScenarioGenerator("MA-AT", *size, 5).generate(n, args.seed) for size, n in zip(sizes, counts)}
     pooled: dict[tuple, list[dict]] = {}  # (method, size) -> the runs of every round
     per_round: dict[tuple, list[float]] = {}  # (method, size) -> ms/decision of each round
-    warm = False
+    warm: set[str] = set()
     for rnd in range(args.rounds):
         if args.rounds > 1:
             print(f"# round {rnd + 1} of {args.rounds}")
         for (A, S, M), n in zip(sizes, counts):
-            for method in args.methods:
+            for method in methods:
                 runs = []
                 for inst in missions[(A, S, M)]:
                     if method == "greedy":
                         tries = [run_greedy(inst, 0) for _ in range(args.repeat + 1)][1:]  # first: warm-up
                         runs.append(min(tries, key=lambda r: r["total"]))
                     else:
-                        if not warm:  # first rl mission: warm the network up once
-                            run_rl(ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(args.seed, 99), 0, pol)
-                            warm = True
-                        runs.append(run_rl(inst, 0, pol))
+                        if method not in warm:  # first mission of this policy: warm its network up once
+                            run_rl(ScenarioGenerator("MA-AT", 25, 5, 50, 5).instance(args.seed, 99), 0, pols[method])
+                            warm.add(method)
+                        runs.append(run_rl(inst, 0, pols[method]))
                 row = summarise(runs, A, S, M, n)
                 pooled.setdefault((method, (A, S, M)), []).extend(runs)
                 per_round.setdefault((method, (A, S, M)), []).append(row["ms_per_decision"])
@@ -232,7 +241,7 @@ def main() -> int:
                 print(f"  {method} {A}/{M}: {row['ms_per_decision']:.3f} ms/decision ({parts}; wall "
                       f"{row['wall_ms_per_decision']:.3f}), {row['seconds_per_mission']:.2f} s/mission, "
                       f"{row['decisions']} decisions, load {os.getloadavg()[0]:.2f}", flush=True)
-    for method in args.methods:
+    for method in methods:
         for (A, S, M), n in zip(sizes, counts):
             row = summarise(pooled[(method, (A, S, M))], A, S, M, n * args.rounds)
             row["missions"], row["rounds"] = n, args.rounds
@@ -269,10 +278,21 @@ def main() -> int:
             print(line)
         print()
         growth[method] = fits
-    floor = None
-    if pol is not None:
-        floor = network_floor(pol)
-        print(f"network call ({floor['window']}): {floor['flops'] / 1e6:.1f} MFLOP per decision; "
+    rl = list(pols)
+    if len(rl) > 1:  # each checkpoint against the first, on the same missions, round by round
+        print(f"## against {rl[0]} (ms/decision; round by round, then the median)\n")
+        for method in rl[1:]:
+            for ra, rb in zip(results[rl[0]], results[method]):
+                each = [b / a for a, b in zip(ra["ms_per_decision_by_round"], rb["ms_per_decision_by_round"])]
+                print(f"  {method} {rb['robots']}/{rb['tasks']}: {', '.join(f'{x:.3f}' for x in each)} "
+                      f"(median {statistics.median(each):.3f}); s/mission {rb['seconds_per_mission']:.2f} "
+                      f"against {ra['seconds_per_mission']:.2f}")
+        print()
+    floors = {}
+    for method, pol in pols.items():
+        floor = floors[method] = network_floor(pol)
+        print(f"network call{'' if method == 'rl' else ' of ' + method} ({floor['window']}): "
+              f"{floor['flops'] / 1e6:.1f} MFLOP per decision; "
               f"{floor['call_s'] * 1e3:.3f} ms per call against a floor of {floor['floor_s'] * 1e3:.3f} ms "
               f"at {floor['gemm_flops_per_s'] / 1e9:.1f} GFLOP/s (1024^3 matrix product, one thread): "
               f"{floor['call_s'] / floor['floor_s']:.1f}x the floor (the network module itself: "
@@ -282,7 +302,8 @@ def main() -> int:
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"code": code_version(), "cpu": cpu_model(), "cores": os.cpu_count(), "load_start": load0,
-                       "load_end": load1, "results": results, "growth": growth, "network": floor}, f, indent=1)
+                       "load_end": load1, "results": results, "growth": growth,
+                       "network": floors.get("rl") if len(floors) == 1 else floors}, f, indent=1)
     return 0
 
 
