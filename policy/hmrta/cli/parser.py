@@ -4,13 +4,13 @@ from __future__ import annotations
 import argparse
 
 from .. import __version__
+from ..rl.checkpoint_info import shipped_checkpoints
 from .benchmarking import cmd_bench
 from .common import BENCH_COUNT, BENCH_SEED, CONFIGS, INSTANCE_HELP
 from .data import cmd_convert, cmd_generate, cmd_keys
 from .rendering import cmd_bound, cmd_render
 from .solving import cmd_demo, cmd_evaluate, cmd_solve
 from .threads import THREADS_HELP
-from ..rl.checkpoint_info import shipped_checkpoints
 from .training import cmd_checkpoint, cmd_checkpoint_info, cmd_schedules, cmd_train
 
 
