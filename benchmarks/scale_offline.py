@@ -161,6 +161,12 @@ def network_floor(pol) -> dict:
             "module_call_s": module_call, "window": shape}
 
 
+def by_round(a: dict, b: dict) -> list[float]:
+    """Round by round, ``b``'s ms per decision over ``a``'s (two rows of :func:`summarise` whose
+    rounds ran minutes apart: each pair saw the same machine)."""
+    return [y / x for x, y in zip(a["ms_per_decision_by_round"], b["ms_per_decision_by_round"])]
+
+
 def slope(xs: list[float], ys: list[float]) -> float:
     """Least-squares slope of log y against log x (nan with fewer than two points)."""
     pts = [(math.log(x), math.log(y)) for x, y in zip(xs, ys) if x > 0 and y > 0]
@@ -271,8 +277,7 @@ def main() -> int:
             ratio = first[2000]["ms_per_decision"] / first[50]["ms_per_decision"]
             line = f"ms/decision at 600/2000 over 25/50: {ratio:.2f}x"
             if args.rounds > 1:  # each round's sizes ran minutes apart: the pairs see the same machine
-                each = [b / a for a, b in zip(first[50]["ms_per_decision_by_round"],
-                                              first[2000]["ms_per_decision_by_round"])]
+                each = by_round(first[50], first[2000])
                 line += (f" over all rounds; round by round {', '.join(f'{x:.2f}' for x in each)} "
                          f"(median {statistics.median(each):.2f}x)")
             print(line)
@@ -283,7 +288,7 @@ def main() -> int:
         print(f"## against {rl[0]} (ms/decision; round by round, then the median)\n")
         for method in rl[1:]:
             for ra, rb in zip(results[rl[0]], results[method]):
-                each = [b / a for a, b in zip(ra["ms_per_decision_by_round"], rb["ms_per_decision_by_round"])]
+                each = by_round(ra, rb)
                 print(f"  {method} {rb['robots']}/{rb['tasks']}: {', '.join(f'{x:.3f}' for x in each)} "
                       f"(median {statistics.median(each):.3f}); s/mission {rb['seconds_per_mission']:.2f} "
                       f"against {ra['seconds_per_mission']:.2f}")
@@ -303,7 +308,7 @@ def main() -> int:
         with open(args.json, "w") as f:
             json.dump({"code": code_version(), "cpu": cpu_model(), "cores": os.cpu_count(), "load_start": load0,
                        "load_end": load1, "results": results, "growth": growth,
-                       "network": floors.get("rl") if len(floors) == 1 else floors}, f, indent=1)
+                       "network": floors[rl[0]] if rl else None, "networks": floors}, f, indent=1)
     return 0
 
 
