@@ -30,27 +30,57 @@ def _load_mission(path: Path) -> Instance:
     return _load(path, scenarios=False)
 
 
+def ctas_config(path: str | Path) -> tuple[Path, dict] | None:
+    """(the ``config.json``, its content) where ``path`` is a CTAS-D-family config (a ``.json``
+    file or a folder holding a ``config.json``) as :func:`load_instance` reads it; None for any
+    other mission file (YAML, or an `hmrta-instance/1` or `hmrta-scenario/1` mission written as
+    JSON). Problems with the file are InstanceErrors, as the loader's."""
+    p = _config_file(Path(path))
+    if p.suffix.lower() != ".json":
+        return None
+    data = parse_json(read_text(p, InstanceError), str(p), InstanceError)
+    return (p, data) if _json_kind(data, p) == "ctas" else None
+
+
+def _config_file(p: Path) -> Path:
+    """``p``, or the ``config.json`` of the folder ``p``."""
+    if not p.is_dir():
+        return p
+    cfg = p / "config.json"
+    if not cfg.exists():
+        raise InstanceError(f"{p}: is a folder without a config.json")
+    return cfg
+
+
+def _json_kind(data: object, p: Path) -> str:
+    """What a JSON mission file holds: "instance", "scenario" or "ctas" (anything else, which the
+    CTAS-D reader validates); an InstanceError for another hmrta file (a solution, bench results)."""
+    fmt = data.get("format") if isinstance(data, dict) else None
+    if fmt == "hmrta-instance/1":  # a mission written as JSON (JSON is YAML: the same reader)
+        return "instance"
+    if is_scenario(data):
+        return "scenario"
+    if isinstance(fmt, str) and fmt.startswith("hmrta-"):  # e.g. a solution
+        raise InstanceError(f"{p}: an {fmt} file, expected a mission (an hmrta-instance/1 YAML file or a "
+                            f"CTAS-D config.json)")
+    if isinstance(data, dict) and "setup" not in data and "methods" in data and "rows" in data:
+        raise InstanceError(f"{p}: an hmrta bench results file, expected a mission (an hmrta-instance/1 YAML "
+                            f"file or a CTAS-D config.json)")
+    return "ctas"
+
+
 def _load(path: str | Path, scenarios: bool) -> Instance:
-    p = Path(path)
-    if p.is_dir():
-        cfg = p / "config.json"
-        if not cfg.exists():
-            raise InstanceError(f"{p}: is a folder without a config.json")
-        p = cfg
+    p = _config_file(Path(path))
     text = read_text(p, InstanceError)
     if p.suffix.lower() == ".json":
         data = parse_json(text, str(p), InstanceError)
-        fmt = data.get("format") if isinstance(data, dict) else None
-        if fmt == "hmrta-instance/1":  # a mission written as JSON (JSON is YAML: the same reader)
+        kind = _json_kind(data, p)
+        if kind == "instance":
             return instance_from_dict(data, source=str(p))
-        if scenarios and is_scenario(data):
+        if kind == "scenario" and scenarios:
             return scenario_from_dict(data, str(p), text, load_mission=_load_mission)
-        if isinstance(fmt, str) and fmt.startswith("hmrta-") and fmt != "hmrta-instance/1":  # e.g. a solution
-            raise InstanceError(f"{p}: an {fmt} file, expected a mission (an hmrta-instance/1 YAML file or a "
-                                f"CTAS-D config.json)")
-        if isinstance(data, dict) and "setup" not in data and "methods" in data and "rows" in data:
-            raise InstanceError(f"{p}: an hmrta bench results file, expected a mission (an hmrta-instance/1 YAML "
-                                f"file or a CTAS-D config.json)")
+        if kind == "scenario":
+            raise InstanceError(f"{p}: expected a mission (hmrta-instance/1), got a scenario")
         return instance_from_ctas_config(data, source=str(p))
     data = parse_yaml(text, str(p), InstanceError)
     if data is None:  # no document at all: an empty file, or only comments

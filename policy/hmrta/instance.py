@@ -237,7 +237,8 @@ class Instance:
     def infeasibility(self, labels: Sequence[str] | None = None) -> str | None:
         """None if the whole team can satisfy every task, else a message naming task and skill
         (task m named ``labels[m]`` if given: its key in the file it came from)."""
-        team = (self.species_traits * np.array([s.count for s in self.species])[:, None]).sum(0)  # [skills]
+        count = np.bincount(self.agent_species, minlength=self.n_species)  # [species] robots added during a mission too
+        team = (self.species_traits * count[:, None]).sum(0)  # [skills]
         for m, t in enumerate(self.tasks):
             name = m if labels is None else labels[m]
             for k, q in enumerate(t.requirements):

@@ -378,8 +378,8 @@ def final_instance(inst: Instance, sol: Solution, source: str = "solution") -> I
         return inst
     try:
         out = instance_from_dict(grown, f"{source}: final_instance")
-    except ValueError as e:
-        raise _serr(source, str(e)) from None
+    except ValueError as e:  # (its message names f"{source}: final_instance")
+        raise SolutionError(str(e)) from None
     if out.name != inst.name or out.n_tasks < inst.n_tasks or out.n_agents < inst.n_agents:
         raise _serr(source, f"solution does not match the instance {short(inst.name)}: it ended as mission "
                             f"{short(out.name)} with {out.n_agents} robots and {out.n_tasks} tasks")

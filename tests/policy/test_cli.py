@@ -102,6 +102,29 @@ def test_old_output_spellings_are_gone(argv, capsys):
     capsys.readouterr()
 
 
+def test_options_may_stand_between_positional_arguments(tmp_path, capsys):
+    """``hmrta solve a.yaml --method greedy b.yaml`` reads both missions, as the same options
+    before or after them would; a subcommand's own errors are unchanged."""
+    folder = _missions(tmp_path)
+    a, b = sorted(folder.glob("*.yaml"))
+    capsys.readouterr()
+    assert main(["solve", str(a), "--method", "greedy", str(b), "--json"]) == 0
+    mixed = json.loads(capsys.readouterr().out)
+    assert main(["solve", str(a), str(b), "--method", "greedy", "--json"]) == 0
+    assert [s["makespan"] for s in mixed] == [s["makespan"] for s in json.loads(capsys.readouterr().out)]
+    sol = tmp_path / "a.json"
+    assert main(["solve", str(a), "--method", "greedy", "--out", str(sol)]) == 0
+    capsys.readouterr()
+    assert main(["bound", str(a), "--json", str(sol)]) == 0
+    assert json.loads(capsys.readouterr().out)
+    for argv, said in ((["solve", str(a), "--bogus", str(b)], "hmrta solve: error: unrecognized arguments: --bogus"),
+                       (["solve", "--method", "greedy"], "the following arguments are required: INSTANCE"),
+                       (["checkpoint", "average", "--out", str(tmp_path / "x.pt")], "required: CHECKPOINT")):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2 and said in _one_error_line(capsys), argv
+
+
 def _parsers(p: argparse.ArgumentParser, name: str = "hmrta"):
     yield name, p
     for a in p._actions:
@@ -149,6 +172,23 @@ def test_convert_writes_the_robot_mapping(tmp_path, capsys):
     # an hmrta instance has no other robot ids: no mapping
     assert main(["convert", str(EXAMPLE), "--out", str(tmp_path / "ex.yaml")]) == 0
     assert "mapping" not in capsys.readouterr().out and not (tmp_path / "ex.mapping.json").exists()
+    # nor has the same mission written as JSON (read as an hmrta-instance/1, not as CTAS-D)
+    (tmp_path / "ex.json").write_text(json.dumps(load_instance(EXAMPLE).to_dict()))
+    assert main(["convert", str(tmp_path / "ex.json"), "--out", str(tmp_path / "exj.yaml")]) == 0
+    assert "mapping" not in capsys.readouterr().out and not (tmp_path / "exj.mapping.json").exists()
+    assert load_instance(tmp_path / "exj.yaml").to_dict() == load_instance(EXAMPLE).to_dict()
+    # a CTAS-D config with a byte-order mark reads as the loader reads it
+    bom = tmp_path / "bom.json"
+    bom.write_bytes(b"\xef\xbb\xbf" + (CTAS / "config.json").read_bytes())
+    assert main(["convert", str(bom), "--out", str(tmp_path / "bom.yaml")]) == 0
+    assert json.loads((tmp_path / "bom.mapping.json").read_text())["robot_to_agent"] == mapping["robot_to_agent"]
+    # the mapping is never written over an input: a config named like the mapping of --out
+    src = tmp_path / "c.mapping.json"
+    src.write_bytes((CTAS / "config.json").read_bytes())
+    capsys.readouterr()
+    assert main(["convert", str(src), "--out", str(tmp_path / "c.yaml")]) == 2
+    assert "the robot mapping of --out" in _one_error_line(capsys) and not (tmp_path / "c.yaml").exists()
+    assert src.read_bytes() == (CTAS / "config.json").read_bytes()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -145,6 +145,22 @@ def test_binary_requirement_amounts_are_coverage(valid_dict):
     assert inst.requirement_type == "binary" and inst.infeasibility() is None
 
 
+def test_robots_added_during_a_mission_count_in_the_team(valid_dict):
+    """The mission as it ended (``added_agents``: robots that joined) is feasible when the robots
+    that joined can do what only they can do; a species of count 0 has only such robots."""
+    d = valid_dict
+    d["species"].append({"traits": [0, 0, 4], "count": 0, "depot": [0.5, 0.5]})
+    d["tasks"][1]["requirements"] = [0, 0, 4]  # only the new species can do it
+    with pytest.raises(InstanceError, match="count"):
+        instance_from_dict(d)  # count 0 without a robot that joined
+    d["added_agents"] = [len(d["species"]) - 1]
+    inst = instance_from_dict(d)
+    assert inst.infeasibility() is None and inst.n_agents == sum(s["count"] for s in d["species"]) + 1
+    d["tasks"][1]["requirements"] = [0, 0, 7]  # more than the team that ever was (2 + 4)
+    with pytest.raises(InstanceError, match="task 1 is infeasible.*whole team has 6"):
+        instance_from_dict(d)
+
+
 @pytest.mark.parametrize("text,line", [
     ("format: hmrta-instance/1\nskills: 3\nspecies:\n  - {traits: [1, 0, 1], count: 2\n", 5),
     ("format: hmrta-instance/1\nskills: [3\nvelocity: 0.2\n", 3),

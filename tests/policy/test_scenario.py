@@ -91,6 +91,34 @@ def test_the_solution_of_a_grown_mission_carries_the_mission_as_it_ended(scenari
     assert (tmp_path / "cli.png").stat().st_size > 10000
 
 
+def test_a_task_only_a_robot_that_joined_can_do_reads_back_and_draws(tmp_path, capsys):
+    """A scenario adds a robot of a new kind, then a task only it can do: the solution's mission as
+    it ended is feasible (the team counts the robot that joined), so render and the reader take it."""
+    from hmrta.cli import main
+    from hmrta.solution import Solution, final_instance
+
+    (tmp_path / "base.yaml").write_text(
+        "format: hmrta-instance/1\nrequirement_type: additive\nvelocity: 0.2\nskills: 2\nspecies:\n"
+        "  - {traits: [1, 0], count: 2, depot: [0.1, 0.1]}\ntasks:\n"
+        "  - {location: [0.5, 0.5], requirements: [1, 0], duration: 3}\n"
+        "  - {location: [0.9, 0.5], requirements: [2, 0], duration: 3}\n")
+    scen = tmp_path / "scen.yaml"
+    scen.write_text(
+        "format: hmrta-scenario/1\ninstance: base.yaml\nevents:\n"
+        "  - {t: 1.0, type: add_robot, traits: [0, 1], position: [0.3, 0.3]}\n"
+        "  - {t: 2.0, type: add_task, id: weld-1, location: [0.3, 0.6], requirements: [0, 1], duration: 2}\n")
+    inst = load_instance(scen)
+    sol = Solution.from_dict(json.loads(json.dumps(methods.solve(inst, "greedy", seed=0).to_dict())))
+    assert sol.success and len(sol.tasks) == 3 and 2 in sol.routes[2]  # the robot that joined did it
+    grown = final_instance(inst, sol)
+    assert (grown.n_agents, grown.n_tasks, grown.added_agents) == (3, 3, (1,))
+    (tmp_path / "sol.json").write_text(json.dumps(sol.to_dict()))
+    assert main(["evaluate", str(tmp_path / "base.yaml"), str(tmp_path / "sol.json")]) == 2  # another mission
+    assert "final_instance" not in capsys.readouterr().err
+    pytest.importorskip("matplotlib")
+    assert main(["render", str(scen), str(tmp_path / "sol.json"), "--out", str(tmp_path / "r.png")]) == 0
+
+
 def test_cpsat_refuses_a_scenario(scenario, tmp_path, capsys):
     from hmrta.cli import main
 

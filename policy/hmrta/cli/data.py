@@ -78,23 +78,27 @@ def mapping_path(out: str | Path) -> Path:
 
 
 def cmd_convert(args) -> int:
-    from ..instance import atomic_write_text
+    from ..formats import ctas_config
+    from ..instance import InstanceError, atomic_write_text
 
     writable("--out", args.out, inputs=(args.input,))
     inst = _load(args.input, "hmrta-instance/1 holds no events", releases=True)  # release times it holds
     if Path(args.out).suffix.lower() == ".json":
         raise UserError(f"--out {args.out}: convert writes hmrta-instance/1 YAML; give a .yaml file name")
-    src = Path(args.input)
-    cfg = src / "config.json" if src.is_dir() else src
+    try:
+        ctas = ctas_config(args.input)  # read as the loader did (it has just read it)
+    except InstanceError as e:  # (the file changed under us)
+        raise UserError(str(e)) from None
     mapping = None
-    if cfg.suffix.lower() == ".json":  # CTAS-D: robots are renumbered species-major
-        r2a = robot_mapping(inst, json.loads(cfg.read_text()))
+    if ctas is not None:  # CTAS-D: robots are renumbered species-major
+        cfg, config = ctas
+        mp = writable("the robot mapping of --out", mapping_path(args.out), inputs=(args.input, cfg))  # never an input
+        r2a = robot_mapping(inst, config)
         mapping = {"format": MAPPING_FORMAT, "source": str(cfg), "instance": str(args.out), "robot_to_agent": r2a,
                    "agent_to_robot": sorted(r2a, key=r2a.get)}
     inst.save(args.out)
     print(f"wrote {args.out} ({inst.n_agents} agents in {inst.n_species} species, {inst.n_tasks} tasks)")
     if mapping is not None:
-        mp = mapping_path(args.out)
         atomic_write_text(mp, json.dumps(mapping, indent=1) + "\n")
         print(f"wrote {mp} (CTAS-D robot id -> hmrta agent id, agents numbered species-major)")
     return 0
