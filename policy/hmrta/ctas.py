@@ -13,10 +13,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from .instance import DEFAULT_VELOCITY, FORMAT, MAX_VALUE, MIN_VELOCITY, Instance, InstanceError, instance_from_dict
+from .instance import (DEFAULT_VELOCITY, FORMAT, MAX_SKILLS, MAX_VALUE, MIN_VELOCITY, Instance, InstanceError,
+                       instance_from_dict)
 from .reading import finite, short
-
-MAX_SKILLS = 10_000  # setup.num_skills: every robot and task carries a vector of this length
 
 
 def _get(d: Any, key: str, where: str) -> Any:

@@ -131,6 +131,16 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
     return out
 
 
+def _too_long(e: Exception) -> str | None:
+    """What is wrong, in the file's terms, when ``e`` is Python's refusal of an integer written
+    with too many digits (its message advises a call the user cannot make); else None."""
+    import sys
+
+    if isinstance(e, ValueError) and "Exceeds the limit" in str(e) and "digits" in str(e):
+        return f"an integer of more than {sys.get_int_max_str_digits()} digits"
+    return None
+
+
 def parse_json(text: str, source: str, error: type[Exception] = InputError) -> Any:
     try:
         data = json.loads(text, object_pairs_hook=_unique_keys)
@@ -142,7 +152,7 @@ def parse_json(text: str, source: str, error: type[Exception] = InputError) -> A
     except RecursionError:
         raise error(f"{source}: invalid JSON (nested more than {MAX_DEPTH} levels deep)") from None
     except ValueError as e:  # an integer beyond Python's int-from-text limit
-        raise error(f"{source}: invalid JSON ({one_line(e)})") from None
+        raise error(f"{source}: invalid JSON ({_too_long(e) or one_line(e)})") from None
     _check_shape(data, source, "JSON", error)
     return data
 
@@ -261,7 +271,7 @@ def parse_yaml(text: str, source: str, error: type[Exception] = InputError) -> A
         raise
     except Exception as e:  # noqa: BLE001 - an integer beyond Python's int-from-text limit, a date
         # out of range, or a PyYAML constructor failing on a malformed scalar (e.g. `!!timestamp 99999-01-01`)
-        raise error(f"{source}: invalid YAML ({type(e).__name__}: {one_line(e)[:200]})") from None
+        raise error(f"{source}: invalid YAML ({_too_long(e) or f'{type(e).__name__}: {one_line(e)[:200]}'})") from None
     finally:
         if loader is not None:
             loader.dispose()

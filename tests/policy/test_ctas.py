@@ -97,7 +97,7 @@ def _mut(cfg, path, value=None, delete=False):
     (("tasks", "0", "skillset", "0"), -2, False, "tasks['0'].skillset['0']: expected a value in [0, 1e+09]"),
     (("tasks", "0", "duration"), "long", False, "tasks['0'].duration: expected a number, got 'long'"),
     (("setup", "velocity"), 1e-300, False, "setup.velocity: expected a value in [1e-09, 1e+09]"),
-    (("setup", "num_skills"), 10**12, False, "setup.num_skills: expected a positive integer (at most 10000)"),
+    (("setup", "num_skills"), 10**12, False, "setup.num_skills: expected a positive integer (at most 1000)"),
     (("tasks", "2", "skillset", "1"), 4, False, "task '2' is infeasible"),  # team has 3 of skill 1
 ])
 def test_config_errors(cfg, tmp_path, path, value, delete, expect):

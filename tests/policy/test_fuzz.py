@@ -130,7 +130,7 @@ def test_yaml_alias_bomb_is_refused_before_it_is_expanded():
 @pytest.mark.parametrize("text,expect", [
     ("[" * 40 + "]" * 40, "nested more than 32 levels deep"),
     ("[" * 100_000 + "]" * 100_000, "nested more than 32 levels deep"),
-    ('{"a": ' + "1" * 5000 + "}", "invalid JSON (Exceeds the limit"),
+    ('{"a": ' + "1" * 5000 + "}", "invalid JSON (an integer of more than 4300 digits"),
     ("[1, 2", "x.json:1: invalid JSON"),
 ])
 def test_json_limits(text, expect):
@@ -142,7 +142,7 @@ def test_json_limits(text, expect):
 def test_yaml_limits():
     with pytest.raises(InputError, match=r"y.yaml:1: invalid YAML \(nested more than 32 levels deep\)"):
         parse_yaml("[" * 100_000 + "]" * 100_000, "y.yaml")
-    with pytest.raises(InputError, match="invalid YAML"):
+    with pytest.raises(InputError, match=r"^y.yaml: invalid YAML \(an integer of more than 4300 digits\)$"):
         parse_yaml("a: " + "1" * 5000 + "\n", "y.yaml")
     with pytest.raises(InputError, match="could not determine a constructor"):
         parse_yaml("a: !!python/object/apply:os.system ['true']\n", "y.yaml")

@@ -78,6 +78,22 @@ class Parser(argparse.ArgumentParser):
             self._innermost(ns).error(f"unrecognized arguments: {' '.join(extra)}")
         return ns
 
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        """Options may stand between the positional arguments of a command (``hmrta solve a.yaml
+        --method greedy b.yaml``, ``hmrta render m.yaml --out f.png sol.json``): a command with
+        positionals and no subcommands of its own is parsed intermixed."""
+        if getattr(self, "_mixing", False) or not self._intermixed():
+            return super().parse_known_args(args, namespace)
+        self._mixing = True
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._mixing = False
+
+    def _intermixed(self) -> bool:
+        positionals = self._get_positional_actions()
+        return bool(positionals) and not any(a.nargs in (argparse.PARSER, argparse.REMAINDER) for a in positionals)
+
     def _innermost(self, ns) -> argparse.ArgumentParser:
         for action in self._actions:
             if isinstance(action, argparse._SubParsersAction):
@@ -144,11 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="your missions instead of generated rows: " + INSTANCE_HELP
                         + " (one table row per folder, one for the files given singly)")
     b.add_argument("--suite", choices=["paper", "families"], default=None,
-                   help="paper: every paper row (Tables I-IV); families: the mission families (docs/families.md)")
+                   help="paper: every paper row (Tables I-IV); families: the mission families (docs/families.md) "
+                        "(default: no suite: your missions, or the one row of --agents ... --skills)")
     b.add_argument("--tables", default=None, help="with --suite: comma list of SA-BT,SA-AT,MA-AT,MA-AT-large "
-                   "(families: of family names, e.g. homog,binary)")
+                   "(families: of family names, e.g. homog,binary; default: every table of the suite)")
     b.add_argument("--max-tasks", type=int, default=None, help="with --suite: skip rows with more tasks (at least "
-                                                              "one row must remain)")
+                                                              "one row must remain; default: no limit)")
     _row_args(b, required=False)
     b.add_argument("--count", type=int, default=None,
                    help=f"instances per generated row, not for your missions (default: {BENCH_COUNT})")
@@ -272,7 +289,8 @@ def build_parser() -> argparse.ArgumentParser:
     lb.add_argument("solutions", nargs="*", metavar="SOLUTION",
                     help="solution JSON files to report gaps for; for several instances, folders of "
                          "<instance stem>.json files (e.g. written by solve --out DIR)")
-    lb.add_argument("--time-limit", type=float, default=None, help="also run CP-SAT this long; its bound counts")
+    lb.add_argument("--time-limit", type=float, default=None, help="also run CP-SAT for this many seconds; its bound "
+                    "counts (default: off, the fast bounds only)")
     lb.add_argument("--json", action="store_true", help="print JSON")
     lb.add_argument("--no-progress", action="store_true", help="no progress bars (drawn only when stderr is a terminal)")
     lb.set_defaults(fn=cmd_bound)

@@ -54,10 +54,10 @@ def cmd_solve(args) -> int:
         sols.append(sol)
         if out:
             sol.save(out / f"{f.stem}.json" if to_folder else out)
-        if not args.json:
-            print(sol.summary())
+        if not args.json:  # (above the progress bar, not on its line)
+            tqdm.write(sol.summary())
             if args.schedule:
-                print(schedule_text(inst, sol))
+                tqdm.write(schedule_text(inst, sol))
         if sol.extra.get("interrupted"):
             where = f"; written to {out / f'{f.stem}.json' if to_folder else out}" if out else ""
             print(f"interrupted: {inst.name}: the best schedule found in {sol.compute_seconds:.1f} s{where}"
