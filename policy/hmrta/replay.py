@@ -52,7 +52,7 @@ class ReplayError(ValueError):
 class Recording:
     path: Path
     mission: dict[str, Any]  # the hmrta-mission/1 payload
-    instance: Instance
+    instance: Instance  # the mission as it ended: with the tasks added while it ran (the plan's final instance)
     robots: list[str]
     scale: float
     plan: Solution | None  # the result, else the latest board's schedule; None if neither was recorded
@@ -62,6 +62,7 @@ class Recording:
     counts: dict[str, int]  # topic -> messages
     types: dict[str, str]  # topic -> message type
     clock: list[tuple[int, float]] = field(default_factory=list)  # (receive ns, mission clock), receive order
+    recorded: Instance | None = None  # the mission message's instance (None: ``instance``)
 
     @property
     def routes(self) -> list[list[int]] | None:
@@ -263,11 +264,23 @@ def read_recording(path: str | Path) -> Recording:
     scale = mission.get("scale", 1.0)
     scale = float(scale) if isinstance(scale, (int, float)) and scale > 0 else 1.0
     plan, source = _plan(inst, mission, result_text, keyframe_text, heads, path)
+    final = inst
+    if plan is not None:  # a mission that changed while it ran: the plan indexes its tasks as it ended
+        from .solution import final_instance
+
+        try:
+            final = final_instance(inst, plan, f"{path} (recorded {source})")
+        except SolutionError as e:
+            raise ReplayError(str(e)) from None
+        if final.n_agents != len(robots):
+            raise ReplayError(f"{path}: the recorded {source} has {final.n_agents} robots, the "
+                              f"{MISSION_TOPIC} message names {len(robots)}")
     clock.sort()
     horizon = max((c for _, c in clock), default=math.nan)
     tracks = {r: _track(p, clock, horizon, scale) for (n, r), p in poses.items() if n == space and r in robots}
     goals = {r: [(d, x / scale, y / scale) for d, x, y in g] for (n, r), g in goals.items() if n == space and r in robots}
-    return Recording(path, mission, inst, list(robots), scale, plan, source, tracks, goals, counts, types, clock)
+    return Recording(path, mission, final, list(robots), scale, plan, source, tracks, goals, counts, types, clock,
+                     recorded=inst)
 
 
 def _board_header(text: Any) -> dict[str, Any] | None:

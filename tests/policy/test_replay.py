@@ -52,17 +52,22 @@ def mission_payload(inst, robots) -> str:
 
 
 def write_recording(path: Path, *, mission=True, result=True, board=False, poses=True, wall_stamps=False,
-                    late: float = 0.0, namespace: str = "", extra: tuple = ()) -> tuple:
+                    late: float = 0.0, namespace: str = "", extra: tuple = (), grown: tuple | None = None) -> tuple:
     """A recording of the greedy plan of the example, its robots arriving on time (+ ``late``):
     poses stamped with the mission clock, or (``wall_stamps``) with wall time, clocks on /clock;
     the mission's topics in the mission namespace ``namespace`` ('/fleet1'; '' the root), plus
-    the messages ``extra`` ((mission time, topic, schema, message))."""
-    inst = load_instance(EXAMPLE)
-    sol = solve(inst, "greedy", 0)
+    the messages ``extra`` ((mission time, topic, schema, message)). ``grown``: (the mission the
+    board published, the result, the mission as it ended) of a mission that changed while it ran."""
+    if grown is None:
+        inst = load_instance(EXAMPLE)
+        sol = solve(inst, "greedy", 0)
+        published = inst
+    else:
+        published, sol, inst = grown
     robots = [f"robot_{a}" for a in range(inst.n_agents)]
     msgs: list[tuple[float, str, str, dict]] = []  # (mission time, topic, schema, message)
     if mission:
-        msgs.append((-1.0, "/hmrta/mission", "std_msgs/msg/String", {"data": mission_payload(inst, robots)}))
+        msgs.append((-1.0, "/hmrta/mission", "std_msgs/msg/String", {"data": mission_payload(published, robots)}))
     if board == "v1":  # a recording made before the board stream: a full board on every version
         snap = MissionState(inst, seed=0).snapshot()
         head = {"format": "hmrta-board/1", "session": "s1", "version": 1, "rev": 0, "phase": "wait", "clock": 0.0}
@@ -232,6 +237,40 @@ def test_render_from_recording(tmp_path, capsys):
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
     assert cli_main(["render", str(EXAMPLE), "--from", str(tmp_path / "r.mcap"), "--out", str(out)]) == 0
     assert f"{n}/{n} arrivals" in capsys.readouterr().out
+
+
+def test_a_mission_that_changed_while_it_ran_reads_back_and_draws(tmp_path, capsys):
+    """Tasks added and a robot joined while it ran: the board published the mission with the robot
+    that joined (not the added tasks); the result indexes the mission as it ended, which the
+    recording reads back (``instance``) and draws, also checked against the mission's own file."""
+    import dataclasses
+
+    from hmrta.solution import final_instance
+
+    (tmp_path / "mission.yaml").write_text(EXAMPLE.read_text())
+    scen = tmp_path / "scen.yaml"
+    scen.write_text("format: hmrta-scenario/1\ninstance: mission.yaml\nevents:\n"
+                    "  - {t: 1.0, type: add_robot, species: 0}\n"
+                    "  - {t: 2.0, type: add_task, id: extra, location: [0.5, 0.5], requirements: [1, 0, 0, 0, 0], "
+                    "duration: 2}\n")
+    base = load_instance(scen)
+    sol = solve(base, "greedy", 0)
+    ended = final_instance(base, sol)
+    mission = load_instance(tmp_path / "mission.yaml")
+    assert (ended.n_agents, ended.n_tasks) == (mission.n_agents + 1, mission.n_tasks + 1)
+    published = dataclasses.replace(ended, tasks=mission.tasks, _cache={})  # robots that joined, not added tasks
+    write_recording(tmp_path / "g.mcap", grown=(published, sol, ended))
+    rec = read_recording(tmp_path / "g.mcap")
+    assert rec.instance.to_dict() == ended.to_dict() and rec.recorded.to_dict() == published.to_dict()
+    n = sum(map(len, sol.routes))
+    out = tmp_path / "g.png"
+    assert cli_main(["render", "--from", str(tmp_path / "g.mcap"), "--out", str(out)]) == 0
+    assert cli_main(["render", str(tmp_path / "mission.yaml"), "--from", str(tmp_path / "g.mcap"), "--out", str(out)]) == 0
+    assert f"{n}/{n} arrivals" in capsys.readouterr().out and out.stat().st_size > 10_000
+    other = ScenarioGenerator("MA-AT", 4, 2, 5, 3).instance(1, 0)
+    other.save(tmp_path / "other.yaml")
+    assert "is not the instance" in _one_line_error(
+        ["render", str(tmp_path / "other.yaml"), "--from", str(tmp_path / "g.mcap"), "--out", str(out)], capsys)
 
 
 def _one_line_error(args, capsys) -> str:

@@ -93,6 +93,16 @@ def _looks_like_routes(path: str) -> bool:
     return isinstance(d, dict) and "routes" in d and "format" not in d
 
 
+def _begins(grown, inst) -> bool:
+    """Whether the mission ``grown`` is ``inst``, or ``inst`` with robots and tasks added after its
+    own (the mission a board published once robots had joined)."""
+    a, b = inst.to_dict(), grown.to_dict()
+    rest = (set(a) | set(b)) - {"species", "tasks", "added_agents"}
+    return (all(a.get(k) == b.get(k) for k in rest) and b["species"][:len(a["species"])] == a["species"]
+            and b["tasks"][:len(a["tasks"])] == a["tasks"]
+            and b.get("added_agents", [])[:len(a.get("added_agents", []))] == a.get("added_agents", []))
+
+
 def cmd_render_recording(args) -> int:
     """``hmrta render [INSTANCE] --from FILE.mcap --out fig.png``: the executed mission."""
     from ..replay import ReplayError, read_recording, render_recording, summary
@@ -107,11 +117,11 @@ def cmd_render_recording(args) -> int:
         rec = read_recording(args.from_)
     except ReplayError as e:
         raise UserError(str(e)) from None
-    if args.instance is not None:  # the recorded mission must be this instance
-        inst = _load(args.instance)
-        if inst.to_dict() != rec.instance.to_dict():
-            raise UserError(f"{args.from_}: the recorded mission ({rec.instance.name}, {rec.instance.n_agents} robots, "
-                            f"{rec.instance.n_tasks} tasks) is not the instance {args.instance} ({inst.name})")
+    if args.instance is not None:  # the recorded mission must be this instance (robots may have joined it)
+        inst, started = _load(args.instance), rec.recorded or rec.instance
+        if not _begins(started, inst):
+            raise UserError(f"{args.from_}: the recorded mission ({started.name}, {started.n_agents} robots, "
+                            f"{started.n_tasks} tasks) is not the instance {args.instance} ({inst.name})")
     if rec.plan is not None:
         check_solution(rec.instance, rec.plan, f"{args.from_} (recorded {rec.plan_source})")
     try:
