@@ -706,6 +706,8 @@ def _main(argv: list[str] | None = None) -> int:
     print(f"mission {inst.name}: {inst.n_agents} robots, {inst.n_tasks} tasks, method {args.method}, seed {args.seed}; "
           f"{n_proc} processes on ROS domain {env['ROS_DOMAIN_ID']} "
           f"(discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}); logs in {log_dir}", flush=True)
+    ns = f" --mission-namespace {mission_namespace}" if mission_namespace != "/" else ""
+    print(f"operators: hmrta-task --domain-id {env['ROS_DOMAIN_ID']}{ns} list (add, cancel)", flush=True)
     t0 = time.monotonic()
     interrupted, status = False, "interrupted"
     try:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 import uuid
@@ -82,6 +83,11 @@ def _spin_until(node, done, until: float, step: float = 0.05) -> None:
 
     while not done() and time.monotonic() < until:
         rclpy.spin_once(node, timeout_sec=step)
+
+
+def _domain(args) -> str:
+    """The ROS domain this client uses: --domain-id, else $ROS_DOMAIN_ID, else ROS's default 0."""
+    return str(args.domain_id if args.domain_id is not None else (os.environ.get("ROS_DOMAIN_ID") or 0))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -173,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
             _spin_until(node, lambda: got, deadline, step=0.1)
             if not got:
                 print(f"hmrta-task: no board within {args.timeout:g} s (nothing on {T.keyframe}: is a mission running "
-                      f"on this ROS domain, in mission namespace {T.namespace}?)", file=sys.stderr)
+                      f"on ROS domain {_domain(args)}, in mission namespace {T.namespace}? hmrta-mission prints "
+                      f"its domain and namespace: --domain-id, --mission-namespace)", file=sys.stderr)
                 return 1
             try:
                 b = board_from_msg(got[-1])
