@@ -166,6 +166,35 @@ def test_ctrl_c_or_sigterm_at_any_moment_of_start_up_is_one_line(exe, args, sig,
     print(f"{exe}: exit statuses after {name} {outcomes}")
 
 
+def _ignore_sigint() -> None:  # in the child: as a shell script's `node &` starts it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def test_a_node_started_with_sigint_ignored_still_stops_on_it_at_start_up(tmp_path, domain):
+    """A node whose parent left SIGINT ignored (a background job of a shell script) takes it over
+    in start-up as it does once it runs: a SIGINT then ends it (130, one line); it was ignored
+    until the node spun, so an early stop left an agent waiting for a board for ever."""
+    outcomes = []
+    for k, delay in enumerate((0.0, 0.3)):
+        log = tmp_path / f"agent_{k}.log"
+        with open(log, "w") as fh:
+            p = subprocess.Popen([str(BIN / "agent_node"), "--ros-args", "-p", "robot:=robot_0"], stdout=fh,
+                                 stderr=subprocess.STDOUT, env=_env(domain, tmp_path), preexec_fn=_ignore_sigint)
+            try:
+                _wait_until_start_up_handles_signals(p)
+                time.sleep(delay)
+                p.send_signal(signal.SIGINT)
+                rc = p.wait(timeout=30)
+            finally:
+                if p.poll() is None:
+                    p.kill()
+        out = log.read_text()
+        outcomes.append(rc)
+        assert "Traceback" not in out and ((rc == 130 and out.splitlines()[-1] == "agent_node: interrupted during "
+                                            "start-up") or (rc == 0 and "stopped by SIGINT" in out)), (delay, rc, out)
+    assert outcomes[0] == 130, outcomes
+
+
 @pytest.mark.parametrize("exe,module,args", [
     ("task_board", "hmrta_coordinator.task_board", ["--ros-args", "-p", f"instance:={EXAMPLE}"]),
     ("agent_node", "hmrta_agent.agent_node", ["--ros-args", "-p", "robot:=robot_0"]),

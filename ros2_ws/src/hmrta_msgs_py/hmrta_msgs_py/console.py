@@ -64,7 +64,9 @@ def run(prog: str, module: str, func: str = "main") -> None:
     if hasattr(signal, "SIGUSR1"):
         faulthandler.register(signal.SIGUSR1, all_threads=True)
     if threading.current_thread() is threading.main_thread():
-        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        # also over an inherited SIG_IGN (a `node &` of a shell script): a node stops on SIGINT,
+        # in start-up as once it runs (where rclpy, and so every ROS node, takes SIGINT over)
+        if signal.getsignal(signal.SIGINT) in (signal.default_int_handler, signal.SIG_IGN):
             signal.signal(signal.SIGINT, _noted)
         if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:  # (else it would end the process without a word)
             signal.signal(signal.SIGTERM, _noted)
