@@ -217,7 +217,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="torch CPU threads (default: torch's, one per core; fewer beside other busy processes)")
     _fanout_args(t, "label the teachers' missions (behaviour cloning) and roll out the validation set",
                  "; the labels, and so the run, are the same whatever N")
-    t.add_argument("--export", default=None, help="after training, write the best weights + config here")
+    t.add_argument("--export", default=None, help="after training, write an inference checkpoint here: the "
+                   "weights of the run's best.pt (its moving average with train.ema; last.pt without a "
+                   "validation), its config, counters and lineage; not the run's own last.pt or best.pt. "
+                   "To export a run without training more: hmrta checkpoint average RUN/best.pt --out FILE")
     t.add_argument("--no-progress", action="store_true", help="no progress bar (drawn only when stderr is a terminal)")
     t.add_argument("--check", action="store_true", help="only validate the config (with --iterations and "
                                                         "--max-minutes applied) and the command line (the run "

@@ -64,9 +64,13 @@ def cmd_train(args) -> int:
     if (args.init or args.reseed) and not args.resume:
         raise UserError("--init and --reseed only apply with --resume")
     run_dir = writable("--run-dir", args.run_dir or f"runs/{cfg['name']}", folder=True)
-    if args.export:
-        writable("--export", args.export)
     last = run_dir / "last.pt"
+    if args.export:
+        writable("--export", args.export, inputs=tuple(x for x in (args.init,) if x))
+        for own in (last, run_dir / "best.pt"):  # (written by the run: they may not exist yet)
+            if Path(args.export).resolve() == own.resolve():
+                raise UserError(f"--export {args.export}: is the run's own {own.name} (its resume state); "
+                                f"export elsewhere")
     if last.exists() and not args.resume:
         raise UserError(f"{run_dir} already holds a run: pass --resume to continue it or --run-dir for a new one")
     if args.init:  # a file, or a shipped checkpoint by its name (as every other command takes one)
@@ -108,7 +112,8 @@ def cmd_train(args) -> int:
     if args.resume:
         src = Path(args.init) if args.init else last
         tr.load(src, reseed=args.reseed, same_run=not args.init)
-        print(f"resumed from {src}: iteration {tr.iteration}, {tr.episodes} episodes", file=sys.stderr)
+        print(f"resumed from {src}: iteration {tr.iteration}, {tr.episodes} episodes, cloning iteration "
+              f"{tr.pretrain_done}, distillation iteration {tr.distill_done}", file=sys.stderr)
         changed = tr.changed_keys()
         if changed:
             print(f"this config differs from the checkpoint's ({len(changed)} setting(s); the run goes on under "
@@ -130,11 +135,12 @@ def cmd_train(args) -> int:
 
     print(json.dumps(clean(res)))  # strict JSON: no score yet is null, not Infinity
     if args.export:
-        best = run_dir / "best.pt"
-        if best.exists():
-            tr.load(best)
-        tr.export(Path(args.export))
-        print(f"exported {'best' if best.exists() else 'last'} weights to {args.export}", file=sys.stderr)
+        from ..rl.checkpoint import export_run_checkpoint
+
+        src = run_dir / "best.pt" if (run_dir / "best.pt").exists() else last
+        which = export_run_checkpoint(src, args.export)
+        print(f"exported the weights of {src} ({'the moving average' if which == 'ema' else which}) to "
+              f"{args.export}", file=sys.stderr)
     return 0
 
 
@@ -199,7 +205,9 @@ def _print_checkpoint(d: dict) -> None:
             ("network", ", ".join(f"{k} {v}" for k, v in model.items() if k not in ("greedy_depot",))),
             ("greedy depot", model.get("greedy_depot", "argmax (default)")),
             ("rules", ", ".join(f"{k} {v}" for k, v in rules.items()) or "defaults")]
-    rows += [(k, d[k]) for k in ("iteration", "episodes", "best_val") if k in d]
+    counters = (("iteration", "iteration"), ("pretrain_done", "cloning"), ("distill_done", "distillation"),
+                ("episodes", "episodes"), ("decisions", "decisions"), ("best_val", "best_val"))
+    rows += [(label, d[k]) for k, label in counters if k in d]  # (cloning, distillation: iterations done)
     for k, v in rows:
         print(f"  {k:<13} {v}")
     if d["lineage"]:

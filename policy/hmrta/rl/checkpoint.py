@@ -248,7 +248,22 @@ def export(path: str | Path, config: dict, weights_: dict[str, torch.Tensor], me
          "model": {k: v.detach().cpu() for k, v in weights_.items()}}
     if summary:
         d["summary"] = summary
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     save(path, d)
+
+
+def export_run_checkpoint(src: str | Path, dst: str | Path) -> str:
+    """Write the inference checkpoint of a run's checkpoint ``src`` (its best.pt or last.pt) to
+    ``dst``: the weights inference uses (:func:`policy_weights`), its resolved config, counters,
+    validation scores and lineage as they are. Returns which weights ("ema" or "model")."""
+    ck = load(src)
+    if not isinstance(ck.get("config"), dict):
+        raise CheckpointError(f"{src}: config: expected a mapping (the training config)")
+    which, sd = policy_weights(ck, src)
+    meta = {k: ck.get(k) for k in (*COUNTERS, "best_val", "greedy_val")}
+    meta["lineage"] = ck.get("lineage") if isinstance(ck.get("lineage"), list) else []
+    export(dst, ck["config"], sd, meta, ck.get("summary") if isinstance(ck.get("summary"), dict) else None)
+    return which
 
 
 def policy_weights(ck: dict, path: str | Path) -> tuple[str, dict[str, torch.Tensor]]:

@@ -183,7 +183,7 @@ def describe(checkpoint: str | Path | None = None) -> dict:
                            "format": data.get("checkpoint_format", 0),
                            "code_version": data.get("code_version"),
                            "weights": [k for k in ("model", "ema") if isinstance(data.get(k), dict)]}
-    for k in ("iteration", "episodes", "best_val"):
+    for k in ("iteration", "pretrain_done", "distill_done", "episodes", "decisions", "best_val"):
         if isinstance(data.get(k), (int, float)) and not isinstance(data.get(k), bool):
             out[k] = data[k]
     out["config"] = data["config"]

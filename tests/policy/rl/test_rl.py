@@ -1774,6 +1774,40 @@ def test_a_reseeded_continuation_scores_its_starting_weights_into_best_pt(tmp_pa
     assert (tmp_path / "b" / "best.pt").exists() and math.isfinite(res["best_val"])
 
 
+def test_train_export_writes_the_runs_best_weights_with_their_lineage(tmp_path, capsys):
+    """hmrta train --export: the weights inference uses of the run's best.pt (its moving average),
+    its counters and lineage as they are (not an ``init`` of the run's own file), into a folder
+    made for it; never over the run's own last.pt or best.pt (its resume state)."""
+    import yaml
+
+    from hmrta.cli import main
+    from hmrta.rl.checkpoint import load, policy_weights
+
+    cfg = _tiny_cfg(train={"iterations": 2, "ema": 0.9}, pretrain={"iterations": 0},
+                    validation={"every": 1, "rows": [[4, 2, 5, 2, 2]]})
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    run, out = tmp_path / "run", tmp_path / "new" / "folder" / "mine.pt"
+    train = ["train", "--config", str(path), "--run-dir", str(run), "--no-progress", "--threads", "1"]
+    for own in ("last.pt", "best.pt"):
+        assert main([*train, "--export", str(run / own)]) == 2
+        assert f"is the run's own {own}" in capsys.readouterr().err
+    assert not run.exists()
+    assert main([*train, "--export", str(out)]) == 0
+    assert "(the moving average)" in capsys.readouterr().err
+    best, mine = load(run / "best.pt"), load(out)
+    assert mine["lineage"] == best["lineage"] == [] and mine["iteration"] == best["iteration"]
+    which, sd = policy_weights(best, run / "best.pt")
+    assert which == "ema" and all(torch.equal(sd[k], mine["model"][k]) for k in sd)
+    assert "optimizer" not in mine and mine["config"] == best["config"]
+    assert load_policy(out).config == best["config"]
+    capsys.readouterr()
+    assert main(["checkpoint", "info", str(out)]) == 0  # every training counter, the cloning phase's too
+    said = capsys.readouterr().out
+    for label, key in (("iteration", "iteration"), ("cloning", "pretrain_done"), ("decisions", "decisions")):
+        assert re.search(rf"^  {label} +{mine[key]}$", said, re.M), (label, said)
+
+
 def test_checkpoint_info_refuses_what_the_loaders_refuse(tmp_path, capsys):
     """hmrta checkpoint info is as strict as solve and --resume: a newer format, bad rules, a
     negative counter and a file that is not a checkpoint are one line each, exit 2."""
