@@ -107,6 +107,7 @@ class Trainer:
         self.episodes = 0
         self.decisions = 0
         self.best_val = math.inf
+        self.started_from: Path | None = None  # the checkpoint of another run it started from (--init)
         self.greedy_val: float | None = None
         self._coalition_val: np.ndarray | None = None
         self.val_set = validation_set(self.cfg)
@@ -257,6 +258,7 @@ class Trainer:
             raise CheckpointError(f"{path}: not a resumable training checkpoint ({type(e).__name__}: {first})") from None
         self.ema = ema if self.cfg.train.ema > 0 and not added else None
         self.loaded_config, self.lineage = loaded_config, lineage
+        self.started_from = None if same_run else Path(path)  # --init: another run's weights
         for k, v in counters.items():
             setattr(self, k, v)
         if not reseed:  # validation scores and random streams continue the checkpoint's run
@@ -473,6 +475,16 @@ class Trainer:
         deadline = start + 60 * t.max_minutes if t.max_minutes else math.inf
         last, best = self.run_dir / "last.pt", self.run_dir / "best.pt"
         counters = self._counters()
+        if self.started_from is not None and not best.exists():
+            # weights from another run (--init) are this run's first best.pt, so that neither it nor
+            # an export is ever worse than what the run started from; scored first where the source's
+            # score is not on this run's validation set (--reseed)
+            if self.best_val == math.inf:
+                v = self.validate()
+                self.best_val = v["val_makespan"]
+                w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
+                self.log(f"the starting weights ({self.started_from}): validation {v['val_makespan']:.3f}")
+            self.save(best)
         self._mark_boundary()
         try:
             phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)

@@ -1774,6 +1774,28 @@ def test_a_reseeded_continuation_scores_its_starting_weights_into_best_pt(tmp_pa
     assert (tmp_path / "b" / "best.pt").exists() and math.isfinite(res["best_val"])
 
 
+def test_a_run_from_another_runs_weights_keeps_them_as_best_until_beaten(tmp_path):
+    """--init (here with --reseed): the starting weights are scored before cloning and are the
+    run's first best.pt, so that best.pt (and an export) is never worse than them; without later
+    validations they stay the best."""
+    from hmrta.rl.checkpoint import load, policy_weights
+
+    Trainer(_tiny_cfg(train={"iterations": 1}, pretrain={"iterations": 0}), tmp_path / "a", device="cpu",
+            log=lambda s: None).run(progress=False)
+    src = tmp_path / "a" / "last.pt"
+    cfg = _tiny_cfg(train={"iterations": 0},
+                    pretrain={"iterations": 2, "instances_per_iter": 2, "teacher": "greedy-coalition"})
+    tr = Trainer(cfg, tmp_path / "b", device="cpu", log=lambda s: None)
+    tr.load(src, reseed=True)
+    res = tr.run(progress=False)
+    assert tr.pretrain_done == 2 and math.isfinite(res["best_val"])
+    rows = (tmp_path / "b" / "log.csv").read_text().splitlines()
+    assert rows[1].startswith("val,") and sum(r.startswith("bc,") for r in rows) == 2, rows
+    _, start = policy_weights(load(src), src)
+    _, best = policy_weights(load(tmp_path / "b" / "best.pt"), tmp_path / "b" / "best.pt")
+    assert all(torch.equal(start[k], best[k]) for k in start)  # (validation.every 1000: scored once)
+
+
 def test_train_export_writes_the_runs_best_weights_with_their_lineage(tmp_path, capsys):
     """hmrta train --export: the weights inference uses of the run's best.pt (its moving average),
     its counters and lineage as they are (not an ``init`` of the run's own file), into a folder
