@@ -36,6 +36,27 @@ def scenario(tmp_path: Path, *extra: str) -> Path:
     return p
 
 
+
+def test_a_node_refuses_a_parameter_change_it_would_ignore(graph):
+    """Every node reads its parameters once, at start: ``ros2 param set`` is refused with the
+    reason (it was accepted and ignored, and ``param get`` then reported a value not in effect);
+    rclpy's own use_sim_time stays settable."""
+    from rclpy.parameter import Parameter
+
+    from hmrta_agent.agent_node import AgentNode
+    from hmrta_coordinator.recorder import Recorder
+    from hmrta_coordinator.sim_robot import SimRobot
+    from hmrta_coordinator.task_board import TaskBoard
+
+    sim = SimRobot(context=graph.context, start_parameter_services=False, enable_rosout=False)
+    graph.nodes.append(sim)
+    (r,) = sim.set_parameters([Parameter("time_scale", value=2.0)])
+    assert not r.successful and "time_scale: read once at start-up" in r.reason
+    assert sim.get_parameter("time_scale").value == 0.0 and sim.time_scale == 0.0
+    assert sim.set_parameters([Parameter("use_sim_time", value=False)])[0].successful
+    for cls in (AgentNode, Recorder, TaskBoard):  # (built in the mission tests) the same decorator
+        assert cls.__init__.__wrapped__ is not None, cls
+
 def test_a_live_scenario_equals_the_offline_run(tmp_path, domain):
     path = scenario(tmp_path)
     out = tmp_path / "mission.json"

@@ -78,8 +78,8 @@ from hmrta_msgs_py.codec import (POSE_TYPES, Choice, DecodeError, Join, Keyframe
                                  board_from_msg, choice_to_msg, clock_from_msg, keyframe_request_to_msg,
                                  mission_from_msg, pose_from_msg, pose_to_msg, pose_type, rejection_from_msg,
                                  status_to_msg, yaw_from_msg)
-from hmrta_msgs_py.runtime import (BoardSilence, LEAN_NODE, declare_method_parameters, mission_namespaces, spin_nodes,
-                                   starting)
+from hmrta_msgs_py.runtime import (BoardSilence, LEAN_NODE, declare_method_parameters, mission_namespaces,
+                                   parameters_read_at_start, spin_nodes, starting)
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 
@@ -491,6 +491,7 @@ class Host:
             self.agent_finished()
 
 
+@parameters_read_at_start
 class AgentNode(Node):
     def __init__(self, host: Host, **node_kw: Any):
         super().__init__("agent", **node_kw)

@@ -40,7 +40,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from hmrta_msgs_py import topics
-from hmrta_msgs_py.runtime import check_period, spin_nodes, starting, writable_file
+from hmrta_msgs_py.runtime import check_period, parameters_read_at_start, spin_nodes, starting, writable_file
 
 RECORDING_FORMAT = "hmrta-recording/1"  # the MCAP metadata record "hmrta" names it
 DRAIN_SECONDS = 0.5  # on a stop signal: the messages already received are recorded for up to this long
@@ -177,6 +177,7 @@ def string_payload(data: bytes) -> str | None:
     return data[8:8 + n - 1].decode("utf-8", errors="replace")
 
 
+@parameters_read_at_start
 class Recorder(Node):
     def __init__(self) -> None:
         super().__init__("hmrta_recorder")

@@ -50,8 +50,8 @@ from hmrta.replica import Replica
 from hmrta_msgs_py import topics
 from hmrta_msgs_py.codec import (DecodeError, KeyframeRequest, Mission, board_from_msg, clock_to_msg,
                                  keyframe_request_to_msg, mission_from_msg, pose_from_msg, pose_to_msg)
-from hmrta_msgs_py.runtime import (MAX_PERIOD, MIN_PERIOD, BoardSilence, check_period, mission_namespaces, spin_nodes,
-                                   starting)
+from hmrta_msgs_py.runtime import (MAX_PERIOD, MIN_PERIOD, BoardSilence, check_period, mission_namespaces,
+                                   parameters_read_at_start, spin_nodes, starting)
 from hmrta_msgs_py.codec import RESEND  # leg node: the board re-sends a goal
 
 EPS = 1e-6
@@ -93,6 +93,7 @@ class SimulatedRobot:
         return any(g.depart <= t < g.arrive for g in self.legs)
 
 
+@parameters_read_at_start
 class SimRobot(Node):
     def __init__(self, **node_kw: Any):
         super().__init__("sim_robot", **node_kw)

@@ -101,10 +101,11 @@ from hmrta_msgs_py.codec import (POSE_TYPES, Board, DecodeError, MarkerView, Mis
                                  mission_to_msg, pose_from_msg, rejection_to_msg, request_id_of, result_to_msg,
                                  status_from_msg, task_event_to_msg, task_request_from_msg)
 from hmrta_msgs_py.console import signals_deferred
-from hmrta_msgs_py.runtime import (check_period, closest, declare_method_parameters, spin_nodes, starting,
-                                   writable_file)
+from hmrta_msgs_py.runtime import (check_period, closest, declare_method_parameters, parameters_read_at_start,
+                                   spin_nodes, starting, writable_file)
 
 
+@parameters_read_at_start
 class TaskBoard(Node):
     """ROS wrapper of :class:`hmrta.board.MissionBoard`: parameters, topics and timers."""
 

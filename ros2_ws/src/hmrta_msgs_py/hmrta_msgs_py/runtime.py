@@ -264,6 +264,34 @@ def parameter_type_text(text: str) -> str:
     return out
 
 
+def parameters_read_at_start(cls):
+    """Class decorator of a node that reads its parameters once, in ``__init__``: once it is built,
+    setting any of them (``ros2 param set``) is refused with the reason, instead of being accepted
+    and ignored (a later ``ros2 param get`` would then report a value not in effect). rclpy's own
+    ``use_sim_time`` stays settable."""
+    import functools
+
+    init = cls.__init__
+
+    @functools.wraps(init)
+    def __init__(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        self.add_on_set_parameters_callback(_refuse_changes)
+
+    cls.__init__ = __init__
+    return cls
+
+
+def _refuse_changes(params):
+    from rcl_interfaces.msg import SetParametersResult
+
+    names = [p.name for p in params if p.name != "use_sim_time"]
+    if not names:
+        return SetParametersResult(successful=True)
+    return SetParametersResult(successful=False, reason=f"{', '.join(names)}: read once at start-up; restart the "
+                                                        f"node with -p NAME:=VALUE to change it")
+
+
 def declare_method_parameters(node) -> tuple[str, dict]:
     """Declare ``method`` and every option of a method a node runs (the table
     :func:`hmrta_msgs_py.params.method_parameters`, generated from :data:`hmrta.methods.METHODS`)
