@@ -543,6 +543,12 @@ def test_train_check_reads_the_checkpoint_it_would_start_from(tmp_path, capsys):
     _exit2([*train, "--init", str(cut)], capsys, f"{cut}: not a readable hmrta checkpoint (a zip archive cut short")
     _exit2([*train, "--init", "default", "--reseed"], capsys, "weights do not match the network")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.pt"]  # no run folder
+    # ... nor when it runs: the run folder made for it is not left behind, and the message names
+    # the network's settings that differ (coalition-team.yaml's network against compact.pt's)
+    _exit2([t for t in train if t != "--check"] + ["--init", "compact", "--reseed"], capsys,
+           "compact.pt: a network of d_model 64, heads 4, ff_hidden 64, this config's has model.d_model 128, "
+           "model.heads 8, model.ff_hidden 128")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.pt"]
 
 
 def test_train_device_and_missing_checkpoints(tmp_path, monkeypatch, capsys):

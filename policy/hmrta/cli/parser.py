@@ -207,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --resume: draw fresh random streams from the config's seed and forget the "
                         "checkpoint's best validation score (an independent continuation, e.g. under other rules)")
     t.add_argument("--run-dir", default=None, help="run folder (default runs/<config name>)")
-    t.add_argument("--max-minutes", type=float, default=None, help="stop after this many minutes (checkpointed)")
+    t.add_argument("--max-minutes", type=float, default=None, help="stop after this many minutes, last.pt "
+                   "holding the state (default: the config's train.max_minutes; none: every iteration)")
     t.add_argument("--iterations", type=int, default=None,
                    help="override train.iterations (REINFORCE's; the cloning and distillation phases run "
                         "pretrain.iterations and distill.iterations: cap them in the config, or the run with "

@@ -107,18 +107,24 @@ def cmd_train(args) -> int:
     from tqdm import tqdm
 
     # log lines above the progress bar, not into it
-    tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: tqdm.write(s, file=sys.stderr), jobs=args.jobs,
-                 ray_address=args.ray_address)
+    made = not run_dir.exists()
+    try:
+        tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: tqdm.write(s, file=sys.stderr), jobs=args.jobs,
+                     ray_address=args.ray_address)
+        if args.resume:
+            src = Path(args.init) if args.init else last
+            tr.load(src, reseed=args.reseed, same_run=not args.init)
+    except BaseException:  # (e.g. --init of another network): no empty run folder is left behind
+        if made and run_dir.is_dir() and not any(run_dir.iterdir()):
+            run_dir.rmdir()
+        raise
     if args.resume:
-        src = Path(args.init) if args.init else last
-        tr.load(src, reseed=args.reseed, same_run=not args.init)
         print(f"resumed from {src}: iteration {tr.iteration}, {tr.episodes} episodes, cloning iteration "
               f"{tr.pretrain_done}, distillation iteration {tr.distill_done}", file=sys.stderr)
         changed = tr.changed_keys()
         if changed:
             print(f"this config differs from the checkpoint's ({len(changed)} setting(s); the run goes on under "
-                  f"this config's and records it): " + "; ".join(changed[:8]) + ("; ..." if len(changed) > 8 else ""),
-                  file=sys.stderr)
+                  f"this config's and records it): " + "; ".join(changed), file=sys.stderr)
     write_config(cfg, run_dir / "config.yaml")
     print(f"training on {tr.device}; log {run_dir / 'log.csv'}", file=sys.stderr)
     try:
@@ -133,6 +139,9 @@ def cmd_train(args) -> int:
         return 130
     from ..bench import clean
 
+    if tr.stopped_by_time:
+        print(f"stopped at the time limit ({cfg['train']['max_minutes']:g} min), the iterations not all done: "
+              f"{last} holds the state (--resume continues)", file=sys.stderr)
     print(json.dumps(clean(res)))  # strict JSON: no score yet is null, not Infinity
     if args.export:
         from ..rl.checkpoint import export_run_checkpoint

@@ -255,7 +255,7 @@ class PretrainConfig:
     iterations: int = _f(0, _integer(0))
     instances_per_iter: int = _f(16, _integer(1))
     lr: float = _f(1.0e-3, _number(0, lo_open=True))
-    epochs: int = _f(2, _integer(0))
+    epochs: int = _f(2, _integer(1))
     batch: int = _f(512, _integer(1))
     # whose choices are cloned: a baseline (greedy | greedy-coalition), or rl@CHECKPOINT: a
     # checkpoint's greedy decoding (a shipped name or a path; distillation into this network)

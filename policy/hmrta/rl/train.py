@@ -108,6 +108,7 @@ class Trainer:
         self.decisions = 0
         self.best_val = math.inf
         self.started_from: Path | None = None  # the checkpoint of another run it started from (--init)
+        self.stopped_by_time = False  # run() ended at train.max_minutes, its iterations not all done
         self.greedy_val: float | None = None
         self._coalition_val: np.ndarray | None = None
         self.val_set = validation_set(self.cfg)
@@ -224,7 +225,16 @@ class Trainer:
              **({"reseed": True} if reseed else {})}]
         sd = weights(ck, "model", path)
         widened = widen_task_inputs(self.model, sd)  # e.g. a "mission" checkpoint into "mission+coalition"
-        check_shapes(self.model, sd, path, "model", optional=ZERO_INIT_PARAMS)
+        try:
+            check_shapes(self.model, sd, path, "model", optional=ZERO_INIT_PARAMS)
+        except CheckpointError:  # say which setting of the network differs, where the checkpoint says
+            theirs = loaded_config.get("model") if isinstance(loaded_config.get("model"), dict) else {}
+            diff = [k for k in ("d_model", "heads", "ff_hidden") if k in theirs and theirs[k] != getattr(self.cfg.model, k)]
+            if not diff:
+                raise
+            raise CheckpointError(f"{path}: a network of {', '.join(f'{k} {theirs[k]}' for k in diff)}, this config's "
+                                  f"has {', '.join(f'model.{k} {getattr(self.cfg.model, k)}' for k in diff)} (give "
+                                  f"the config the checkpoint's model section: hmrta checkpoint info {path})") from None
         added = widened or any(n not in sd for n in ZERO_INIT_PARAMS & set(self.model.state_dict()))  # e.g. travel_bias
         ema = weights(ck, "ema", path, required=False)
         if ema is not None and not added:
@@ -502,6 +512,10 @@ class Trainer:
             phase("REINFORCE", "rl", t.iterations, lambda: self.iteration, self.train_step,
                   lambda r: {"mk": f"{r['makespan']:.1f}", "ent": f"{r['entropy']:.2f}",
                              "dps": f"{r['decisions_per_s']:.0f}", "best": f"{self.best_val:.2f}"})
+            # the time limit (train.max_minutes) ended the run before its iterations
+            totals = (p.iterations, cfg.distill.iterations, t.iterations)
+            self.stopped_by_time = time.time() >= deadline and any(
+                done < total for done, total in zip(self._counters(), totals))
         finally:
             # last.pt: the state after the latest finished iteration (cut short within one, the
             # weights may have moved while the counters and random streams have not), and only once
