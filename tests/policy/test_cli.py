@@ -163,6 +163,8 @@ def test_convert_writes_the_robot_mapping(tmp_path, capsys):
     # robots 0, 2 / 1, 4 share pose and skills; robot 3 only the pose: species-major renumbering
     assert mapping["robot_to_agent"] == {"0": 0, "2": 1, "1": 2, "4": 3, "3": 4}
     assert mapping["agent_to_robot"] == ["0", "2", "1", "4", "3"]
+    tasks = sorted(json.loads((CTAS / "config.json").read_text())["tasks"], key=int)
+    assert mapping["index_to_task"] == tasks and mapping["task_to_index"] == {t: m for m, t in enumerate(tasks)}
     inst = load_instance(out)  # the instance file itself stays a plain hmrta-instance/1
     raw = json.loads((CTAS / "config.json").read_text())["robots"]
     for robot, agent in mapping["robot_to_agent"].items():

@@ -94,13 +94,16 @@ def cmd_convert(args) -> int:
         cfg, config = ctas
         mp = writable("the robot mapping of --out", mapping_path(args.out), inputs=(args.input, cfg))  # never an input
         r2a = robot_mapping(inst, config)
+        tasks = sorted(config["tasks"], key=int)  # task m of the mission: the m-th CTAS-D id in index order
         mapping = {"format": MAPPING_FORMAT, "source": str(cfg), "instance": str(args.out), "robot_to_agent": r2a,
-                   "agent_to_robot": sorted(r2a, key=r2a.get)}
+                   "agent_to_robot": sorted(r2a, key=r2a.get), "task_to_index": {t: m for m, t in enumerate(tasks)},
+                   "index_to_task": tasks}
     inst.save(args.out)
     print(f"wrote {args.out} ({inst.n_agents} agents in {inst.n_species} species, {inst.n_tasks} tasks)")
     if mapping is not None:
         atomic_write_text(mp, json.dumps(mapping, indent=1) + "\n")
-        print(f"wrote {mp} (CTAS-D robot id -> hmrta agent id, agents numbered species-major)")
+        print(f"wrote {mp} (CTAS-D robot and task ids -> hmrta agent and task indices, agents numbered "
+              f"species-major)")
     return 0
 
 
