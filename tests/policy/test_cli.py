@@ -102,7 +102,7 @@ def test_old_output_spellings_are_gone(argv, capsys):
     capsys.readouterr()
 
 
-def test_options_may_stand_between_positional_arguments(tmp_path, capsys):
+def test_options_may_stand_between_positional_arguments(tmp_path, capsys, monkeypatch):
     """``hmrta solve a.yaml --method greedy b.yaml`` reads both missions, as the same options
     before or after them would; a subcommand's own errors are unchanged."""
     folder = _missions(tmp_path)
@@ -117,6 +117,11 @@ def test_options_may_stand_between_positional_arguments(tmp_path, capsys):
     capsys.readouterr()
     assert main(["bound", str(a), "--json", str(sol)]) == 0
     assert json.loads(capsys.readouterr().out)
+    # after --, every argument is a positional: a mission file whose name starts with a dash
+    (tmp_path / "-m.yaml").write_text(a.read_text())
+    monkeypatch.chdir(tmp_path)
+    assert main(["solve", "--method", "greedy", "--json", "--", "-m.yaml"]) == 0
+    assert json.loads(capsys.readouterr().out)["makespan"] == mixed[0]["makespan"]
     for argv, said in ((["solve", str(a), "--bogus", str(b)], "hmrta solve: error: unrecognized arguments: --bogus"),
                        (["solve", "--method", "greedy"], "the following arguments are required: INSTANCE"),
                        (["checkpoint", "average", "--out", str(tmp_path / "x.pt")], "required: CHECKPOINT")):
@@ -547,8 +552,9 @@ def test_train_check_reads_the_checkpoint_it_would_start_from(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.pt"]  # no run folder
     # ... nor when it runs: the run folder made for it is not left behind, and the message names
     # the network's settings that differ (coalition-team.yaml's network against compact.pt's)
-    _exit2([t for t in train if t != "--check"] + ["--init", "compact", "--reseed"], capsys,
-           "compact.pt: a network of d_model 64, heads 4, ff_hidden 64, this config's has model.d_model 128, "
+    deep = [str(tmp_path / "runs" / "a" / "b") if t == str(run) else t for t in train if t != "--check"]
+    _exit2(deep + ["--init", "compact", "--reseed"], capsys,
+           "compact.pt: a network of d_model 64, heads 4, ff_hidden 64, this config has model.d_model 128, "
            "model.heads 8, model.ff_hidden 128")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.pt"]
 

@@ -36,7 +36,6 @@ def scenario(tmp_path: Path, *extra: str) -> Path:
     return p
 
 
-
 def test_a_node_refuses_a_parameter_change_it_would_ignore(graph):
     """Every node reads its parameters once, at start: ``ros2 param set`` is refused with the
     reason (it was accepted and ignored, and ``param get`` then reported a value not in effect);
@@ -54,8 +53,10 @@ def test_a_node_refuses_a_parameter_change_it_would_ignore(graph):
     assert not r.successful and "time_scale: read once at start-up" in r.reason
     assert sim.get_parameter("time_scale").value == 0.0 and sim.time_scale == 0.0
     assert sim.set_parameters([Parameter("use_sim_time", value=False)])[0].successful
-    for cls in (AgentNode, Recorder, TaskBoard):  # (built in the mission tests) the same decorator
-        assert cls.__init__.__wrapped__ is not None, cls
+    for cls in (AgentNode, Recorder, TaskBoard):  # (built in the mission tests) the same decorator's __init__
+        assert cls.__init__.__code__ is SimRobot.__init__.__code__ and cls.__init__.__wrapped__.__qualname__ == \
+            f"{cls.__name__}.__init__", cls
+
 
 def test_a_live_scenario_equals_the_offline_run(tmp_path, domain):
     path = scenario(tmp_path)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from .. import __version__
 from ..rl.checkpoint_info import shipped_checkpoints
@@ -82,7 +83,8 @@ class Parser(argparse.ArgumentParser):
         """Options may stand between the positional arguments of a command (``hmrta solve a.yaml
         --method greedy b.yaml``, ``hmrta render m.yaml --out f.png sol.json``): a command with
         positionals and no subcommands of its own is parsed intermixed."""
-        if getattr(self, "_mixing", False) or not self._intermixed():
+        given = sys.argv[1:] if args is None else args
+        if getattr(self, "_mixing", False) or not self._intermixed() or "--" in given:  # (after --: positionals)
             return super().parse_known_args(args, namespace)
         self._mixing = True
         try:

@@ -94,13 +94,16 @@ def _looks_like_routes(path: str) -> bool:
 
 
 def _begins(grown, inst) -> bool:
-    """Whether the mission ``grown`` is ``inst``, or ``inst`` with robots and tasks added after its
-    own (the mission a board published once robots had joined)."""
+    """Whether the mission ``grown`` is ``inst``, or ``inst`` with robots that joined it (the mission
+    a board publishes once robots have joined: more ``added_agents``, and a species of no robot of
+    its own for each new kind; the tasks are the mission's own)."""
     a, b = inst.to_dict(), grown.to_dict()
-    rest = (set(a) | set(b)) - {"species", "tasks", "added_agents"}
-    return (all(a.get(k) == b.get(k) for k in rest) and b["species"][:len(a["species"])] == a["species"]
-            and b["tasks"][:len(a["tasks"])] == a["tasks"]
-            and b.get("added_agents", [])[:len(a.get("added_agents", []))] == a.get("added_agents", []))
+    rest = (set(a) | set(b)) - {"species", "added_agents"}
+    n = len(a["species"])
+    joined = b.get("added_agents", [])
+    return (all(a.get(k) == b.get(k) for k in rest) and b["species"][:n] == a["species"]
+            and all(s["count"] == 0 for s in b["species"][n:])
+            and joined[:len(a.get("added_agents", []))] == a.get("added_agents", []))
 
 
 def cmd_render_recording(args) -> int:

@@ -65,12 +65,6 @@ def cmd_train(args) -> int:
         raise UserError("--init and --reseed only apply with --resume")
     run_dir = writable("--run-dir", args.run_dir or f"runs/{cfg['name']}", folder=True)
     last = run_dir / "last.pt"
-    if args.export:
-        writable("--export", args.export, inputs=tuple(x for x in (args.init,) if x))
-        for own in (last, run_dir / "best.pt"):  # (written by the run: they may not exist yet)
-            if Path(args.export).resolve() == own.resolve():
-                raise UserError(f"--export {args.export}: is the run's own {own.name} (its resume state); "
-                                f"export elsewhere")
     if last.exists() and not args.resume:
         raise UserError(f"{run_dir} already holds a run: pass --resume to continue it or --run-dir for a new one")
     if args.init:  # a file, or a shipped checkpoint by its name (as every other command takes one)
@@ -83,6 +77,15 @@ def cmd_train(args) -> int:
             raise UserError(f"--init {args.init}: no such checkpoint file, and no shipped checkpoint of that name "
                             f"(shipped: {', '.join(sorted(shipped_checkpoints()))})")
         args.init = str(init)
+    if args.export:  # never over what the run reads or writes (the checkpoints by their resolved paths)
+        from ..rl.checkpoint_info import checkpoint_path
+
+        reads = [args.config, *([args.init] if args.init else []),
+                 *([str(checkpoint_path(teacher))] if teacher is not None else [])]
+        writable("--export", args.export, inputs=tuple(reads))
+        for own in ("last.pt", "best.pt", "config.yaml", "log.csv"):  # (the run's: they may not exist yet)
+            if Path(args.export).resolve() == (run_dir / own).resolve():
+                raise UserError(f"--export {args.export}: is the run's own {own}; export elsewhere")
     if args.resume and not args.init and not last.is_file():
         raise UserError(f"--resume: no checkpoint {last} to continue (start a new run without --resume, or give "
                         f"--init CHECKPOINT)")
@@ -107,7 +110,9 @@ def cmd_train(args) -> int:
     from tqdm import tqdm
 
     # log lines above the progress bar, not into it
-    made = not run_dir.exists()
+    existed, made = run_dir.exists(), run_dir  # made: the outermost folder the run makes
+    while not made.parent.exists():
+        made = made.parent
     try:
         tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: tqdm.write(s, file=sys.stderr), jobs=args.jobs,
                      ray_address=args.ray_address)
@@ -115,8 +120,12 @@ def cmd_train(args) -> int:
             src = Path(args.init) if args.init else last
             tr.load(src, reseed=args.reseed, same_run=not args.init)
     except BaseException:  # (e.g. --init of another network): no empty run folder is left behind
-        if made and run_dir.is_dir() and not any(run_dir.iterdir()):
-            run_dir.rmdir()
+        for d in [] if existed else [run_dir, *run_dir.parents]:  # the folders it made, innermost first
+            if not d.is_dir() or any(d.iterdir()):
+                break
+            d.rmdir()
+            if d == made:
+                break
         raise
     if args.resume:
         print(f"resumed from {src}: iteration {tr.iteration}, {tr.episodes} episodes, cloning iteration "

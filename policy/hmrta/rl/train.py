@@ -232,7 +232,7 @@ class Trainer:
             diff = [k for k in ("d_model", "heads", "ff_hidden") if k in theirs and theirs[k] != getattr(self.cfg.model, k)]
             if not diff:
                 raise
-            raise CheckpointError(f"{path}: a network of {', '.join(f'{k} {theirs[k]}' for k in diff)}, this config's "
+            raise CheckpointError(f"{path}: a network of {', '.join(f'{k} {theirs[k]}' for k in diff)}, this config "
                                   f"has {', '.join(f'model.{k} {getattr(self.cfg.model, k)}' for k in diff)} (give "
                                   f"the config the checkpoint's model section: hmrta checkpoint info {path})") from None
         added = widened or any(n not in sd for n in ZERO_INIT_PARAMS & set(self.model.state_dict()))  # e.g. travel_bias
@@ -485,18 +485,18 @@ class Trainer:
         deadline = start + 60 * t.max_minutes if t.max_minutes else math.inf
         last, best = self.run_dir / "last.pt", self.run_dir / "best.pt"
         counters = self._counters()
-        if self.started_from is not None and not best.exists():
-            # weights from another run (--init) are this run's first best.pt, so that neither it nor
-            # an export is ever worse than what the run started from; scored first where the source's
-            # score is not on this run's validation set (--reseed)
-            if self.best_val == math.inf:
+        self._mark_boundary()
+        try:
+            if self.started_from is not None:
+                # weights from another run (--init), scored here, are this run's first best.pt, so
+                # that neither it nor an export is ever worse than what the run started from
                 v = self.validate()
                 self.best_val = v["val_makespan"]
                 w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
                 self.log(f"the starting weights ({self.started_from}): validation {v['val_makespan']:.3f}")
-            self.save(best)
-        self._mark_boundary()
-        try:
+                self.save(best)
+                self.started_from = None
+                self._mark_boundary()
             phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
             phase(f"pretrain (BC of {'schedules' if p.schedules else p.teacher})", "bc", p.iterations, lambda: self.pretrain_done,
                   self.pretrain_step, lambda r: {"loss": f"{r['bc_loss']:.3f}", "best": f"{self.best_val:.2f}"})

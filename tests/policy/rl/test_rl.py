@@ -1811,9 +1811,14 @@ def test_train_export_writes_the_runs_best_weights_with_their_lineage(tmp_path, 
     path.write_text(yaml.safe_dump(cfg))
     run, out = tmp_path / "run", tmp_path / "new" / "folder" / "mine.pt"
     train = ["train", "--config", str(path), "--run-dir", str(run), "--no-progress", "--threads", "1"]
-    for own in ("last.pt", "best.pt"):
+    for own in ("last.pt", "best.pt", "config.yaml", "log.csv"):
         assert main([*train, "--export", str(run / own)]) == 2
         assert f"is the run's own {own}" in capsys.readouterr().err
+    from hmrta.rl.checkpoint_info import SHIPPED_DIR
+
+    for argv in ([*train, "--resume", "--init", "compact", "--export", str(SHIPPED_DIR / "compact.pt")],
+                 [*train, "--export", str(path)]):  # the --init checkpoint by its shipped name, the config
+        assert main(argv) == 2 and "is an input of this command" in capsys.readouterr().err
     assert not run.exists()
     assert main([*train, "--export", str(out)]) == 0
     assert "(the moving average)" in capsys.readouterr().err
