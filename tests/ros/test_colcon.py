@@ -178,6 +178,7 @@ MODULE_KEYS: dict[str, tuple[str, ...]] = {
     "rclpy": ("rclpy",), "std_msgs": ("std_msgs",), "geometry_msgs": ("geometry_msgs",),
     "rosgraph_msgs": ("rosgraph_msgs",), "visualization_msgs": ("visualization_msgs",),
     "builtin_interfaces": ("builtin_interfaces",), "nav_msgs": ("nav_msgs",), "tf2_ros": ("tf2_ros",),
+    "rcl_interfaces": ("rcl_interfaces",),
     "launch": ("launch",), "launch_ros": ("launch_ros",), "ament_index_python": ("ament_index_python",),
     "numpy": ("python3-numpy",), "yaml": ("python3-yaml",), "tqdm": ("python3-tqdm",), "torch": ("python3-torch",),
     "matplotlib": ("python3-matplotlib",),

@@ -1653,7 +1653,7 @@ def test_a_ctrl_c_within_an_iteration_and_the_resume_is_exact(tmp_path):
         t1.run(progress=False)
     assert t1.iteration == 2 and t1.saved_last
     t2 = Trainer(cfg(4), run, device="cpu", log=lambda s: None)
-    t2.load(run / "last.pt")
+    t2.load(run / "last.pt", same_run=True)  # --resume
     t2.run(progress=False)
     _same_state(t2, ref)
     rows = [(r["phase"], r["iteration"]) for r in csv.DictReader(open(run / "log.csv"))]
