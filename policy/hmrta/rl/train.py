@@ -210,7 +210,9 @@ class Trainer:
         The file is unpickled weights-only (it cannot run code); anything missing, mistyped or not
         fitting this network is a CheckpointError naming the file and the field, raised before the
         trainer is changed. ``same_run``: the checkpoint is this run's own (``--resume`` without
-        ``--init``), so its seed must be this config's too (the random streams continue)."""
+        ``--init``), so its seed must be this config's too (the random streams continue); without
+        it, the checkpoint is another run's (``--init``): :meth:`run` scores its weights before the
+        first iteration and keeps them as the first best.pt."""
         ck = checkpoint.load(path, map_location=self.device)
         if not reseed:
             self._check_same_yardstick(ck, path, same_run)
