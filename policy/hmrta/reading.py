@@ -20,6 +20,7 @@ import os
 import re
 import reprlib
 import stat
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -134,8 +135,6 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
 def _too_long(e: Exception) -> str | None:
     """What is wrong, in the file's terms, when ``e`` is Python's refusal of an integer written
     with too many digits (its message advises a call the user cannot make); else None."""
-    import sys
-
     if isinstance(e, ValueError) and "Exceeds the limit" in str(e) and "digits" in str(e):
         return f"an integer of more than {sys.get_int_max_str_digits()} digits"
     return None

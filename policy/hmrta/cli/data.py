@@ -92,7 +92,7 @@ def cmd_convert(args) -> int:
     mapping = None
     if ctas is not None:  # CTAS-D: robots are renumbered species-major
         cfg, config = ctas
-        mp = writable("the robot mapping of --out", mapping_path(args.out), inputs=(args.input, cfg))  # never an input
+        mp = writable("the robot mapping of --out", mapping_path(args.out), inputs=(args.input,))  # never an input
         r2a = robot_mapping(inst, config)
         tasks = sorted(config["tasks"], key=int)  # task m of the mission: the m-th CTAS-D id in index order
         mapping = {"format": MAPPING_FORMAT, "source": str(cfg), "instance": str(args.out), "robot_to_agent": r2a,

@@ -68,6 +68,8 @@ class Parser(argparse.ArgumentParser):
     """A bad command line is one line on stderr, like every other user error (exit 2); the usage is
     in --help. Its subcommands' parsers are of this class too."""
 
+    _mixing = False  # within parse_known_intermixed_args (which calls parse_known_args)
+
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
@@ -84,7 +86,7 @@ class Parser(argparse.ArgumentParser):
         --method greedy b.yaml``, ``hmrta render m.yaml --out f.png sol.json``): a command with
         positionals and no subcommands of its own is parsed intermixed."""
         given = sys.argv[1:] if args is None else args
-        if getattr(self, "_mixing", False) or not self._intermixed() or "--" in given:  # (after --: positionals)
+        if self._mixing or not self._intermixed() or "--" in given:  # (after --: positionals)
             return super().parse_known_args(args, namespace)
         self._mixing = True
         try:

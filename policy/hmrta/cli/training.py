@@ -1,6 +1,7 @@
 """``hmrta train``, ``checkpoint`` and ``schedules``."""
 from __future__ import annotations
 
+import itertools
 import json
 import sys
 from pathlib import Path
@@ -110,9 +111,7 @@ def cmd_train(args) -> int:
     from tqdm import tqdm
 
     # log lines above the progress bar, not into it
-    existed, made = run_dir.exists(), run_dir  # made: the outermost folder the run makes
-    while not made.parent.exists():
-        made = made.parent
+    made = list(itertools.takewhile(lambda d: not d.exists(), [run_dir, *run_dir.parents]))  # innermost first
     try:
         tr = Trainer(cfg, run_dir, device=args.device, log=lambda s: tqdm.write(s, file=sys.stderr), jobs=args.jobs,
                      ray_address=args.ray_address)
@@ -120,12 +119,9 @@ def cmd_train(args) -> int:
             src = Path(args.init) if args.init else last
             tr.load(src, reseed=args.reseed, same_run=not args.init)
     except BaseException:  # (e.g. --init of another network): no empty run folder is left behind
-        for d in [] if existed else [run_dir, *run_dir.parents]:  # the folders it made, innermost first
-            if not d.is_dir() or any(d.iterdir()):
-                break
-            d.rmdir()
-            if d == made:
-                break
+        for d in made:
+            if d.is_dir() and not any(d.iterdir()):
+                d.rmdir()
         raise
     if args.resume:
         print(f"resumed from {src}: iteration {tr.iteration}, {tr.episodes} episodes, cloning iteration "

@@ -35,11 +35,10 @@ from typing import Any
 import torch
 
 from ..reading import short
-from .checkpoint_info import CheckpointError, checkpoint_path, cut_short, existing, sha256, torch_file
+from .checkpoint_info import COUNTERS, CheckpointError, checkpoint_path, cut_short, existing, sha256, torch_file
 
 FORMAT_VERSION = 1
 # the training counters a checkpoint holds (each an integer >= 0: :func:`counter`)
-COUNTERS = ("iteration", "pretrain_done", "distill_done", "episodes", "decisions")
 
 
 def _torch_reason(e: Exception) -> str:
@@ -252,18 +251,24 @@ def export(path: str | Path, config: dict, weights_: dict[str, torch.Tensor], me
     save(path, d)
 
 
-def export_run_checkpoint(src: str | Path, dst: str | Path) -> str:
-    """Write the inference checkpoint of a run's checkpoint ``src`` (its best.pt or last.pt) to
-    ``dst``: the weights inference uses (:func:`policy_weights`), its resolved config, counters,
-    validation scores and lineage as they are. Returns which weights ("ema" or "model")."""
-    ck = load(src)
-    if not isinstance(ck.get("config"), dict):
-        raise CheckpointError(f"{src}: config: expected a mapping (the training config)")
-    which, sd = policy_weights(ck, src)
+def export_checkpoint(ck: dict, dst: str | Path, source: str | Path = "checkpoint") -> str:
+    """Write the inference checkpoint of a training checkpoint's content ``ck`` (a run's file as
+    loaded, or a trainer's state) to ``dst``: the weights inference uses (:func:`policy_weights`),
+    its resolved config, counters, validation scores, lineage and summary as they are. Returns
+    which weights ("ema" or "model")."""
+    which, sd = policy_weights(ck, source)
     meta = {k: ck.get(k) for k in (*COUNTERS, "best_val", "greedy_val")}
     meta["lineage"] = ck.get("lineage") if isinstance(ck.get("lineage"), list) else []
     export(dst, ck["config"], sd, meta, ck.get("summary") if isinstance(ck.get("summary"), dict) else None)
     return which
+
+
+def export_run_checkpoint(src: str | Path, dst: str | Path) -> str:
+    """:func:`export_checkpoint` of a run's checkpoint file ``src`` (its best.pt or last.pt)."""
+    ck = load(src)
+    if not isinstance(ck.get("config"), dict):
+        raise CheckpointError(f"{src}: config: expected a mapping (the training config)")
+    return export_checkpoint(ck, dst, src)
 
 
 def policy_weights(ck: dict, path: str | Path) -> tuple[str, dict[str, torch.Tensor]]:

@@ -171,6 +171,11 @@ def sha256(path: str | Path) -> str:
     return h.hexdigest()
 
 
+# the training counters a checkpoint carries (cloning, distillation and REINFORCE iterations, episodes,
+# decisions)
+COUNTERS = ("iteration", "pretrain_done", "distill_done", "episodes", "decisions")
+
+
 def describe(checkpoint: str | Path | None = None) -> dict:
     """What a checkpoint says about itself, without torch: its path and sha256, checkpoint format
     (0 before formats were numbered), the code version that wrote it, its resolved config (model,
@@ -183,7 +188,7 @@ def describe(checkpoint: str | Path | None = None) -> dict:
                            "format": data.get("checkpoint_format", 0),
                            "code_version": data.get("code_version"),
                            "weights": [k for k in ("model", "ema") if isinstance(data.get(k), dict)]}
-    for k in ("iteration", "pretrain_done", "distill_done", "episodes", "decisions", "best_val"):
+    for k in (*COUNTERS, "best_val"):
         if isinstance(data.get(k), (int, float)) and not isinstance(data.get(k), bool):
             out[k] = data[k]
     out["config"] = data["config"]

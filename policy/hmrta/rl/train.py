@@ -329,11 +329,8 @@ class Trainer:
         return out
 
     def export(self, path: Path, summary: dict | None = None) -> None:
-        """Small inference checkpoint: weights + resolved config + code version + summary."""
-        meta = {"iteration": self.iteration, "pretrain_done": self.pretrain_done, "distill_done": self.distill_done,
-                "decisions": self.decisions, "episodes": self.episodes, "best_val": self.best_val,
-                "greedy_val": self.greedy_val, "lineage": self.lineage}
-        checkpoint.export(path, self.cfg.to_dict(), self.policy_weights(), meta, summary)
+        """Small inference checkpoint of this trainer's state (:func:`checkpoint.export_checkpoint`)."""
+        checkpoint.export_checkpoint({**self.state_dict(), "summary": summary}, path, "trainer")
 
     # ---- data --------------------------------------------------------------------------------
     def schedule_items(self, n: int) -> list[tuple]:
@@ -488,26 +485,27 @@ class Trainer:
         last, best = self.run_dir / "last.pt", self.run_dir / "best.pt"
         counters = self._counters()
         self._mark_boundary()
+
+        def score_as_best() -> dict:  # the weights as they are: validated, logged, kept as best.pt
+            v = self.validate()
+            self.best_val = v["val_makespan"]
+            w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
+            self.save(best)
+            self._mark_boundary()
+            return v
+
         try:
             if self.started_from is not None:
                 # weights from another run (--init), scored here, are this run's first best.pt, so
                 # that neither it nor an export is ever worse than what the run started from
-                v = self.validate()
-                self.best_val = v["val_makespan"]
-                w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
+                v = score_as_best()
                 self.log(f"the starting weights ({self.started_from}): validation {v['val_makespan']:.3f}")
-                self.save(best)
                 self.started_from = None
-                self._mark_boundary()
             phase = functools.partial(self._run_phase, w=w, f=f, start=start, deadline=deadline, progress=progress)
             phase(f"pretrain (BC of {'schedules' if p.schedules else p.teacher})", "bc", p.iterations, lambda: self.pretrain_done,
                   self.pretrain_step, lambda r: {"loss": f"{r['bc_loss']:.3f}", "best": f"{self.best_val:.2f}"})
-            if self.best_val == math.inf:  # no score yet (a new run, or --reseed --init)
-                v = self.validate()
-                self.best_val = v["val_makespan"]
-                w.writerow({**v, "phase": "val", "iteration": self.iteration, "wall": time.time() - start})
-                self.save(best)
-                self._mark_boundary()
+            if self.best_val == math.inf:  # no score yet (a new run, or --reseed of its own checkpoint)
+                score_as_best()
             phase("lookahead distillation", "distill", cfg.distill.iterations, lambda: self.distill_done,
                   self.distill_step, lambda r: {"mk": f"{r['makespan']:.1f}", "gain": f"{r['lookahead_gain']:.3f}",
                                                 "loss": f"{r['loss']:.3f}", "best": f"{self.best_val:.2f}"})
