@@ -224,7 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
                  "; the labels, and so the run, are the same whatever N")
     t.add_argument("--export", default=None, help="after training, write an inference checkpoint here: the "
                    "weights of the run's best.pt (its moving average with train.ema; last.pt without a "
-                   "validation), its config, counters and lineage; not the run's own last.pt or best.pt. "
+                   "validation), its config, counters and lineage; never over the run's own files or one it "
+                   "reads. "
                    "To export a run without training more: hmrta checkpoint average RUN/best.pt --out FILE")
     t.add_argument("--no-progress", action="store_true", help="no progress bar (drawn only when stderr is a terminal)")
     t.add_argument("--check", action="store_true", help="only validate the config (with --iterations and "
